@@ -1,0 +1,205 @@
+//! The command-line interface (clap derive). Errors print their whole cause chain.
+//!
+//! Exit codes:
+//! * 0 — success;
+//! * 1 — a runtime failure (I/O, an unreadable result folder);
+//! * 2 — an invalid spec or invalid command-line usage.
+
+pub mod progress;
+pub mod summary;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+use crate::error::KfmcError;
+use crate::experiment::{self, FilterKind, Overrides, Plan};
+use crate::scenario::planar::{builtin, BUILTIN_PLANAR};
+use progress::ProgressObserver;
+
+/// Exit code: success.
+pub const EXIT_OK: u8 = 0;
+/// Exit code: runtime failure.
+pub const EXIT_FAILURE: u8 = 1;
+/// Exit code: invalid spec or usage.
+pub const EXIT_INVALID_SPEC: u8 = 2;
+
+/// kfmc — judge state estimators statistically with seeded Monte Carlo studies.
+#[derive(Debug, Parser)]
+#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage.")]
+pub struct Cli {
+    /// The command.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// kfmc's commands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run a Monte Carlo study and write its Parquet tables.
+    Run {
+        /// The experiment spec (TOML).
+        spec: PathBuf,
+        /// Output folder (overrides the spec's `output`).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Runs per cell (overrides `runs`).
+        #[arg(long)]
+        runs: Option<usize>,
+        /// Worker threads; 0 = all cores. Results do not depend on it.
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Master seed (overrides `master_seed`).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Runs per (scenario, noise scale) whose full trajectories go to traces.parquet.
+        #[arg(long)]
+        trace_runs: Option<usize>,
+        /// No progress bar and no report.
+        #[arg(long, short)]
+        quiet: bool,
+    },
+    /// Check a spec and print the plan size, without running it.
+    Validate {
+        /// The experiment spec (TOML).
+        spec: PathBuf,
+    },
+    /// Print the RMSE summary (and divergence points) of a result folder.
+    Summary {
+        /// A folder written by `kfmc run`.
+        dir: PathBuf,
+        /// Only this truth-noise multiplier.
+        #[arg(long)]
+        noise_scale: Option<f64>,
+    },
+    /// List models, sensors, scenarios and filters.
+    List,
+}
+
+fn describe(plan: &Plan) -> String {
+    let size = plan.size();
+    let filters: Vec<String> = plan
+        .filters
+        .iter()
+        .map(|f| format!("{} ({})", f.label, f.kind.tag()))
+        .collect();
+    let scales = match plan.noise_scales.as_slice() {
+        [one] => format!("{one}"),
+        s => format!("{} values from {} to {}", s.len(), s[0], s[s.len() - 1]),
+    };
+    format!(
+        "{name}: {cells} cells × {runs} runs = {total} runs, {fr} filter runs, {steps} filter steps\n  scenarios: {scen}\n  filters: {filters}\n  noise scales: {scales}\n  master seed: {seed}\n  output: {out}",
+        name = plan.name,
+        cells = size.cells,
+        runs = plan.runs,
+        total = size.runs,
+        fr = size.filter_runs,
+        steps = size.filter_steps,
+        scen = plan.scenarios.iter().map(|s| s.name.as_str()).collect::<Vec<_>>().join(", "),
+        filters = filters.join(", "),
+        seed = plan.master_seed,
+        out = plan.output.display(),
+    )
+}
+
+fn list() -> String {
+    let mut s = String::from(
+        "models:\n  planar_quadrotor  state [x, xdot, y, ydot, theta, thetadot], input [u1, u2] (seeds 000/001/003)\n\
+         sensors (model.sensor):\n  p1   [y, theta, thetadot]  (seeds 000/001)\n  imu  [y, thetadot, xddot, yddot]  (seed 003)\n\
+         scenarios (built-in, planar_quadrotor):\n",
+    );
+    for name in BUILTIN_PLANAR {
+        let d = builtin(name).expect("built-in");
+        let stages: Vec<String> = d
+            .profile
+            .stages
+            .iter()
+            .map(|st| format!("k≥{}: [{}, {}] N", st.from_step, st.thrust_n[0], st.thrust_n[1]))
+            .collect();
+        s.push_str(&format!(
+            "  {name:<11} x0 = {:?}; {}\n",
+            d.x0.map(|v| (v * 1e4).round() / 1e4),
+            stages.join(", ")
+        ));
+    }
+    s.push_str("filters (filters[].kind):\n");
+    for (k, d) in [
+        (FilterKind::Ekf { update: crate::filter::CovarianceUpdate::Standard }, "extended Kalman filter; q_std, r_std, covariance_update = standard | joseph"),
+        (FilterKind::RunningMean { window: 11 }, "running-mean baseline of seed 000 (sensor p1 only); window (samples, default 11)"),
+    ] {
+        s.push_str(&format!("  {:<13} {d}\n", k.tag()));
+    }
+    s
+}
+
+/// Runs the CLI and returns the process exit code.
+pub fn main_with(cli: Cli) -> ExitCode {
+    match dispatch(cli) {
+        Ok(()) => ExitCode::from(EXIT_OK),
+        Err(e) => {
+            let code = match e.downcast_ref::<KfmcError>() {
+                Some(KfmcError::Spec(_)) => EXIT_INVALID_SPEC,
+                _ => EXIT_FAILURE,
+            };
+            eprintln!("error: {e:#}");
+            ExitCode::from(code)
+        }
+    }
+}
+
+fn dispatch(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Run {
+            spec,
+            out,
+            runs,
+            threads,
+            seed,
+            trace_runs,
+            quiet,
+        } => {
+            let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
+            plan.apply(&Overrides {
+                runs,
+                master_seed: seed,
+                output: out,
+                trace_runs,
+            })
+            .map_err(KfmcError::from)?;
+            let observer = ProgressObserver::new(!quiet);
+            let report = crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
+                .map_err(anyhow::Error::from)
+                .map_err(|e| e.context(format!("running {}", spec.display())))?;
+            if !quiet {
+                println!(
+                    "{} runs in {:.1} s ({:.0} runs/s) → {}",
+                    report.runs,
+                    report.wall_s,
+                    report.runs as f64 / report.wall_s.max(1e-9),
+                    report.output.display()
+                );
+                for (name, rows) in &report.tables {
+                    println!("  {name}.parquet  {rows} rows");
+                }
+            }
+            Ok(())
+        }
+        Command::Validate { spec } => {
+            let plan = experiment::load(&spec).map_err(KfmcError::from)?;
+            println!("{}", describe(&plan));
+            Ok(())
+        }
+        Command::Summary { dir, noise_scale } => {
+            let text = summary::render(&dir, noise_scale)
+                .map_err(KfmcError::from)
+                .map_err(|e| anyhow::Error::from(e).context(format!("reading results in {}", dir.display())))?;
+            print!("{text}");
+            Ok(())
+        }
+        Command::List => {
+            print!("{}", list());
+            Ok(())
+        }
+    }
+}

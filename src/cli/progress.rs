@@ -1,0 +1,46 @@
+//! The indicatif progress bar: the only place kfmc draws progress.
+
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use std::io::IsTerminal;
+
+use crate::runner::RunObserver;
+
+/// A progress bar over simulated runs, with rate and ETA; hidden with `--quiet` or when
+/// stderr is not a terminal, so logs and pipes stay clean.
+pub struct ProgressObserver {
+    bar: ProgressBar,
+}
+
+impl ProgressObserver {
+    /// A bar that draws only when `visible` and stderr is a terminal.
+    pub fn new(visible: bool) -> Self {
+        let bar = ProgressBar::with_draw_target(
+            Some(0),
+            if visible && std::io::stderr().is_terminal() {
+                ProgressDrawTarget::stderr()
+            } else {
+                ProgressDrawTarget::hidden()
+            },
+        );
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{elapsed_precise} [{wide_bar:.cyan/blue}] {human_pos}/{human_len} runs  {per_sec}  ETA {eta}",
+            )
+            .expect("the template is valid")
+            .progress_chars("=> "),
+        );
+        ProgressObserver { bar }
+    }
+}
+
+impl RunObserver for ProgressObserver {
+    fn on_start(&self, total_units: u64) {
+        self.bar.set_length(total_units);
+    }
+    fn on_units_done(&self, n: u64) {
+        self.bar.inc(n);
+    }
+    fn on_finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}

@@ -1,0 +1,135 @@
+//! `kfmc summary DIR`: the RMSE table (and divergence points) in the terminal, read from the
+//! written Parquet tables.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use polars::prelude::*;
+
+use crate::error::OutputError;
+use crate::output::table::read;
+
+fn fmt_err(path: &Path, e: PolarsError) -> OutputError {
+    OutputError::Polars {
+        action: "unexpected columns in",
+        path: path.to_path_buf(),
+        source: e,
+    }
+}
+
+fn strs(df: &DataFrame, name: &str, path: &Path) -> Result<Vec<String>, OutputError> {
+    let c = df.column(name).map_err(|e| fmt_err(path, e))?;
+    Ok(c.str()
+        .map_err(|e| fmt_err(path, e))?
+        .iter()
+        .map(|s| s.unwrap_or("").to_string())
+        .collect())
+}
+
+fn f64s(df: &DataFrame, name: &str, path: &Path) -> Result<Vec<Option<f64>>, OutputError> {
+    let c = df.column(name).map_err(|e| fmt_err(path, e))?;
+    Ok(c.f64().map_err(|e| fmt_err(path, e))?.iter().collect())
+}
+
+/// A number in 4 significant digits, or "—" for null.
+fn num(v: Option<f64>) -> String {
+    match v {
+        None => "—".into(),
+        Some(x) if x != 0.0 && (x.abs() >= 1e4 || x.abs() < 1e-3) => format!("{x:.3e}"),
+        Some(x) => format!("{:.4}", x),
+    }
+}
+
+/// Renders the summary of a result folder as text.
+pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
+    let path = dir.join("summary.parquet");
+    let df = read(&path)?;
+    let scen = strs(&df, "scenario", &path)?;
+    let filt = strs(&df, "filter", &path)?;
+    let state = strs(&df, "state", &path)?;
+    let noise = f64s(&df, "noise_scale", &path)?;
+    let mean = f64s(&df, "rmse_mean", &path)?;
+    let std = f64s(&df, "rmse_std", &path)?;
+
+    let mut states: Vec<String> = Vec::new();
+    // (scenario order, noise, filter order) → state → "mean ± std"
+    let mut rows: Vec<(String, f64, String)> = Vec::new();
+    let mut cells: BTreeMap<(usize, String), String> = BTreeMap::new();
+    for i in 0..df.height() {
+        let nz = noise[i].unwrap_or(f64::NAN);
+        if noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0)) {
+            continue;
+        }
+        if !states.contains(&state[i]) {
+            states.push(state[i].clone());
+        }
+        let key = (scen[i].clone(), nz, filt[i].clone());
+        let idx = match rows.iter().position(|r| *r == key) {
+            Some(p) => p,
+            None => {
+                rows.push(key);
+                rows.len() - 1
+            }
+        };
+        let text = match std[i] {
+            Some(s) => format!("{} ± {}", num(mean[i]), num(Some(s))),
+            None => num(mean[i]),
+        };
+        cells.insert((idx, state[i].clone()), text);
+    }
+    let mut out = String::new();
+    if rows.is_empty() {
+        out.push_str("no rows match\n");
+        return Ok(out);
+    }
+    let widths: Vec<usize> = states
+        .iter()
+        .map(|s| {
+            (0..rows.len())
+                .filter_map(|r| cells.get(&(r, s.clone())).map(|c| c.chars().count()))
+                .chain([s.len() + 5])
+                .max()
+                .unwrap_or(8)
+        })
+        .collect();
+    let sw = rows.iter().map(|r| r.0.len()).max().unwrap_or(8).max(8);
+    let fw = rows.iter().map(|r| r.2.len()).max().unwrap_or(6).max(6);
+    let _ = write!(out, "RMSE (mean ± std over runs)\n{:<sw$}  {:>11}  {:<fw$}", "scenario", "noise_scale", "filter");
+    for (s, w) in states.iter().zip(&widths) {
+        let _ = write!(out, "  {:>w$}", format!("rmse_{s}"));
+    }
+    out.push('\n');
+    for (ri, (s, nz, f)) in rows.iter().enumerate() {
+        let _ = write!(out, "{s:<sw$}  {:>11}  {f:<fw$}", format!("{nz}"));
+        for (st, w) in states.iter().zip(&widths) {
+            let c = cells.get(&(ri, st.clone())).cloned().unwrap_or_else(|| "—".into());
+            let _ = write!(out, "  {c:>w$}");
+        }
+        out.push('\n');
+    }
+
+    let dpath = dir.join("divergence.parquet");
+    if dpath.exists() {
+        let d = read(&dpath)?;
+        let scen = strs(&d, "scenario", &dpath)?;
+        let filt = strs(&d, "filter", &dpath)?;
+        let state = strs(&d, "state", &dpath)?;
+        let thr = f64s(&d, "threshold", &dpath)?;
+        let mc = f64s(&d, "mc_divergence_scale", &dpath)?;
+        let p50 = f64s(&d, "run_divergence_p50", &dpath)?;
+        let _ = write!(
+            out,
+            "\nDivergence: first noise scale whose RMSE exceeds the threshold (— = none up to the largest scale)\n{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}\n",
+            "scenario", "filter", "state", "threshold", "mc_mean", "run_median"
+        );
+        for i in 0..d.height() {
+            let _ = writeln!(
+                out,
+                "{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}",
+                scen[i], filt[i], state[i], num(thr[i]), num(mc[i]), num(p50[i])
+            );
+        }
+    }
+    Ok(out)
+}

@@ -1,0 +1,96 @@
+//! Library errors (`thiserror`). The CLI prints the whole cause chain and maps each kind to a
+//! documented exit code.
+
+use std::fmt;
+use std::path::PathBuf;
+
+/// One problem in a spec, with the file and the key path (`filters[1].q_std`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SpecError {
+    /// The spec file.
+    pub file: PathBuf,
+    /// Dotted key path; empty for file-level problems (unreadable, bad TOML syntax).
+    pub key_path: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+impl fmt::Display for SpecError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.key_path.is_empty() {
+            write!(f, "{}: {}", self.file.display(), self.message)
+        } else {
+            write!(f, "{}: {}: {}", self.file.display(), self.key_path, self.message)
+        }
+    }
+}
+
+/// Every problem found in a spec (validation reports them all at once).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub struct SpecErrors(pub Vec<SpecError>);
+
+impl fmt::Display for SpecErrors {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let n = self.0.len();
+        write!(f, "invalid spec ({n} problem{})", if n == 1 { "" } else { "s" })?;
+        for e in &self.0 {
+            write!(f, "\n  {e}")?;
+        }
+        Ok(())
+    }
+}
+
+/// Writing or reading a result table failed.
+#[derive(Debug, thiserror::Error)]
+pub enum OutputError {
+    /// File-system trouble at a path.
+    #[error("{action} {path}")]
+    Io {
+        /// What was attempted.
+        action: &'static str,
+        /// Where.
+        path: PathBuf,
+        /// The cause.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Polars failed to build, write or read a table.
+    #[error("{action} {path}")]
+    Polars {
+        /// What was attempted.
+        action: &'static str,
+        /// Where.
+        path: PathBuf,
+        /// The cause.
+        #[source]
+        source: polars::prelude::PolarsError,
+    },
+    /// A table exists but is not what kfmc wrote.
+    #[error("{path}: {message}")]
+    Format {
+        /// The table.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// Any kfmc error.
+#[derive(Debug, thiserror::Error)]
+pub enum KfmcError {
+    /// The spec is invalid.
+    #[error(transparent)]
+    Spec(#[from] SpecErrors),
+    /// Results could not be written or read.
+    #[error(transparent)]
+    Output(#[from] OutputError),
+    /// The thread pool could not be built.
+    #[error("cannot build a thread pool of {threads} threads")]
+    ThreadPool {
+        /// Requested threads.
+        threads: usize,
+        /// The cause.
+        #[source]
+        source: rayon::ThreadPoolBuildError,
+    },
+}

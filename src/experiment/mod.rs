@@ -1,0 +1,56 @@
+//! The experiment role: TOML spec → validated [`Plan`].
+//!
+//! Two phases, as cargo-nextest does it: [`spec`] holds serde types that mirror the file
+//! (unknown keys are errors), [`plan`] validates them into typed values, reporting every
+//! problem at once with the file and the key path (`filters[1].q_std: …`).
+
+pub mod plan;
+pub mod spec;
+
+use std::path::Path;
+
+pub use plan::{FilterKind, FilterNoiseMode, FilterPlan, InitialMode, ModelKind, Overrides, Plan, PlanSize};
+
+use crate::error::{SpecError, SpecErrors};
+
+/// Reads, parses and validates a spec file.
+pub fn load(path: &Path) -> Result<Plan, SpecErrors> {
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        SpecErrors(vec![SpecError {
+            file: path.to_path_buf(),
+            key_path: String::new(),
+            message: format!("cannot read the spec: {e}"),
+        }])
+    })?;
+    parse(&text, path)
+}
+
+/// Parses and validates spec text; `path` names it in errors.
+pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
+    let one = |key_path: String, message: String| {
+        SpecErrors(vec![SpecError {
+            file: path.to_path_buf(),
+            key_path,
+            message,
+        }])
+    };
+    let de = toml::de::Deserializer::parse(text).map_err(|e| one(String::new(), with_line(text, e)))?;
+    let spec: spec::Spec = serde_path_to_error::deserialize(de).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        one(if path == "." { String::new() } else { path }, with_line(text, inner))
+    })?;
+    plan::validate(spec, path, text)
+}
+
+/// The TOML error's message with its line number.
+fn with_line(text: &str, e: toml::de::Error) -> String {
+    let msg = e.message().trim().to_string();
+    match e.span() {
+        Some(span) => {
+            let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
+            format!("{msg} (line {line})")
+        }
+        None => msg,
+    }
+}

@@ -1,0 +1,674 @@
+//! Validation: raw [`Spec`] → typed [`Plan`], reporting *every* problem with its key path.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use super::spec::{OneOrMany, Scales, Spec};
+use crate::error::{SpecError, SpecErrors};
+use crate::filter::CovarianceUpdate;
+use crate::model::planar::{PlanarParams, PLANAR_STATES};
+use crate::scenario::planar::{builtin, PlanarScenarioDef, ThrustProfile, ThrustStage, BUILTIN_PLANAR};
+use crate::sim::seed::hash_str;
+
+/// Which model (and sensor set) a study uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ModelKind {
+    /// Planar quadrotor measuring `[y, θ, θ̇]`.
+    PlanarP1,
+    /// Planar quadrotor measuring `[y, θ̇, ẍ, ÿ]`.
+    PlanarImu,
+}
+
+impl ModelKind {
+    /// Number of states.
+    pub fn nx(self) -> usize {
+        6
+    }
+    /// Number of measurement components.
+    pub fn nz(self) -> usize {
+        match self {
+            ModelKind::PlanarP1 => 3,
+            ModelKind::PlanarImu => 4,
+        }
+    }
+    /// State names.
+    pub fn state_names(self) -> &'static [&'static str] {
+        &PLANAR_STATES
+    }
+}
+
+/// The validated model section.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelPlan {
+    /// Model and sensor set.
+    pub kind: ModelKind,
+    /// Physical parameters.
+    pub params: PlanarParams,
+    /// Truth process-noise std per state at scale 1.
+    pub process_noise_std: Vec<f64>,
+    /// Truth measurement-noise std per component at scale 1.
+    pub measurement_noise_std: Vec<f64>,
+}
+
+/// Filter variants, with their configuration.
+#[derive(Clone, Debug, PartialEq)]
+pub enum FilterKind {
+    /// Extended Kalman filter.
+    Ekf {
+        /// Covariance update form.
+        update: CovarianceUpdate,
+    },
+    /// Running-mean baseline.
+    RunningMean {
+        /// Samples averaged.
+        window: usize,
+    },
+}
+
+impl FilterKind {
+    /// The TOML `kind` tag.
+    pub fn tag(&self) -> &'static str {
+        match self {
+            FilterKind::Ekf { .. } => "ekf",
+            FilterKind::RunningMean { .. } => "running_mean",
+        }
+    }
+}
+
+/// A validated filter entry.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FilterPlan {
+    /// Label (the `filter` column).
+    pub label: String,
+    /// Variant and its settings.
+    pub kind: FilterKind,
+    /// Assumed process-noise std per state (at noise scale 1 in `matched` mode).
+    pub q_std: Vec<f64>,
+    /// Assumed measurement-noise std per component.
+    pub r_std: Vec<f64>,
+}
+
+/// What the filters assume when the truth noise is scaled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FilterNoiseMode {
+    /// Filters keep their Q/R (the seeds' robustness study).
+    Nominal,
+    /// Filters' assumed std scale with the truth's.
+    Matched,
+}
+
+/// How x̂_0 is formed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InitialMode {
+    /// x̂_0 = x_0 (the seeds).
+    Truth,
+    /// x̂_0 ~ N(x_0, P_0), drawn once per run and shared by all filters.
+    Sampled,
+}
+
+/// A validated, expanded experiment.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Plan {
+    /// Experiment name.
+    pub name: String,
+    /// Description.
+    pub description: Option<String>,
+    /// The spec file.
+    pub spec_path: PathBuf,
+    /// The spec text, recorded in the manifest.
+    pub spec_text: String,
+    /// FNV-1a 64 hash of the spec text (hex).
+    pub spec_hash: String,
+    /// Model.
+    pub model: ModelPlan,
+    /// Scenarios.
+    pub scenarios: Vec<PlanarScenarioDef>,
+    /// Filters.
+    pub filters: Vec<FilterPlan>,
+    /// Truth-noise multipliers, ascending.
+    pub noise_scales: Vec<f64>,
+    /// Filter noise mode.
+    pub filter_noise: FilterNoiseMode,
+    /// Initial-estimate mode.
+    pub initial: InitialMode,
+    /// P_0 diagonal std.
+    pub p0_std: Vec<f64>,
+    /// Runs per cell.
+    pub runs: usize,
+    /// Master seed.
+    pub master_seed: u64,
+    /// Traced runs per (scenario, noise scale).
+    pub trace_runs: usize,
+    /// Output folder.
+    pub output: PathBuf,
+    /// RMSE divergence thresholds per state.
+    pub rmse_thresholds: Option<Vec<f64>>,
+}
+
+/// Command-line overrides of spec values.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Overrides {
+    /// `--runs`
+    pub runs: Option<usize>,
+    /// `--seed`
+    pub master_seed: Option<u64>,
+    /// `--out`
+    pub output: Option<PathBuf>,
+    /// `--trace-runs`
+    pub trace_runs: Option<usize>,
+}
+
+/// The size of a plan.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PlanSize {
+    /// (scenario, noise scale) pairs.
+    pub cells: usize,
+    /// Simulated truths: cells × runs.
+    pub runs: usize,
+    /// Filter runs: runs × filters.
+    pub filter_runs: usize,
+    /// Filter steps in total.
+    pub filter_steps: u64,
+}
+
+impl Plan {
+    /// Counts cells, runs and steps.
+    pub fn size(&self) -> PlanSize {
+        let cells = self.scenarios.len() * self.noise_scales.len();
+        let runs = cells * self.runs;
+        let steps: u64 = self
+            .scenarios
+            .iter()
+            .map(|s| s.steps(self.model.params.dt_s) as u64)
+            .sum::<u64>()
+            * (self.noise_scales.len() * self.runs * self.filters.len()) as u64;
+        PlanSize {
+            cells,
+            runs,
+            filter_runs: runs * self.filters.len(),
+            filter_steps: steps,
+        }
+    }
+
+    /// Applies command-line overrides (they win over the spec).
+    pub fn apply(&mut self, o: &Overrides) -> Result<(), SpecErrors> {
+        let mut errs = Vec::new();
+        if let Some(r) = o.runs {
+            if r == 0 {
+                errs.push(self.err("--runs", "must be at least 1"));
+            }
+            self.runs = r;
+        }
+        if let Some(s) = o.master_seed {
+            self.master_seed = s;
+        }
+        if let Some(p) = &o.output {
+            self.output = p.clone();
+        }
+        if let Some(t) = o.trace_runs {
+            self.trace_runs = t;
+        }
+        if self.trace_runs > self.runs {
+            errs.push(self.err(
+                "trace_runs",
+                format!("{} traced runs but only {} runs", self.trace_runs, self.runs),
+            ));
+        }
+        if errs.is_empty() {
+            Ok(())
+        } else {
+            Err(SpecErrors(errs))
+        }
+    }
+
+    fn err(&self, key: &str, msg: impl Into<String>) -> SpecError {
+        SpecError {
+            file: self.spec_path.clone(),
+            key_path: key.to_string(),
+            message: msg.into(),
+        }
+    }
+}
+
+/// Collects validation errors with the file name attached.
+struct Checker {
+    file: PathBuf,
+    errors: Vec<SpecError>,
+}
+
+impl Checker {
+    fn err(&mut self, key: impl Into<String>, msg: impl Into<String>) {
+        self.errors.push(SpecError {
+            file: self.file.clone(),
+            key_path: key.into(),
+            message: msg.into(),
+        });
+    }
+
+    /// Expands a scalar-or-list to `n` components, checking each with `ok`.
+    fn vector(
+        &mut self,
+        key: &str,
+        v: Option<&OneOrMany>,
+        n: usize,
+        default: &[f64],
+        ok: fn(f64) -> bool,
+        what: &str,
+    ) -> Vec<f64> {
+        let out = match v {
+            None => default.to_vec(),
+            Some(OneOrMany::One(x)) => vec![*x; n],
+            Some(OneOrMany::Many(xs)) if xs.len() == n => xs.clone(),
+            Some(OneOrMany::Many(xs)) => {
+                self.err(
+                    key,
+                    format!("expected 1 or {n} values, got {}", xs.len()),
+                );
+                return default.to_vec();
+            }
+        };
+        for (i, x) in out.iter().enumerate() {
+            if !ok(*x) {
+                let k = if matches!(v, Some(OneOrMany::Many(_))) {
+                    format!("{key}[{i}]")
+                } else {
+                    key.to_string()
+                };
+                self.err(k, format!("{x} is not {what}"));
+                break;
+            }
+        }
+        out
+    }
+
+    fn choice<'a>(&mut self, key: &str, v: Option<&'a str>, default: &'a str, allowed: &[&str]) -> &'a str {
+        let s = v.unwrap_or(default);
+        if !allowed.contains(&s) {
+            self.err(
+                key,
+                format!("unknown value `{s}`; expected one of: {}", allowed.join(", ")),
+            );
+        }
+        s
+    }
+}
+
+fn positive(x: f64) -> bool {
+    x.is_finite() && x > 0.0
+}
+fn non_negative(x: f64) -> bool {
+    x.is_finite() && x >= 0.0
+}
+
+/// Expands `start, start+step, … ≤ stop`; values are rounded to 12 significant digits so a
+/// grid like 0.2, 0.4, 0.6 prints as written rather than as 0.6000000000000001.
+pub fn expand_range(start: f64, stop: f64, step: f64) -> Vec<f64> {
+    let n = ((stop - start) / step + 1e-9).floor() as usize + 1;
+    (0..n)
+        .map(|i| {
+            let v = start + i as f64 * step;
+            let mag = 10f64.powi(11 - v.abs().log10().floor() as i32);
+            if v == 0.0 { 0.0 } else { (v * mag).round() / mag }
+        })
+        .collect()
+}
+
+/// Validates a parsed spec into a plan.
+pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors> {
+    let mut c = Checker {
+        file: path.to_path_buf(),
+        errors: Vec::new(),
+    };
+
+    // Model.
+    let m = &spec.model;
+    if m.kind != "planar_quadrotor" {
+        c.err(
+            "model.kind",
+            format!("unknown model `{}`; expected one of: planar_quadrotor", m.kind),
+        );
+    }
+    let sensor = c.choice("model.sensor", m.sensor.as_deref(), "p1", &["p1", "imu"]);
+    let kind = if sensor == "imu" {
+        ModelKind::PlanarImu
+    } else {
+        ModelKind::PlanarP1
+    };
+    let d = PlanarParams::default();
+    let mut param = |key: &str, v: Option<f64>, def: f64| {
+        let x = v.unwrap_or(def);
+        if !positive(x) {
+            c.err(format!("model.{key}"), format!("{x} is not a positive number"));
+        }
+        x
+    };
+    let params = PlanarParams {
+        mass_kg: param("mass_kg", m.mass_kg, d.mass_kg),
+        arm_m: param("arm_m", m.arm_m, d.arm_m),
+        inertia_kg_m2: param("inertia_kg_m2", m.inertia_kg_m2, d.inertia_kg_m2),
+        gravity_m_s2: param("gravity_m_s2", m.gravity_m_s2, d.gravity_m_s2),
+        dt_s: param("dt_s", m.dt_s, d.dt_s),
+    };
+    let (nx, nz) = (kind.nx(), kind.nz());
+    let process_noise_std = c.vector(
+        "model.process_noise_std",
+        m.process_noise_std.as_ref(),
+        nx,
+        &vec![0.003; nx],
+        non_negative,
+        "a non-negative number",
+    );
+    let measurement_noise_std = c.vector(
+        "model.measurement_noise_std",
+        m.measurement_noise_std.as_ref(),
+        nz,
+        &vec![0.01; nz],
+        non_negative,
+        "a non-negative number",
+    );
+
+    // Scenarios.
+    if spec.scenarios.is_empty() {
+        c.err("scenarios", "at least one [[scenarios]] entry is required");
+    }
+    let mut names = BTreeSet::new();
+    let mut scenarios = Vec::new();
+    for (i, s) in spec.scenarios.iter().enumerate() {
+        let key = format!("scenarios[{i}]");
+        if !names.insert(s.name.clone()) {
+            c.err(format!("{key}.name"), format!("duplicate scenario name `{}`", s.name));
+        }
+        let base_name = s.base.as_deref().unwrap_or(&s.name);
+        let base = builtin(base_name);
+        if base.is_none() && (s.base.is_some() || s.x0.is_none() || s.stages.is_none()) {
+            let k = if s.base.is_some() { "base" } else { "name" };
+            c.err(
+                format!("{key}.{k}"),
+                format!(
+                    "unknown built-in scenario `{base_name}` (built-ins: {}); a custom scenario needs x0 and stages",
+                    BUILTIN_PLANAR.join(", ")
+                ),
+            );
+            continue;
+        }
+        let mut def = base.unwrap_or(PlanarScenarioDef {
+            name: s.name.clone(),
+            x0: [0.0; 6],
+            duration_s: 10.0,
+            profile: ThrustProfile {
+                stages: vec![],
+                ripple: 0.0,
+                ripple_rad_s: 0.0,
+            },
+        });
+        def.name = s.name.clone();
+        if let Some(x0) = &s.x0 {
+            if x0.len() != 6 || !x0.iter().all(|v| v.is_finite()) {
+                c.err(format!("{key}.x0"), format!("expected 6 finite numbers, got {x0:?}"));
+            } else {
+                def.x0.copy_from_slice(x0);
+            }
+        }
+        if let Some(dur) = s.duration_s {
+            if !positive(dur) || dur < params.dt_s {
+                c.err(format!("{key}.duration_s"), format!("{dur} is shorter than one sample"));
+            }
+            def.duration_s = dur;
+        }
+        if let Some(r) = s.ripple {
+            def.profile.ripple = r;
+        }
+        if let Some(w) = s.ripple_rad_s {
+            def.profile.ripple_rad_s = w;
+        }
+        if let Some(stages) = &s.stages {
+            def.profile.stages.clear();
+            for (j, st) in stages.iter().enumerate() {
+                let skey = format!("{key}.stages[{j}]");
+                if st.thrust_n.len() != 2 || !st.thrust_n.iter().all(|v| v.is_finite()) {
+                    c.err(format!("{skey}.thrust_n"), "expected [u1, u2] in N");
+                    continue;
+                }
+                let prev = def.profile.stages.last().map(|p: &ThrustStage| p.from_step);
+                if (j == 0 && st.from_step != 0) || prev.is_some_and(|p| st.from_step as usize <= p) {
+                    c.err(
+                        format!("{skey}.from_step"),
+                        "stages must start at step 0 and increase strictly",
+                    );
+                }
+                def.profile.stages.push(ThrustStage {
+                    from_step: st.from_step as usize,
+                    thrust_n: [st.thrust_n[0], st.thrust_n[1]],
+                });
+            }
+            if stages.is_empty() {
+                c.err(format!("{key}.stages"), "at least one stage is required");
+            }
+        }
+        scenarios.push(def);
+    }
+
+    // Filters.
+    if spec.filters.is_empty() {
+        c.err("filters", "at least one [[filters]] entry is required");
+    }
+    let mut labels = BTreeSet::new();
+    let mut filters = Vec::new();
+    for (i, f) in spec.filters.iter().enumerate() {
+        let key = format!("filters[{i}]");
+        if f.label.trim().is_empty() || f.label.contains(char::is_whitespace) {
+            c.err(format!("{key}.label"), "must be non-empty and contain no spaces");
+        }
+        if !labels.insert(f.label.clone()) {
+            c.err(format!("{key}.label"), format!("duplicate filter label `{}`", f.label));
+        }
+        let kind_tag = c.choice(&format!("{key}.kind"), Some(&f.kind), "ekf", &["ekf", "running_mean"]);
+        let fk = match kind_tag {
+            "running_mean" => {
+                if kind != ModelKind::PlanarP1 {
+                    c.err(
+                        format!("{key}.kind"),
+                        "running_mean reads y, θ, θ̇ directly and needs model.sensor = \"p1\"",
+                    );
+                }
+                for (k, present) in [
+                    ("q_std", f.q_std.is_some()),
+                    ("r_std", f.r_std.is_some()),
+                    ("covariance_update", f.covariance_update.is_some()),
+                ] {
+                    if present {
+                        c.err(format!("{key}.{k}"), "not used by a running_mean filter");
+                    }
+                }
+                let w = f.window.unwrap_or(11);
+                if w == 0 {
+                    c.err(format!("{key}.window"), "must be at least 1");
+                }
+                FilterKind::RunningMean { window: w as usize }
+            }
+            _ => {
+                if f.window.is_some() {
+                    c.err(format!("{key}.window"), "only a running_mean filter has a window");
+                }
+                let form = c.choice(
+                    &format!("{key}.covariance_update"),
+                    f.covariance_update.as_deref(),
+                    "standard",
+                    &["standard", "joseph"],
+                );
+                FilterKind::Ekf {
+                    update: if form == "joseph" {
+                        CovarianceUpdate::Joseph
+                    } else {
+                        CovarianceUpdate::Standard
+                    },
+                }
+            }
+        };
+        let q_std = c.vector(
+            &format!("{key}.q_std"),
+            f.q_std.as_ref(),
+            nx,
+            &process_noise_std,
+            non_negative,
+            "a non-negative number",
+        );
+        let r_std = c.vector(
+            &format!("{key}.r_std"),
+            f.r_std.as_ref(),
+            nz,
+            &measurement_noise_std,
+            positive,
+            "a positive number (R must be positive definite)",
+        );
+        filters.push(FilterPlan {
+            label: f.label.clone(),
+            kind: fk,
+            q_std,
+            r_std,
+        });
+    }
+
+    // Noise sweep.
+    let noise = spec.noise.as_ref();
+    let mut noise_scales = match noise.and_then(|n| n.scales.as_ref()) {
+        None => vec![1.0],
+        Some(Scales::List(v)) => v.clone(),
+        Some(Scales::Range { start, stop, step }) => {
+            if !(positive(*step) && non_negative(*start) && stop.is_finite() && stop >= start) {
+                c.err(
+                    "noise.scales",
+                    "a range needs 0 ≤ start ≤ stop and step > 0",
+                );
+                vec![1.0]
+            } else if (stop - start) / step > 1e6 {
+                c.err("noise.scales", "more than a million noise scales");
+                vec![1.0]
+            } else {
+                expand_range(*start, *stop, *step)
+            }
+        }
+    };
+    if noise_scales.is_empty() {
+        c.err("noise.scales", "at least one noise scale is required");
+    }
+    if let Some(bad) = noise_scales.iter().find(|x| !non_negative(**x)) {
+        c.err("noise.scales", format!("{bad} is not a non-negative number"));
+    }
+    noise_scales.sort_by(f64::total_cmp);
+    if noise_scales.windows(2).any(|w| w[0] == w[1]) {
+        c.err("noise.scales", "duplicate noise scales");
+    }
+    let fmode = c.choice(
+        "noise.filter_noise",
+        noise.and_then(|n| n.filter_noise.as_deref()),
+        "nominal",
+        &["nominal", "matched"],
+    );
+    let filter_noise = if fmode == "matched" {
+        FilterNoiseMode::Matched
+    } else {
+        FilterNoiseMode::Nominal
+    };
+
+    // Initial estimate.
+    let ie = spec.initial_estimate.as_ref();
+    let imode = c.choice(
+        "initial_estimate.mode",
+        ie.and_then(|i| i.mode.as_deref()),
+        "truth",
+        &["truth", "sampled"],
+    );
+    let initial = if imode == "sampled" {
+        InitialMode::Sampled
+    } else {
+        InitialMode::Truth
+    };
+    let p0_std = c.vector(
+        "initial_estimate.p0_std",
+        ie.and_then(|i| i.p0_std.as_ref()),
+        nx,
+        &vec![1.0; nx],
+        positive,
+        "a positive number",
+    );
+
+    let rmse_thresholds = spec
+        .divergence
+        .as_ref()
+        .and_then(|d| d.rmse_thresholds.as_ref())
+        .map(|t| {
+            c.vector(
+                "divergence.rmse_thresholds",
+                Some(t),
+                nx,
+                &vec![f64::INFINITY; nx],
+                positive,
+                "a positive number",
+            )
+        });
+
+    let runs = spec.runs.unwrap_or(100);
+    if runs == 0 {
+        c.err("runs", "must be at least 1");
+    }
+    let trace_runs = spec.trace_runs.unwrap_or(0);
+    if trace_runs > runs {
+        c.err("trace_runs", format!("{trace_runs} traced runs but only {runs} runs"));
+    }
+    let name = spec.name.clone().unwrap_or_else(|| {
+        path.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "experiment".into())
+    });
+    if name.is_empty() || name.contains(['/', '\\']) {
+        c.err("name", "must be non-empty and contain no path separators");
+    }
+    let output = spec
+        .output
+        .as_ref()
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("results").join(&name));
+
+    if !c.errors.is_empty() {
+        return Err(SpecErrors(c.errors));
+    }
+    Ok(Plan {
+        name,
+        description: spec.description,
+        spec_path: path.to_path_buf(),
+        spec_text: text.to_string(),
+        spec_hash: format!("{:016x}", hash_str(text)),
+        model: ModelPlan {
+            kind,
+            params,
+            process_noise_std,
+            measurement_noise_std,
+        },
+        scenarios,
+        filters,
+        noise_scales,
+        filter_noise,
+        initial,
+        p0_std,
+        runs: runs as usize,
+        master_seed: spec.master_seed.unwrap_or(0),
+        trace_runs: trace_runs as usize,
+        output,
+        rmse_thresholds,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn range_matches_the_seed_sweep() {
+        let v = expand_range(0.2, 50.0, 0.2);
+        assert_eq!(v.len(), 250);
+        assert_eq!(v[0], 0.2);
+        assert_eq!(v[2], 0.6);
+        assert_eq!(*v.last().unwrap(), 50.0);
+    }
+}

@@ -1,0 +1,232 @@
+//! Raw spec types mirroring the TOML file exactly (`deny_unknown_fields`). Code past
+//! [`super::plan`] never sees these; validation turns them into a typed [`super::Plan`].
+
+use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
+use serde::Deserialize;
+use std::fmt;
+
+/// The whole experiment spec.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Spec {
+    /// Experiment name (used in the manifest and default output folder).
+    pub name: Option<String>,
+    /// Free text for humans.
+    pub description: Option<String>,
+    /// Master seed from which every random stream is derived.
+    pub master_seed: Option<u64>,
+    /// Monte Carlo runs per cell.
+    pub runs: Option<u64>,
+    /// Output folder (relative paths are relative to the working directory).
+    pub output: Option<String>,
+    /// Number of runs per (scenario, noise scale) whose full trajectories are written.
+    pub trace_runs: Option<u64>,
+    /// The model.
+    pub model: ModelSpec,
+    /// Scenarios (at least one).
+    #[serde(default)]
+    pub scenarios: Vec<ScenarioSpec>,
+    /// Filters (at least one).
+    #[serde(default)]
+    pub filters: Vec<FilterSpec>,
+    /// The truth-noise sweep.
+    pub noise: Option<NoiseSpec>,
+    /// How the initial estimate is formed.
+    pub initial_estimate: Option<InitialEstimateSpec>,
+    /// Divergence thresholds.
+    pub divergence: Option<DivergenceSpec>,
+}
+
+/// `[model]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSpec {
+    /// `planar_quadrotor`
+    pub kind: String,
+    /// `p1` (`[y, θ, θ̇]`) or `imu` (`[y, θ̇, ẍ, ÿ]`).
+    pub sensor: Option<String>,
+    /// m (kg)
+    pub mass_kg: Option<f64>,
+    /// r (m)
+    pub arm_m: Option<f64>,
+    /// I (kg·m²)
+    pub inertia_kg_m2: Option<f64>,
+    /// g (m/s²)
+    pub gravity_m_s2: Option<f64>,
+    /// Δt (s)
+    pub dt_s: Option<f64>,
+    /// Truth process-noise standard deviation per state at noise scale 1.
+    pub process_noise_std: Option<OneOrMany>,
+    /// Truth measurement-noise standard deviation per component at noise scale 1.
+    pub measurement_noise_std: Option<OneOrMany>,
+}
+
+/// `[[scenarios]]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScenarioSpec {
+    /// Name; a built-in name (`basic`, `horizontal`, `roll`, `fall`) supplies defaults.
+    pub name: String,
+    /// Built-in scenario to start from when `name` is not one.
+    pub base: Option<String>,
+    /// Initial state override.
+    pub x0: Option<Vec<f64>>,
+    /// Duration override (s).
+    pub duration_s: Option<f64>,
+    /// Thrust stages override.
+    pub stages: Option<Vec<StageSpec>>,
+    /// Relative ripple amplitude override.
+    pub ripple: Option<f64>,
+    /// Ripple angular frequency override (rad/s).
+    pub ripple_rad_s: Option<f64>,
+}
+
+/// One thrust stage.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StageSpec {
+    /// First step of the stage.
+    pub from_step: u64,
+    /// `[u1, u2]` in N.
+    pub thrust_n: Vec<f64>,
+}
+
+/// `[[filters]]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FilterSpec {
+    /// Label in the tables' `filter` column.
+    pub label: String,
+    /// `ekf` or `running_mean`.
+    pub kind: String,
+    /// Assumed process-noise std (default: the model's truth value).
+    pub q_std: Option<OneOrMany>,
+    /// Assumed measurement-noise std (default: the model's truth value).
+    pub r_std: Option<OneOrMany>,
+    /// `standard` (the seeds) or `joseph`.
+    pub covariance_update: Option<String>,
+    /// Window length in samples (running mean; the seeds average 11).
+    pub window: Option<u64>,
+}
+
+/// `[noise]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NoiseSpec {
+    /// Truth-noise multipliers: a list or `{ start, stop, step }`.
+    pub scales: Option<Scales>,
+    /// `nominal` (filters keep their Q/R) or `matched` (filters' Q/R scale with the truth).
+    pub filter_noise: Option<String>,
+}
+
+/// `[initial_estimate]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InitialEstimateSpec {
+    /// `truth` (the seeds) or `sampled` (x̂_0 ~ N(x_0, P_0)).
+    pub mode: Option<String>,
+    /// Standard deviations of P_0's diagonal (P_0 = I in the seeds).
+    pub p0_std: Option<OneOrMany>,
+}
+
+/// `[divergence]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DivergenceSpec {
+    /// RMSE threshold per state.
+    pub rmse_thresholds: Option<OneOrMany>,
+}
+
+/// A number or a list of numbers.
+#[derive(Debug, Clone, PartialEq)]
+pub enum OneOrMany {
+    /// One value for every component.
+    One(f64),
+    /// One value per component.
+    Many(Vec<f64>),
+}
+
+/// A list of noise scales or an arithmetic range.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Scales {
+    /// Explicit values.
+    List(Vec<f64>),
+    /// `start, start+step, …, ≤ stop`.
+    Range {
+        /// First value.
+        start: f64,
+        /// Last value (included when the grid reaches it).
+        stop: f64,
+        /// Increment.
+        step: f64,
+    },
+}
+
+struct OneOrManyVisitor;
+
+impl<'de> Visitor<'de> for OneOrManyVisitor {
+    type Value = OneOrMany;
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("a number or a list of numbers")
+    }
+    fn visit_f64<E: de::Error>(self, v: f64) -> Result<OneOrMany, E> {
+        Ok(OneOrMany::One(v))
+    }
+    fn visit_i64<E: de::Error>(self, v: i64) -> Result<OneOrMany, E> {
+        Ok(OneOrMany::One(v as f64))
+    }
+    fn visit_u64<E: de::Error>(self, v: u64) -> Result<OneOrMany, E> {
+        Ok(OneOrMany::One(v as f64))
+    }
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<OneOrMany, A::Error> {
+        let mut v = Vec::new();
+        while let Some(x) = seq.next_element::<f64>()? {
+            v.push(x);
+        }
+        Ok(OneOrMany::Many(v))
+    }
+}
+
+impl<'de> Deserialize<'de> for OneOrMany {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_any(OneOrManyVisitor)
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RangeSpec {
+    start: f64,
+    stop: f64,
+    step: f64,
+}
+
+struct ScalesVisitor;
+
+impl<'de> Visitor<'de> for ScalesVisitor {
+    type Value = Scales;
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("a list of numbers or a table { start, stop, step }")
+    }
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Scales, A::Error> {
+        let mut v = Vec::new();
+        while let Some(x) = seq.next_element::<f64>()? {
+            v.push(x);
+        }
+        Ok(Scales::List(v))
+    }
+    fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<Scales, A::Error> {
+        let r = RangeSpec::deserialize(de::value::MapAccessDeserializer::new(map))?;
+        Ok(Scales::Range {
+            start: r.start,
+            stop: r.stop,
+            step: r.step,
+        })
+    }
+}
+
+impl<'de> Deserialize<'de> for Scales {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_any(ScalesVisitor)
+    }
+}

@@ -1,0 +1,245 @@
+//! Extended Kalman filter, as in `simulation_quadrotor.m` (seed 000, lines 105–149).
+//!
+//! Predict: x̂⁻ = f(x̂, u_k), P⁻ = F P Fᵀ + Q with F = ∂f/∂x at the previous estimate.
+//! Update:  ν = z − h(x̂⁻, u_k) (angle components wrapped by the model), S = H P⁻ Hᵀ + R,
+//! K = P⁻ Hᵀ S⁻¹, x̂ = x̂⁻ + K ν, and P = (I − K H) P⁻ (the seeds' form) or the Joseph form
+//! (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ.
+//!
+//! Requirements on the model: f, h and both Jacobians ([`Model`]).
+//!
+//! Components that did not report at a step are removed exactly: their rows of H and ν are
+//! zeroed and their block of R replaced by the identity, which makes S block-diagonal and the
+//! corresponding columns of K zero, so the update equals one over the reporting rows alone.
+//!
+//! # Reference
+//! Welch & Bishop, *An Introduction to the Kalman Filter*, TR 95-041 (2002) — the seeds' source.
+
+use super::{Filter, FilterError, Innovation};
+use crate::linalg::{cholesky, inverse_quadratic_form, symmetrize, Matrix, Vector};
+use crate::model::{Availability, Measurement, Model};
+
+/// How the covariance is updated after a measurement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CovarianceUpdate {
+    /// P = (I − K H) P⁻, as the seeds do.
+    Standard,
+    /// Joseph form; symmetric and PSD by construction, valid for any gain.
+    Joseph,
+}
+
+/// EKF configuration: the Q and R it *assumes* (which need not be the truth's).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Ekf<const NX: usize, const NZ: usize> {
+    /// Assumed process-noise covariance Q.
+    pub q: Matrix<NX, NX>,
+    /// Assumed measurement-noise covariance R.
+    pub r: Matrix<NZ, NZ>,
+    /// Covariance update form.
+    pub update_form: CovarianceUpdate,
+}
+
+/// The EKF's belief: mean and covariance.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Gaussian<const NX: usize> {
+    /// x̂
+    pub x: Vector<NX>,
+    /// P
+    pub p: Matrix<NX, NX>,
+}
+
+fn check_finite<const NX: usize>(b: &Gaussian<NX>) -> Result<(), FilterError> {
+    if !b.x.iter().all(|v| v.is_finite()) {
+        return Err(FilterError::NonFinite { what: "state estimate" });
+    }
+    if !b.p.iter().all(|v| v.is_finite()) {
+        return Err(FilterError::NonFinite {
+            what: "state covariance",
+        });
+    }
+    Ok(())
+}
+
+impl<const NX: usize, const NZ: usize> Ekf<NX, NZ> {
+    /// Applies the availability mask to H, ν and R (see the module docs).
+    #[inline]
+    fn mask(
+        &self,
+        available: Availability,
+        h: &mut Matrix<NZ, NX>,
+        nu: &mut Vector<NZ>,
+    ) -> Matrix<NZ, NZ> {
+        let mut r = self.r;
+        if available == Availability::all(NZ) {
+            return r;
+        }
+        for i in 0..NZ {
+            if !available.has(i) {
+                h.row_mut(i).fill(0.0);
+                nu[i] = 0.0;
+                r.row_mut(i).fill(0.0);
+                r.column_mut(i).fill(0.0);
+                r[(i, i)] = 1.0;
+            }
+        }
+        r
+    }
+}
+
+impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Filter<NX, NU, NZ, M>
+    for Ekf<NX, NZ>
+{
+    type Belief = Gaussian<NX>;
+
+    fn init(
+        &self,
+        _model: &M,
+        x0_hat: &Vector<NX>,
+        p0: &Matrix<NX, NX>,
+        _z0: &Measurement<NZ>,
+    ) -> Gaussian<NX> {
+        Gaussian { x: *x0_hat, p: *p0 }
+    }
+
+    #[inline]
+    fn predict(&self, model: &M, b: &mut Gaussian<NX>, u: &Vector<NU>) -> Result<(), FilterError> {
+        let f = model.transition_jacobian(&b.x, u);
+        b.x = model.propagate(&b.x, u);
+        b.p = f * b.p * f.transpose() + self.q;
+        check_finite(b)
+    }
+
+    #[inline]
+    fn update(
+        &self,
+        model: &M,
+        b: &mut Gaussian<NX>,
+        u: &Vector<NU>,
+        z: &Measurement<NZ>,
+    ) -> Result<Option<Innovation<NZ>>, FilterError> {
+        if z.available.count() == 0 {
+            return Ok(None);
+        }
+        let mut h = model.measurement_jacobian(&b.x, u);
+        let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
+        let r = self.mask(z.available, &mut h, &mut nu);
+        let hp = h * b.p;
+        let s = hp * h.transpose() + r;
+        let chol = cholesky(&s).ok_or(FilterError::NotPositiveDefinite {
+            which: "innovation covariance S",
+        })?;
+        // Kᵀ = S⁻¹ H P⁻ because S and P⁻ are symmetric.
+        let k = chol.solve(&hp).transpose();
+        let nis = inverse_quadratic_form(&chol, &nu);
+        b.x += k * nu;
+        let i_kh = Matrix::<NX, NX>::identity() - k * h;
+        b.p = match self.update_form {
+            CovarianceUpdate::Standard => i_kh * b.p,
+            CovarianceUpdate::Joseph => i_kh * b.p * i_kh.transpose() + k * r * k.transpose(),
+        };
+        check_finite(b)?;
+        Ok(Some(Innovation {
+            residual: nu,
+            nis,
+            dof: z.available.count(),
+        }))
+    }
+
+    fn mean(&self, b: &Gaussian<NX>) -> Vector<NX> {
+        b.x
+    }
+
+    fn covariance(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
+        Some(b.p)
+    }
+
+    fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {
+        let sym = symmetrize(&b.p);
+        // Jitter relative to the covariance's own scale, so units do not matter.
+        let scale = (sym.trace() / NX as f64).abs().max(f64::MIN_POSITIVE);
+        let mut jitter = 1e-12 * scale;
+        for _ in 0..8 {
+            let candidate = sym + Matrix::<NX, NX>::identity() * jitter;
+            if cholesky(&candidate).is_some() {
+                b.p = candidate;
+                return true;
+            }
+            jitter *= 100.0;
+        }
+        false
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::planar::{PlanarP1, PlanarParams};
+
+    fn setup() -> (PlanarP1, Ekf<6, 3>, Gaussian<6>) {
+        let model = PlanarP1::new(PlanarParams::default());
+        let ekf = Ekf {
+            q: Matrix::<6, 6>::identity() * 0.003f64.powi(2),
+            r: Matrix::<3, 3>::identity() * 0.01f64.powi(2),
+            update_form: CovarianceUpdate::Standard,
+        };
+        let b = Gaussian {
+            x: Vector::<6>::new(0.0, 3.0, 10.0, 0.0, -1.5, 0.1),
+            p: Matrix::<6, 6>::identity(),
+        };
+        (model, ekf, b)
+    }
+
+    #[test]
+    fn joseph_equals_standard_at_the_optimal_gain() {
+        let (model, ekf, b0) = setup();
+        let u = Vector::<2>::new(4.05, 4.0);
+        let z = Measurement {
+            z: Vector::<3>::new(10.02, -1.49, 0.11),
+            available: Availability::all(3),
+        };
+        let mut a = b0.clone();
+        let mut b = b0;
+        let joseph = Ekf {
+            update_form: CovarianceUpdate::Joseph,
+            ..ekf.clone()
+        };
+        Filter::<6, 2, 3, _>::predict(&ekf, &model, &mut a, &u).unwrap();
+        Filter::<6, 2, 3, _>::predict(&joseph, &model, &mut b, &u).unwrap();
+        Filter::<6, 2, 3, _>::update(&ekf, &model, &mut a, &u, &z).unwrap();
+        Filter::<6, 2, 3, _>::update(&joseph, &model, &mut b, &u, &z).unwrap();
+        assert!((a.x - b.x).amax() < 1e-15);
+        assert!((a.p - b.p).amax() < 1e-12);
+        assert!(cholesky(&symmetrize(&b.p)).is_some());
+    }
+
+    #[test]
+    fn masked_update_equals_update_on_the_reporting_rows() {
+        // Only θ̇ reports: the result must equal a scalar KF update with H = e_6ᵀ.
+        let (model, ekf, mut b) = setup();
+        let z = Measurement {
+            z: Vector::<3>::new(99.0, 99.0, 0.25),
+            available: Availability(0b100),
+        };
+        let p = b.p;
+        let x = b.x;
+        let u = Vector::<2>::zeros();
+        let inn = Filter::<6, 2, 3, _>::update(&ekf, &model, &mut b, &u, &z)
+            .unwrap()
+            .unwrap();
+        let s = p[(5, 5)] + 1e-4;
+        let k = p.column(5) / s;
+        let nu = 0.25 - x[5];
+        assert!((b.x - (x + k * nu)).amax() < 1e-14);
+        assert!((inn.nis - nu * nu / s).abs() < 1e-12);
+        assert_eq!(inn.dof, 1);
+    }
+
+    #[test]
+    fn repair_makes_an_indefinite_covariance_factorable() {
+        let (_, ekf, mut b) = setup();
+        b.p[(0, 1)] = 1.0 + 1e-15;
+        b.p[(1, 0)] = 1.0;
+        assert!(cholesky(&b.p).is_none());
+        assert!(Filter::<6, 2, 3, PlanarP1>::repair_covariance(&ekf, &mut b));
+        assert!(cholesky(&b.p).is_some());
+    }
+}

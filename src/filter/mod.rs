@@ -1,0 +1,91 @@
+//! The filter role.
+//!
+//! A filter value holds **configuration only** (its assumed Q and R, a window length, …) and is
+//! shared by reference across threads; the belief (mean and covariance, a measurement window,
+//! …) is a value threaded through the step loop. Every filter exposes the common view
+//! [`Filter::mean`] / [`Filter::covariance`], so metrics never ask which filter ran; a filter
+//! without a covariance (the running mean) returns `None` and NEES/NIS are reported as null.
+
+pub mod ekf;
+pub mod running_mean;
+
+use crate::linalg::{Matrix, Vector};
+use crate::model::{Measurement, Model};
+
+pub use ekf::{CovarianceUpdate, Ekf};
+pub use running_mean::RunningMean;
+
+/// What a measurement update tells the metrics about the innovation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Innovation<const NZ: usize> {
+    /// ν = z − ĥ (zero in components that did not report).
+    pub residual: Vector<NZ>,
+    /// NIS = νᵀ S⁻¹ ν over the reporting components.
+    pub nis: f64,
+    /// Degrees of freedom of the NIS (number of reporting components).
+    pub dof: usize,
+}
+
+/// Numerical trouble inside one run. It becomes that run's status, never a batch abort.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum FilterError {
+    /// A covariance that must be positive definite is not (Cholesky failed).
+    #[error("{which} is not positive definite")]
+    NotPositiveDefinite {
+        /// Which matrix: "innovation covariance S", "state covariance P", …
+        which: &'static str,
+    },
+    /// The estimate or covariance contains NaN or ±∞.
+    #[error("non-finite {what}")]
+    NonFinite {
+        /// What became non-finite.
+        what: &'static str,
+    },
+}
+
+/// A state estimator for the model `M`.
+pub trait Filter<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>>:
+    Sync
+{
+    /// The filter's belief: everything that changes from step to step.
+    type Belief: Clone + Send;
+
+    /// The belief at k = 0 from the initial estimate x̂_0, its covariance P_0 and the
+    /// measurement z_0 (the seeds record a noise-free z_0; only window filters use it).
+    fn init(
+        &self,
+        model: &M,
+        x0_hat: &Vector<NX>,
+        p0: &Matrix<NX, NX>,
+        z0: &Measurement<NZ>,
+    ) -> Self::Belief;
+
+    /// Time update from k−1 to k under the control u_k.
+    fn predict(
+        &self,
+        model: &M,
+        belief: &mut Self::Belief,
+        u: &Vector<NU>,
+    ) -> Result<(), FilterError>;
+
+    /// Measurement update at k; returns the innovation when the filter has one.
+    fn update(
+        &self,
+        model: &M,
+        belief: &mut Self::Belief,
+        u: &Vector<NU>,
+        z: &Measurement<NZ>,
+    ) -> Result<Option<Innovation<NZ>>, FilterError>;
+
+    /// The state estimate x̂_k.
+    fn mean(&self, belief: &Self::Belief) -> Vector<NX>;
+
+    /// The estimate's covariance P_k, or `None` when the filter carries none.
+    fn covariance(&self, belief: &Self::Belief) -> Option<Matrix<NX, NX>>;
+
+    /// Makes a covariance that failed a Cholesky factorisation usable again (symmetrise and
+    /// add jitter). Returns whether a repair was made; every repair is counted per run.
+    fn repair_covariance(&self, _belief: &mut Self::Belief) -> bool {
+        false
+    }
+}

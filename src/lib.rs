@@ -1,0 +1,48 @@
+//! # kfmc — judge state estimators statistically
+//!
+//! A TOML experiment spec names a model, scenarios, filters, a truth-noise sweep and a run
+//! count; kfmc expands it into seeded Monte Carlo runs, executes them in parallel and writes
+//! RMSE, divergence and NEES/NIS results to Parquet tables.
+//!
+//! ## Data flow
+//!
+//! ```text
+//! spec.toml ─experiment::load─▶ Plan ─study::run─▶ units (scenario, noise scale, run)
+//!    ─runner::execute (rayon)─▶ trial: simulate once, run every filter (paired)
+//!    ─fold in unit order─▶ per-cell accumulators ─▶ Parquet tables (atomic) + manifest
+//! ```
+//!
+//! ## Roles (one module each)
+//! [`model`] (f, h, Jacobians — the only copy), [`scenario`] (x0, controls), [`filter`]
+//! (configuration only; beliefs are values), [`sim`] (truth, measurements, seeding),
+//! [`metrics`] (errors, NEES, NIS, accumulators, divergence), [`experiment`] (spec →
+//! plan), [`runner`] (executor), [`trial`] (one run), [`study`] (a whole study),
+//! [`output`] (schema, Parquet, manifest), [`cli`].
+//!
+//! ## Notation
+//! | symbol | meaning |
+//! |---|---|
+//! | x_k, x̂_k | true state and estimate at step k (k = 0..K) |
+//! | u_k | control driving the transition k−1 → k |
+//! | z_k, ν_k | measurement and innovation z_k − h(x̂⁻_k, u_k) |
+//! | F_k, H_k | Jacobians of f and h |
+//! | Q, R | process- and measurement-noise covariances (the filter's *assumed* ones) |
+//! | P_k, S_k | estimate and innovation covariances |
+//! | NEES_k | e_kᵀ P_k⁻¹ e_k, χ²(n) for a consistent filter, n = state dimension |
+//! | NIS_k | ν_kᵀ S_k⁻¹ ν_k, χ²(p), p = measurement components reported |
+
+#![warn(missing_docs)]
+
+pub mod cli;
+pub mod error;
+pub mod experiment;
+pub mod filter;
+pub mod linalg;
+pub mod metrics;
+pub mod model;
+pub mod output;
+pub mod runner;
+pub mod scenario;
+pub mod sim;
+pub mod study;
+pub mod trial;

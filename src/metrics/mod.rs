@@ -1,0 +1,326 @@
+//! The metrics role: per-step values of one run (errors, NEES, NIS) and the accumulators that
+//! fold runs into per-cell statistics without keeping per-run step data.
+//!
+//! * e_k = x_k − x̂_k (the planar θ is an unwrapped angle in the seeds, so it is not wrapped);
+//! * RMSE per state over all samples k = 0..=K, as the seeds compute it (k = 0 included);
+//! * NEES_k = e_kᵀ P_k⁻¹ e_k (n dof) and NIS_k = ν_kᵀ S_k⁻¹ ν_k (p dof) through Cholesky
+//!   factors; `nees_mean` averages k = 1..=K (k = 0 is the prior, not a filter output) and
+//!   `nis_mean` the steps with a measurement update.
+
+pub mod divergence;
+
+/// How a run ended.
+#[derive(Clone, Debug, PartialEq)]
+pub enum RunStatus {
+    /// Completed, no threshold crossed.
+    Ok,
+    /// Completed, but the run's RMSE of a state exceeds its divergence threshold. `step` is the
+    /// first step at which the squared errors accumulated so far already exceed the threshold,
+    /// i.e. where the crossing became certain.
+    Diverged {
+        /// The step.
+        step: usize,
+        /// What crossed, e.g. `rmse_x > 5`.
+        detail: String,
+    },
+    /// The filter failed numerically at `step`; the run stops there.
+    NumericalFailure {
+        /// The step.
+        step: usize,
+        /// The filter's error message.
+        detail: String,
+    },
+}
+
+impl RunStatus {
+    /// The value of the `status` column.
+    pub fn label(&self) -> &'static str {
+        match self {
+            RunStatus::Ok => "ok",
+            RunStatus::Diverged { .. } => "diverged",
+            RunStatus::NumericalFailure { .. } => "numerical_failure",
+        }
+    }
+    /// The step of a divergence or failure.
+    pub fn step(&self) -> Option<usize> {
+        match self {
+            RunStatus::Ok => None,
+            RunStatus::Diverged { step, .. } | RunStatus::NumericalFailure { step, .. } => {
+                Some(*step)
+            }
+        }
+    }
+    /// The human-readable detail.
+    pub fn detail(&self) -> Option<&str> {
+        match self {
+            RunStatus::Ok => None,
+            RunStatus::Diverged { detail, .. } | RunStatus::NumericalFailure { detail, .. } => {
+                Some(detail)
+            }
+        }
+    }
+}
+
+/// Per-step values of one filter on one run, flattened (`nx` values per step for errors).
+/// `NaN` marks "not defined" (no covariance, no update, or after a numerical failure).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepValues {
+    /// Number of state components.
+    pub nx: usize,
+    /// e_k,i², row-major by step.
+    pub sq_err: Vec<f64>,
+    /// NEES_k.
+    pub nees: Vec<f64>,
+    /// NIS_k.
+    pub nis: Vec<f64>,
+    /// Steps actually computed (K + 1 unless the run failed).
+    pub completed: usize,
+}
+
+/// The per-run record of one filter (one row of `runs.parquet`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FilterRun {
+    /// RMSE per state.
+    pub rmse: Vec<f64>,
+    /// Mean NEES over k = 1..=K, `None` without a covariance.
+    pub nees_mean: Option<f64>,
+    /// Mean NIS over update steps, `None` without innovations.
+    pub nis_mean: Option<f64>,
+    /// How the run ended.
+    pub status: RunStatus,
+    /// Covariance repairs made during the run.
+    pub covariance_repairs: u32,
+    /// Per-step values for the cell accumulators.
+    pub steps: StepValues,
+}
+
+impl StepValues {
+    /// Empty values for `steps + 1` samples of `nx` states.
+    pub fn new(nx: usize, steps: usize) -> Self {
+        StepValues {
+            nx,
+            sq_err: vec![f64::NAN; (steps + 1) * nx],
+            nees: vec![f64::NAN; steps + 1],
+            nis: vec![f64::NAN; steps + 1],
+            completed: 0,
+        }
+    }
+
+    /// Summarises the run: RMSE, means and the threshold-based status.
+    pub fn finish(
+        self,
+        failure: Option<(usize, String)>,
+        thresholds: Option<&[f64]>,
+        state_names: &[&str],
+        covariance_repairs: u32,
+    ) -> FilterRun {
+        let nx = self.nx;
+        let n = self.completed.max(1) as f64;
+        let mut sums = vec![0.0; nx];
+        // The first step where Σ_{j≤k} e_j² > thr²·(K+1) per state: the crossing is certain.
+        let total = self.nees.len() as f64;
+        let mut crossed: Option<(usize, usize)> = None;
+        for k in 0..self.completed {
+            for (i, s) in sums.iter_mut().enumerate() {
+                *s += self.sq_err[k * nx + i];
+                if crossed.is_none() {
+                    if let Some(t) = thresholds {
+                        if *s > t[i] * t[i] * total {
+                            crossed = Some((k, i));
+                        }
+                    }
+                }
+            }
+        }
+        let rmse: Vec<f64> = sums.iter().map(|s| (s / n).sqrt()).collect();
+        let mean_defined = |v: &[f64], from: usize| {
+            let (s, c) = v[from.min(v.len())..self.completed.max(from)]
+                .iter()
+                .filter(|x| !x.is_nan())
+                .fold((0.0, 0usize), |(s, c), x| (s + x, c + 1));
+            (c > 0).then(|| s / c as f64)
+        };
+        let nees_mean = mean_defined(&self.nees, 1);
+        let nis_mean = mean_defined(&self.nis, 0);
+        let status = match (failure, crossed) {
+            (Some((step, detail)), _) => RunStatus::NumericalFailure { step, detail },
+            (None, Some((step, i))) => RunStatus::Diverged {
+                step,
+                detail: format!(
+                    "rmse_{} > {}",
+                    state_names[i],
+                    thresholds.map_or(f64::NAN, |t| t[i])
+                ),
+            },
+            (None, None) => RunStatus::Ok,
+        };
+        FilterRun {
+            rmse,
+            nees_mean,
+            nis_mean,
+            status,
+            covariance_repairs,
+            steps: self,
+        }
+    }
+}
+
+/// Sums over the runs of one cell and filter, per step. Runs are folded in run order, so the
+/// floating-point sums — and the tables — are identical for any thread count.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepAccumulator {
+    nx: usize,
+    runs: Vec<u32>,
+    sum_sq: Vec<f64>,
+    nees_sum: Vec<f64>,
+    nees_n: Vec<u32>,
+    nis_sum: Vec<f64>,
+    nis_n: Vec<u32>,
+}
+
+/// One row of the per-step table after folding.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepRow {
+    /// Runs contributing at this step.
+    pub runs: u32,
+    /// ANEES_k, `None` when no run had a covariance.
+    pub anees: Option<f64>,
+    /// ANIS_k.
+    pub anis: Option<f64>,
+    /// Mean squared error per state.
+    pub mse: Vec<f64>,
+}
+
+impl StepAccumulator {
+    /// An empty accumulator for `steps + 1` samples of `nx` states.
+    pub fn new(nx: usize, steps: usize) -> Self {
+        StepAccumulator {
+            nx,
+            runs: vec![0; steps + 1],
+            sum_sq: vec![0.0; (steps + 1) * nx],
+            nees_sum: vec![0.0; steps + 1],
+            nees_n: vec![0; steps + 1],
+            nis_sum: vec![0.0; steps + 1],
+            nis_n: vec![0; steps + 1],
+        }
+    }
+
+    /// Adds one run.
+    pub fn fold(&mut self, v: &StepValues) {
+        let nx = self.nx;
+        for k in 0..v.completed {
+            self.runs[k] += 1;
+            for i in 0..nx {
+                self.sum_sq[k * nx + i] += v.sq_err[k * nx + i];
+            }
+            if !v.nees[k].is_nan() {
+                self.nees_sum[k] += v.nees[k];
+                self.nees_n[k] += 1;
+            }
+            if !v.nis[k].is_nan() {
+                self.nis_sum[k] += v.nis[k];
+                self.nis_n[k] += 1;
+            }
+        }
+    }
+
+    /// Number of samples (K + 1).
+    pub fn len(&self) -> usize {
+        self.runs.len()
+    }
+
+    /// Whether there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.runs.is_empty()
+    }
+
+    /// The statistics at step `k`.
+    pub fn row(&self, k: usize) -> StepRow {
+        let n = self.runs[k];
+        let avg = |s: f64, c: u32| (c > 0).then(|| s / c as f64);
+        StepRow {
+            runs: n,
+            anees: avg(self.nees_sum[k], self.nees_n[k]),
+            anis: avg(self.nis_sum[k], self.nis_n[k]),
+            mse: (0..self.nx)
+                .map(|i| {
+                    if n > 0 {
+                        self.sum_sq[k * self.nx + i] / n as f64
+                    } else {
+                        f64::NAN
+                    }
+                })
+                .collect(),
+        }
+    }
+}
+
+/// The `q`-quantile of sorted data by linear interpolation between order statistics
+/// (Hyndman–Fan type 7, the default of NumPy, pandas, polars and R).
+pub fn quantile_sorted(sorted: &[f64], q: f64) -> Option<f64> {
+    if sorted.is_empty() {
+        return None;
+    }
+    let h = (sorted.len() - 1) as f64 * q;
+    let lo = h.floor() as usize;
+    let hi = h.ceil() as usize;
+    let (a, b) = (sorted[lo], sorted[hi]);
+    if lo == hi {
+        return Some(a);
+    }
+    if a.is_infinite() || b.is_infinite() {
+        // A censored value takes part: the quantile is not known.
+        return None;
+    }
+    Some(a + (h - lo as f64) * (b - a))
+}
+
+/// Mean and sample standard deviation (n − 1 in the denominator; `None` below two values).
+pub fn mean_std(v: &[f64]) -> (Option<f64>, Option<f64>) {
+    if v.is_empty() {
+        return (None, None);
+    }
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    if v.len() < 2 {
+        return (Some(mean), None);
+    }
+    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (Some(mean), Some(var.sqrt()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_match_numpy_type_7() {
+        // numpy.percentile([1, 2, 3, 4, 10], [5, 50, 95]) = [1.2, 3.0, 8.8]
+        let v = [1.0, 2.0, 3.0, 4.0, 10.0];
+        assert!((quantile_sorted(&v, 0.05).unwrap() - 1.2).abs() < 1e-12);
+        assert_eq!(quantile_sorted(&v, 0.5), Some(3.0));
+        assert!((quantile_sorted(&v, 0.95).unwrap() - 8.8).abs() < 1e-12);
+        assert_eq!(quantile_sorted(&[1.0, f64::INFINITY], 0.5), None);
+        assert_eq!(quantile_sorted(&[1.0, 2.0, f64::INFINITY], 0.5), Some(2.0));
+    }
+
+    #[test]
+    fn mean_std_by_hand() {
+        let (m, s) = mean_std(&[2.0, 4.0, 4.0, 4.0, 5.0, 5.0, 7.0, 9.0]);
+        assert_eq!(m, Some(5.0));
+        assert!((s.unwrap() - (32.0f64 / 7.0).sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn divergence_step_is_where_the_crossing_became_certain() {
+        // Two samples (K = 1), threshold 1: RMSE² = (0 + 9)/2 = 4.5 > 1 → diverged at step 1.
+        let mut v = StepValues::new(1, 1);
+        v.sq_err = vec![0.0, 9.0];
+        v.completed = 2;
+        let r = v.finish(None, Some(&[1.0]), &["x"], 0);
+        assert!((r.rmse[0] - 4.5f64.sqrt()).abs() < 1e-15);
+        assert_eq!(r.status.step(), Some(1));
+        assert_eq!(r.status.label(), "diverged");
+        assert_eq!(r.nees_mean, None);
+    }
+}

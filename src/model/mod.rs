@@ -1,0 +1,84 @@
+//! The model role: the **only** place f(x, u), h(x, u) and their Jacobians live.
+//!
+//! The truth simulator ([`crate::sim`]) calls [`Model::propagate`] and [`Model::measure`] and
+//! adds seeded noise; filters call the very same functions without noise. A mismatched-model
+//! study gives the filter a different *parameterisation* of a model, never a second copy.
+//!
+//! Dimensions are compile-time constants (`NX` states, `NU` inputs, `NZ` measurement
+//! components) so the per-step algebra is stack-allocated and monomorphised.
+
+pub mod planar;
+
+use crate::linalg::{Matrix, Vector};
+
+/// Which measurement components report at a step, as a bit mask (bit `i` ⇔ component `i`).
+///
+/// Multi-rate systems (seed 004: GPS at 10 Hz, barometer at 50 Hz) report a subset per step;
+/// filters process exactly the available rows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Availability(pub u32);
+
+impl Availability {
+    /// Every one of `n` components reports.
+    pub fn all(n: usize) -> Self {
+        Availability(if n >= 32 { u32::MAX } else { (1u32 << n) - 1 })
+    }
+    /// Whether component `i` reports.
+    pub fn has(self, i: usize) -> bool {
+        self.0 & (1 << i) != 0
+    }
+    /// Number of reporting components (the NIS degrees of freedom at this step).
+    pub fn count(self) -> usize {
+        self.0.count_ones() as usize
+    }
+}
+
+/// A measurement at one step: the value and which components it contains.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Measurement<const NZ: usize> {
+    /// z_k; components that did not report hold 0 and must be ignored.
+    pub z: Vector<NZ>,
+    /// The components that reported.
+    pub available: Availability,
+}
+
+/// Names used for table columns and figure labels. They match across code, TOML and Parquet.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Names {
+    /// State names, e.g. `x, xdot, y, ydot, theta, thetadot` (columns `rmse_<state>`).
+    pub states: Vec<&'static str>,
+    /// Input names (columns `u_<input>` in traces).
+    pub inputs: Vec<&'static str>,
+    /// Measurement component names (columns `z_<name>` in traces).
+    pub measurements: Vec<&'static str>,
+}
+
+/// A discrete-time nonlinear state-space model with additive Gaussian noise:
+///
+/// x_k = f(x_{k−1}, u_k) + w_k,  z_k = h(x_k, u_k) + v_k.
+///
+/// Note the index of the input: the seeds' code integrates from k−1 to k with the control of
+/// the *new* step k, and so does every model here.
+pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync {
+    /// Column and label names.
+    fn names(&self) -> Names;
+    /// Sample time Δt in seconds.
+    fn dt_s(&self) -> f64;
+    /// f(x_{k−1}, u_k): the noise-free transition.
+    fn propagate(&self, x: &Vector<NX>, u: &Vector<NU>) -> Vector<NX>;
+    /// F_k = ∂f/∂x at (x_{k−1}, u_k).
+    fn transition_jacobian(&self, x: &Vector<NX>, u: &Vector<NU>) -> Matrix<NX, NX>;
+    /// h(x_k, u_k): the noise-free measurement.
+    fn measure(&self, x: &Vector<NX>, u: &Vector<NU>) -> Vector<NZ>;
+    /// H_k = ∂h/∂x at (x_k, u_k).
+    fn measurement_jacobian(&self, x: &Vector<NX>, u: &Vector<NU>) -> Matrix<NZ, NX>;
+    /// The residual z − ẑ; models with angle measurements wrap those components here.
+    fn residual(&self, z: &Vector<NZ>, z_pred: &Vector<NZ>) -> Vector<NZ> {
+        z - z_pred
+    }
+    /// Which measurement components report at `step` (all of them unless the model is
+    /// multi-rate).
+    fn availability(&self, _step: usize) -> Availability {
+        Availability::all(NZ)
+    }
+}

@@ -1,0 +1,89 @@
+//! `manifest.toml`: what a result folder holds and how to reproduce it.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::OutputError;
+
+/// One written table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TableEntry {
+    /// Table name (file `<name>.parquet`).
+    pub name: String,
+    /// Rows.
+    pub rows: u64,
+}
+
+/// The manifest of a result folder.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// kfmc version that wrote the folder.
+    pub kfmc_version: String,
+    /// Experiment name.
+    pub experiment: String,
+    /// The spec file as given.
+    pub spec_path: String,
+    /// FNV-1a 64 of the spec text.
+    pub spec_hash: String,
+    /// Master seed actually used (after `--seed`).
+    pub master_seed: u64,
+    /// Runs per cell actually used (after `--runs`).
+    pub runs_per_cell: u64,
+    /// (scenario, noise scale) cells.
+    pub cells: u64,
+    /// Simulated runs.
+    pub runs: u64,
+    /// Filter runs.
+    pub filter_runs: u64,
+    /// Filter steps.
+    pub filter_steps: u64,
+    /// Worker threads (results do not depend on it).
+    pub threads: u64,
+    /// Unix time the run started.
+    pub started_unix_s: u64,
+    /// Wall-clock duration.
+    pub wall_s: f64,
+    /// Throughput.
+    pub runs_per_s: f64,
+    /// Tables written.
+    pub tables: Vec<TableEntry>,
+    /// The spec text, verbatim.
+    pub spec: String,
+}
+
+impl Manifest {
+    /// Writes `manifest.toml` atomically into `dir`.
+    pub fn write(&self, dir: &Path) -> Result<(), OutputError> {
+        let text = toml::to_string(self).map_err(|e| OutputError::Format {
+            path: dir.join("manifest.toml"),
+            message: e.to_string(),
+        })?;
+        let tmp = dir.join(".manifest.toml.partial");
+        let path = dir.join("manifest.toml");
+        std::fs::write(&tmp, text).map_err(|source| OutputError::Io {
+            action: "cannot write",
+            path: tmp.clone(),
+            source,
+        })?;
+        std::fs::rename(&tmp, &path).map_err(|source| OutputError::Io {
+            action: "cannot move the manifest to",
+            path,
+            source,
+        })
+    }
+
+    /// Reads `manifest.toml` from `dir`.
+    pub fn read(dir: &Path) -> Result<Self, OutputError> {
+        let path = dir.join("manifest.toml");
+        let text = std::fs::read_to_string(&path).map_err(|source| OutputError::Io {
+            action: "cannot read",
+            path: path.clone(),
+            source,
+        })?;
+        toml::from_str(&text).map_err(|e| OutputError::Format {
+            path,
+            message: e.to_string(),
+        })
+    }
+}

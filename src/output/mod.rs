@@ -1,0 +1,12 @@
+//! The output role: one schema definition for every table ([`schema`]), an atomic streaming
+//! Parquet writer ([`table`]) and the manifest ([`manifest`]).
+//!
+//! Tables are written to a hidden temporary file in the output folder and renamed into place
+//! only when complete, so a crash or Ctrl-C never leaves a half-written table under a real
+//! name. Large tables are streamed in row groups, so memory does not grow with the run count.
+
+pub mod manifest;
+pub mod schema;
+pub mod table;
+
+pub use table::{TableWriter, Value};

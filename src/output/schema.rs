@@ -1,0 +1,147 @@
+//! Every table's columns, defined once. Names match the TOML keys and the docs:
+//! `scenario, noise_scale, filter, run, seed, status, rmse_<state>, …`.
+
+/// Column types.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Dtype {
+    /// UTF-8 string.
+    Str,
+    /// 64-bit float, nullable.
+    F64,
+    /// 64-bit signed integer, nullable.
+    I64,
+    /// 64-bit unsigned integer.
+    U64,
+}
+
+/// A column definition.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ColumnDef {
+    /// Column name.
+    pub name: String,
+    /// Type.
+    pub dtype: Dtype,
+}
+
+fn col(name: impl Into<String>, dtype: Dtype) -> ColumnDef {
+    ColumnDef {
+        name: name.into(),
+        dtype,
+    }
+}
+
+fn per<'a>(prefix: &'a str, names: &'a [&str], dtype: Dtype) -> impl Iterator<Item = ColumnDef> + 'a {
+    names.iter().map(move |n| col(format!("{prefix}{n}"), dtype))
+}
+
+/// The key columns shared by every per-cell table.
+fn cell_keys() -> Vec<ColumnDef> {
+    vec![
+        col("scenario", Dtype::Str),
+        col("noise_scale", Dtype::F64),
+        col("filter", Dtype::Str),
+    ]
+}
+
+/// Table names, in the order they are documented.
+pub const TABLES: [&str; 6] = [
+    "runs",
+    "steps",
+    "summary",
+    "divergence",
+    "divergence_runs",
+    "traces",
+];
+
+/// `runs.parquet`: one row per scenario × noise scale × filter × run.
+pub fn runs(states: &[&str]) -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("run", Dtype::I64),
+        col("seed", Dtype::U64),
+        col("status", Dtype::Str),
+        col("status_step", Dtype::I64),
+        col("status_detail", Dtype::Str),
+    ]);
+    c.extend(per("rmse_", states, Dtype::F64));
+    c.extend([
+        col("nees_mean", Dtype::F64),
+        col("nis_mean", Dtype::F64),
+        col("covariance_repairs", Dtype::I64),
+    ]);
+    c
+}
+
+/// `steps.parquet`: one row per cell × filter × step.
+pub fn steps(states: &[&str]) -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("step", Dtype::I64),
+        col("t", Dtype::F64),
+        col("runs", Dtype::I64),
+        col("anees", Dtype::F64),
+        col("anis", Dtype::F64),
+    ]);
+    c.extend(per("mse_", states, Dtype::F64));
+    c
+}
+
+/// `summary.parquet`: one row per cell × filter × state.
+pub fn summary() -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("state", Dtype::Str),
+        col("runs", Dtype::I64),
+        col("runs_failed", Dtype::I64),
+        col("rmse_mean", Dtype::F64),
+        col("rmse_std", Dtype::F64),
+        col("rmse_p05", Dtype::F64),
+        col("rmse_p50", Dtype::F64),
+        col("rmse_p95", Dtype::F64),
+    ]);
+    c
+}
+
+/// `divergence.parquet`: one row per scenario × filter × state.
+pub fn divergence() -> Vec<ColumnDef> {
+    vec![
+        col("scenario", Dtype::Str),
+        col("filter", Dtype::Str),
+        col("state", Dtype::Str),
+        col("threshold", Dtype::F64),
+        col("max_noise_scale", Dtype::F64),
+        col("mc_divergence_scale", Dtype::F64),
+        col("runs", Dtype::I64),
+        col("runs_diverged", Dtype::I64),
+        col("run_divergence_p05", Dtype::F64),
+        col("run_divergence_p50", Dtype::F64),
+        col("run_divergence_p95", Dtype::F64),
+    ]
+}
+
+/// `divergence_runs.parquet`: one row per scenario × filter × run × state.
+pub fn divergence_runs() -> Vec<ColumnDef> {
+    vec![
+        col("scenario", Dtype::Str),
+        col("filter", Dtype::Str),
+        col("run", Dtype::I64),
+        col("state", Dtype::Str),
+        col("divergence_scale", Dtype::F64),
+    ]
+}
+
+/// `traces.parquet`: one row per traced run × filter × step.
+pub fn traces(states: &[&str], inputs: &[&str], meas: &[&str]) -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("run", Dtype::I64),
+        col("step", Dtype::I64),
+        col("t", Dtype::F64),
+    ]);
+    c.extend(per("u_", inputs, Dtype::F64));
+    c.extend(per("truth_", states, Dtype::F64));
+    c.extend(per("z_", meas, Dtype::F64));
+    c.extend(per("est_", states, Dtype::F64));
+    c.extend(per("var_", states, Dtype::F64));
+    c
+}

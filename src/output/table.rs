@@ -1,0 +1,197 @@
+//! A streaming, atomic Parquet table writer on top of polars.
+
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+use polars::prelude::*;
+
+use super::schema::{ColumnDef, Dtype};
+use crate::error::OutputError;
+
+/// One cell value. `None` is written as a Parquet null.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Value<'a> {
+    /// String.
+    Str(&'a str),
+    /// Nullable float (NaN is stored as null too: "not defined").
+    F64(Option<f64>),
+    /// Nullable integer.
+    I64(Option<i64>),
+    /// Unsigned integer.
+    U64(u64),
+}
+
+enum Buffer {
+    Str(Vec<String>),
+    F64(Vec<Option<f64>>),
+    I64(Vec<Option<i64>>),
+    U64(Vec<u64>),
+}
+
+/// Rows per Parquet row group; bounds the writer's memory.
+const FLUSH_ROWS: usize = 65_536;
+
+/// Writes one table to `<dir>/.<name>.parquet.partial` and renames it to `<name>.parquet` on
+/// [`TableWriter::commit`]. Dropped without a commit, it deletes its temporary file.
+pub struct TableWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    columns: Vec<ColumnDef>,
+    buffers: Vec<Buffer>,
+    buffered: usize,
+    rows: u64,
+    writer: Option<polars::io::parquet::write::BatchedWriter<File>>,
+}
+
+impl TableWriter {
+    /// Starts a table `name` in `dir` with the given columns.
+    pub fn create(dir: &Path, name: &str, columns: Vec<ColumnDef>) -> Result<Self, OutputError> {
+        let path = dir.join(format!("{name}.parquet"));
+        let tmp = dir.join(format!(".{name}.parquet.partial"));
+        let file = File::create(&tmp).map_err(|source| OutputError::Io {
+            action: "cannot create",
+            path: tmp.clone(),
+            source,
+        })?;
+        let schema = Schema::from_iter(columns.iter().map(|c| {
+            let dt = match c.dtype {
+                Dtype::Str => DataType::String,
+                Dtype::F64 => DataType::Float64,
+                Dtype::I64 => DataType::Int64,
+                Dtype::U64 => DataType::UInt64,
+            };
+            Field::new(c.name.as_str().into(), dt)
+        }));
+        let writer = ParquetWriter::new(file)
+            .with_compression(ParquetCompression::Zstd(None))
+            .batched(&schema)
+            .map_err(|source| OutputError::Polars {
+                action: "cannot start writing",
+                path: tmp.clone(),
+                source,
+            })?;
+        let buffers = columns
+            .iter()
+            .map(|c| match c.dtype {
+                Dtype::Str => Buffer::Str(Vec::new()),
+                Dtype::F64 => Buffer::F64(Vec::new()),
+                Dtype::I64 => Buffer::I64(Vec::new()),
+                Dtype::U64 => Buffer::U64(Vec::new()),
+            })
+            .collect();
+        Ok(TableWriter {
+            path,
+            tmp,
+            columns,
+            buffers,
+            buffered: 0,
+            rows: 0,
+            writer: Some(writer),
+        })
+    }
+
+    /// Appends one row; values must follow the column order and types.
+    ///
+    /// # Panics
+    /// On a row of the wrong length or type: a programming error in the caller, whose rows
+    /// are built from the same schema.
+    pub fn push(&mut self, row: &[Value<'_>]) -> Result<(), OutputError> {
+        assert_eq!(row.len(), self.columns.len(), "row length must match the schema");
+        for (i, (b, v)) in self.buffers.iter_mut().zip(row).enumerate() {
+            match (b, v) {
+                (Buffer::Str(b), Value::Str(s)) => b.push((*s).to_string()),
+                (Buffer::F64(b), Value::F64(x)) => b.push(x.filter(|x| !x.is_nan())),
+                (Buffer::I64(b), Value::I64(x)) => b.push(*x),
+                (Buffer::U64(b), Value::U64(x)) => b.push(*x),
+                _ => panic!("value of the wrong type for column {}", self.columns[i].name),
+            }
+        }
+        self.buffered += 1;
+        if self.buffered >= FLUSH_ROWS {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> Result<(), OutputError> {
+        if self.buffered == 0 {
+            return Ok(());
+        }
+        let cols: Vec<Column> = self
+            .columns
+            .iter()
+            .zip(self.buffers.iter_mut())
+            .map(|(c, b)| {
+                let name: PlSmallStr = c.name.as_str().into();
+                match b {
+                    Buffer::Str(v) => Column::new(name, std::mem::take(v)),
+                    Buffer::F64(v) => Column::new(name, std::mem::take(v)),
+                    Buffer::I64(v) => Column::new(name, std::mem::take(v)),
+                    Buffer::U64(v) => Column::new(name, std::mem::take(v)),
+                }
+            })
+            .collect();
+        let polars_err = |source| OutputError::Polars {
+            action: "cannot write",
+            path: self.tmp.clone(),
+            source,
+        };
+        let df = DataFrame::new(self.buffered, cols).map_err(polars_err)?;
+        self.writer
+            .as_mut()
+            .expect("the writer lives until commit")
+            .write_batch(&df)
+            .map_err(polars_err)?;
+        self.rows += self.buffered as u64;
+        self.buffered = 0;
+        Ok(())
+    }
+
+    /// Finishes the file and renames it into place; returns its path and row count.
+    pub fn commit(mut self) -> Result<(PathBuf, u64), OutputError> {
+        self.flush()?;
+        let writer = self.writer.take().expect("the writer lives until commit");
+        writer.finish().map_err(|source| OutputError::Polars {
+            action: "cannot finish",
+            path: self.tmp.clone(),
+            source,
+        })?;
+        drop(writer);
+        std::fs::rename(&self.tmp, &self.path).map_err(|source| OutputError::Io {
+            action: "cannot move the finished table to",
+            path: self.path.clone(),
+            source,
+        })?;
+        Ok((self.path.clone(), self.rows))
+    }
+
+    /// The final path of the table.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for TableWriter {
+    fn drop(&mut self) {
+        if self.writer.is_some() {
+            // Not committed: leave nothing that could be mistaken for a result.
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// Reads a whole Parquet table.
+pub fn read(path: &Path) -> Result<DataFrame, OutputError> {
+    let file = File::open(path).map_err(|source| OutputError::Io {
+        action: "cannot open",
+        path: path.to_path_buf(),
+        source,
+    })?;
+    ParquetReader::new(file)
+        .finish()
+        .map_err(|source| OutputError::Polars {
+            action: "cannot read",
+            path: path.to_path_buf(),
+            source,
+        })
+}

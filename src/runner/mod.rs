@@ -1,0 +1,95 @@
+//! The runner role: a parallel executor that knows nothing about models, filters or metrics.
+//!
+//! Units run on a rayon pool in windows; each window's results are handed to a sink **in unit
+//! order**. Because every unit is computed independently from its own seed and the sink folds
+//! in a fixed order, the output is bit-identical for any thread count, while only one window
+//! of results is in memory at a time.
+
+use rayon::prelude::*;
+
+use crate::error::KfmcError;
+
+/// Progress notifications (argmin's observers). Only the CLI's implementation draws a bar.
+pub trait RunObserver: Sync {
+    /// Before the first unit: how many there are.
+    fn on_start(&self, _total_units: u64) {}
+    /// After `n` more units finished (called from worker threads).
+    fn on_units_done(&self, _n: u64) {}
+    /// After the last unit.
+    fn on_finish(&self) {}
+}
+
+/// An observer that ignores everything (tests, library use).
+pub struct NullObserver;
+impl RunObserver for NullObserver {}
+
+/// Units per window: large enough to keep every core busy, small enough to bound memory.
+const WINDOW: usize = 512;
+
+/// Runs `work` over `units` on `threads` threads (0 = all cores) and feeds each result to
+/// `sink` in unit order.
+pub fn execute<U, R, E>(
+    units: &[U],
+    threads: usize,
+    work: impl Fn(&U) -> R + Sync,
+    observer: &dyn RunObserver,
+    mut sink: impl FnMut(R) -> Result<(), E>,
+) -> Result<(), E>
+where
+    U: Sync,
+    R: Send,
+    E: From<KfmcError>,
+{
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|source| KfmcError::ThreadPool { threads, source })?;
+    observer.on_start(units.len() as u64);
+    for window in units.chunks(WINDOW) {
+        let results: Vec<R> = pool.install(|| {
+            window
+                .par_iter()
+                .map(|u| {
+                    let r = work(u);
+                    observer.on_units_done(1);
+                    r
+                })
+                .collect()
+        });
+        for r in results {
+            sink(r)?;
+        }
+    }
+    observer.on_finish();
+    Ok(())
+}
+
+/// The number of worker threads `threads = 0` resolves to.
+pub fn default_threads() -> usize {
+    rayon::current_num_threads()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn results_arrive_in_unit_order_for_any_thread_count() {
+        let units: Vec<u64> = (0..2000).collect();
+        for threads in [1, 2, 3] {
+            let mut seen = Vec::new();
+            execute::<_, _, KfmcError>(
+                &units,
+                threads,
+                |u| u * 3,
+                &NullObserver,
+                |r| {
+                    seen.push(r);
+                    Ok(())
+                },
+            )
+            .unwrap();
+            assert_eq!(seen, units.iter().map(|u| u * 3).collect::<Vec<_>>());
+        }
+    }
+}

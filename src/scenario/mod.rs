@@ -1,0 +1,26 @@
+//! The scenario role: initial state, control profile, duration.
+//!
+//! A [`Scenario`] is model-agnostic data (x0 and the control sequence u_0..u_K); the built-in
+//! profiles of each model live beside it (e.g. [`planar`]).
+
+pub mod planar;
+
+use crate::linalg::Vector;
+
+/// One scenario: where the truth starts and the control applied at every step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scenario<const NX: usize, const NU: usize> {
+    /// Name used in the tables' `scenario` column and in seeding.
+    pub name: String,
+    /// True initial state x_0.
+    pub x0: Vector<NX>,
+    /// u_0 … u_K; u_k drives the transition from k−1 to k.
+    pub controls: Vec<Vector<NU>>,
+}
+
+impl<const NX: usize, const NU: usize> Scenario<NX, NU> {
+    /// Number of transitions K (the trajectory has K + 1 samples, k = 0..=K).
+    pub fn steps(&self) -> usize {
+        self.controls.len().saturating_sub(1)
+    }
+}

@@ -1,0 +1,372 @@
+//! A whole study: plan → units → executor → in-order folding into the tables → manifest.
+
+use std::path::PathBuf;
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use crate::error::{KfmcError, OutputError};
+use crate::experiment::Plan;
+use crate::metrics::divergence::DivergenceTracker;
+use crate::metrics::{mean_std, quantile_sorted, RunStatus, StepAccumulator};
+use crate::output::manifest::{Manifest, TableEntry};
+use crate::output::{schema, TableWriter, Value};
+use crate::runner::{execute, RunObserver};
+use crate::trial::{build, Trial, Unit, UnitResult};
+
+/// Options of a study execution that do not change its results.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ExecOptions {
+    /// Worker threads; 0 = all cores.
+    pub threads: usize,
+}
+
+/// What a finished study wrote.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StudyReport {
+    /// Output folder.
+    pub output: PathBuf,
+    /// Tables and their row counts.
+    pub tables: Vec<(String, u64)>,
+    /// Wall-clock seconds.
+    pub wall_s: f64,
+    /// Simulated runs.
+    pub runs: u64,
+}
+
+/// The per-cell state while its runs are being folded.
+struct CellState {
+    acc: Vec<StepAccumulator>,
+    /// Per filter: RMSE rows of the runs that completed (failures excluded).
+    rmse: Vec<Vec<Vec<f64>>>,
+    failed: Vec<u64>,
+}
+
+struct Aggregator<'a> {
+    plan: &'a Plan,
+    trial: &'a dyn Trial,
+    states: Vec<&'static str>,
+    runs: TableWriter,
+    steps: TableWriter,
+    summary: TableWriter,
+    traces: Option<TableWriter>,
+    /// Per (scenario, filter).
+    divergence: Vec<DivergenceTracker>,
+    cell: Option<(usize, usize, CellState)>,
+}
+
+impl Aggregator<'_> {
+    fn fold(&mut self, r: UnitResult) -> Result<(), OutputError> {
+        let plan = self.plan;
+        let Unit { scenario, scale, run } = r.unit;
+        let nx = self.states.len();
+        let nf = plan.filters.len();
+        if self.cell.as_ref().is_none_or(|(s, j, _)| (*s, *j) != (scenario, scale)) {
+            let steps = self.trial.steps(scenario);
+            self.cell = Some((
+                scenario,
+                scale,
+                CellState {
+                    acc: vec![StepAccumulator::new(nx, steps); nf],
+                    rmse: vec![Vec::with_capacity(plan.runs); nf],
+                    failed: vec![0; nf],
+                },
+            ));
+        }
+        let sname = plan.scenarios[scenario].name.as_str();
+        let noise = plan.noise_scales[scale];
+        let (_, _, cell) = self.cell.as_mut().expect("set above");
+        for (fi, fr) in r.filters.iter().enumerate() {
+            let label = plan.filters[fi].label.as_str();
+            let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
+            let mut row = vec![
+                Value::Str(sname),
+                Value::F64(Some(noise)),
+                Value::Str(label),
+                Value::I64(Some(run as i64)),
+                Value::U64(r.seed),
+                Value::Str(fr.status.label()),
+                Value::I64(fr.status.step().map(|s| s as i64)),
+                Value::Str(fr.status.detail().unwrap_or("")),
+            ];
+            row.extend(fr.rmse.iter().map(|v| Value::F64((!failed).then_some(*v))));
+            row.extend([
+                Value::F64(fr.nees_mean),
+                Value::F64(fr.nis_mean),
+                Value::I64(Some(fr.covariance_repairs as i64)),
+            ]);
+            self.runs.push(&row)?;
+            cell.acc[fi].fold(&fr.steps);
+            if failed {
+                cell.failed[fi] += 1;
+            } else {
+                cell.rmse[fi].push(fr.rmse.clone());
+            }
+            if let Some(thr) = &plan.rmse_thresholds {
+                let rmse: Vec<f64> = if failed { vec![f64::NAN; nx] } else { fr.rmse.clone() };
+                self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr);
+            }
+        }
+        if let (Some(tr), Some(w)) = (&r.trace, self.traces.as_mut()) {
+            let names = self.trial.names();
+            let (nu, nz) = (names.inputs.len(), names.measurements.len());
+            let dt = plan.model.params.dt_s;
+            for (fi, f) in plan.filters.iter().enumerate() {
+                for k in 0..tr.truth.len() / nx {
+                    let mut row = vec![
+                        Value::Str(sname),
+                        Value::F64(Some(noise)),
+                        Value::Str(&f.label),
+                        Value::I64(Some(run as i64)),
+                        Value::I64(Some(k as i64)),
+                        Value::F64(Some(k as f64 * dt)),
+                    ];
+                    let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+                    row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
+                    row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
+                    row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                    row.extend(f64s(&tr.est[fi][k * nx..(k + 1) * nx]));
+                    row.extend(f64s(&tr.var[fi][k * nx..(k + 1) * nx]));
+                    w.push(&row)?;
+                }
+            }
+        }
+        if run + 1 == plan.runs {
+            self.finish_cell()?;
+        }
+        Ok(())
+    }
+
+    fn finish_cell(&mut self) -> Result<(), OutputError> {
+        let plan = self.plan;
+        let Some((scenario, scale, cell)) = self.cell.take() else {
+            return Ok(());
+        };
+        let sname = plan.scenarios[scenario].name.as_str();
+        let noise = plan.noise_scales[scale];
+        let dt = plan.model.params.dt_s;
+        let nf = plan.filters.len();
+        for (fi, f) in plan.filters.iter().enumerate() {
+            let acc = &cell.acc[fi];
+            for k in 0..acc.len() {
+                let s = acc.row(k);
+                let mut row = vec![
+                    Value::Str(sname),
+                    Value::F64(Some(noise)),
+                    Value::Str(&f.label),
+                    Value::I64(Some(k as i64)),
+                    Value::F64(Some(k as f64 * dt)),
+                    Value::I64(Some(s.runs as i64)),
+                    Value::F64(s.anees),
+                    Value::F64(s.anis),
+                ];
+                row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
+                self.steps.push(&row)?;
+            }
+            let mut means = Vec::with_capacity(self.states.len());
+            for (i, state) in self.states.iter().enumerate() {
+                let mut v: Vec<f64> = cell.rmse[fi].iter().map(|r| r[i]).collect();
+                let (mean, std) = mean_std(&v);
+                v.sort_by(f64::total_cmp);
+                means.push(mean.unwrap_or(f64::NAN));
+                self.summary.push(&[
+                    Value::Str(sname),
+                    Value::F64(Some(noise)),
+                    Value::Str(&f.label),
+                    Value::Str(state),
+                    Value::I64(Some(v.len() as i64)),
+                    Value::I64(Some(cell.failed[fi] as i64)),
+                    Value::F64(mean),
+                    Value::F64(std),
+                    Value::F64(quantile_sorted(&v, 0.05)),
+                    Value::F64(quantile_sorted(&v, 0.50)),
+                    Value::F64(quantile_sorted(&v, 0.95)),
+                ])?;
+            }
+            if let Some(thr) = &plan.rmse_thresholds {
+                self.divergence[scenario * nf + fi].observe_mean(scale, &means, thr);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Runs the study described by `plan`, writing its tables and manifest into `plan.output`.
+pub fn run(plan: &Plan, opts: &ExecOptions, observer: &dyn RunObserver) -> Result<StudyReport, KfmcError> {
+    let started = Instant::now();
+    let started_unix_s = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let dir = &plan.output;
+    std::fs::create_dir_all(dir).map_err(|source| OutputError::Io {
+        action: "cannot create the output folder",
+        path: dir.clone(),
+        source,
+    })?;
+    let trial = build(plan);
+    let names = trial.names();
+    let states = names.states.clone();
+    let nf = plan.filters.len();
+    let mut agg = Aggregator {
+        plan,
+        trial: trial.as_ref(),
+        runs: TableWriter::create(dir, "runs", schema::runs(&states))?,
+        steps: TableWriter::create(dir, "steps", schema::steps(&states))?,
+        summary: TableWriter::create(dir, "summary", schema::summary())?,
+        traces: if plan.trace_runs > 0 {
+            Some(TableWriter::create(
+                dir,
+                "traces",
+                schema::traces(&states, &names.inputs, &names.measurements),
+            )?)
+        } else {
+            None
+        },
+        divergence: vec![DivergenceTracker::new(plan.runs, states.len()); plan.scenarios.len() * nf],
+        states,
+        cell: None,
+    };
+
+    let mut units = Vec::with_capacity(plan.size().runs);
+    for scenario in 0..plan.scenarios.len() {
+        for scale in 0..plan.noise_scales.len() {
+            for run in 0..plan.runs {
+                units.push(Unit { scenario, scale, run });
+            }
+        }
+    }
+    execute::<_, _, KfmcError>(
+        &units,
+        opts.threads,
+        |u| trial.run(u),
+        observer,
+        |r| agg.fold(r).map_err(KfmcError::from),
+    )?;
+
+    let mut written: Vec<TableWriter> = Vec::new();
+    if let Some(thr) = &plan.rmse_thresholds {
+        let (d, dr) = divergence_tables(plan, &agg, thr)?;
+        written.extend([d, dr]);
+    }
+    let Aggregator {
+        runs,
+        steps,
+        summary,
+        traces,
+        ..
+    } = agg;
+    written.extend([runs, steps, summary]);
+    written.extend(traces);
+
+    // Commit every table, then drop tables of an earlier run that this one did not write, so
+    // a folder never mixes two studies; the manifest goes last.
+    let mut tables = Vec::new();
+    for w in written {
+        let name = w
+            .path()
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let (_, rows) = w.commit()?;
+        tables.push((name, rows));
+    }
+    for t in schema::TABLES {
+        if !tables.iter().any(|(n, _)| n == t) {
+            let stale = dir.join(format!("{t}.parquet"));
+            if stale.exists() {
+                std::fs::remove_file(&stale).map_err(|source| OutputError::Io {
+                    action: "cannot remove the stale table",
+                    path: stale,
+                    source,
+                })?;
+            }
+        }
+    }
+    tables.sort_by_key(|(n, _)| schema::TABLES.iter().position(|t| t == n));
+    let wall_s = started.elapsed().as_secs_f64();
+    let size = plan.size();
+    let threads = if opts.threads == 0 {
+        crate::runner::default_threads()
+    } else {
+        opts.threads
+    };
+    Manifest {
+        kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
+        experiment: plan.name.clone(),
+        spec_path: plan.spec_path.display().to_string(),
+        spec_hash: plan.spec_hash.clone(),
+        master_seed: plan.master_seed,
+        runs_per_cell: plan.runs as u64,
+        cells: size.cells as u64,
+        runs: size.runs as u64,
+        filter_runs: size.filter_runs as u64,
+        filter_steps: size.filter_steps,
+        threads: threads as u64,
+        started_unix_s,
+        wall_s,
+        runs_per_s: size.runs as f64 / wall_s.max(1e-9),
+        tables: tables
+            .iter()
+            .map(|(n, r)| TableEntry {
+                name: n.clone(),
+                rows: *r,
+            })
+            .collect(),
+        spec: plan.spec_text.clone(),
+    }
+    .write(dir)?;
+    Ok(StudyReport {
+        output: dir.clone(),
+        tables,
+        wall_s,
+        runs: size.runs as u64,
+    })
+}
+
+fn divergence_tables(
+    plan: &Plan,
+    agg: &Aggregator<'_>,
+    thr: &[f64],
+) -> Result<(TableWriter, TableWriter), OutputError> {
+    let dir = &plan.output;
+    let mut d = TableWriter::create(dir, "divergence", schema::divergence())?;
+    let mut dr = TableWriter::create(dir, "divergence_runs", schema::divergence_runs())?;
+    let nf = plan.filters.len();
+    let max_scale = plan.noise_scales.last().copied();
+    let scale_of = |j: Option<usize>| j.map(|j| plan.noise_scales[j]);
+    for (si, s) in plan.scenarios.iter().enumerate() {
+        for (fi, f) in plan.filters.iter().enumerate() {
+            let tracker = &agg.divergence[si * nf + fi];
+            for (i, state) in agg.states.iter().enumerate() {
+                // Runs that never crossed are censored beyond the largest scale: +∞ in the
+                // ordering, so a quantile that needs them is unknown (null), not invented.
+                let mut per_run: Vec<f64> = (0..plan.runs)
+                    .map(|r| scale_of(tracker.run_crossing(r, i)).unwrap_or(f64::INFINITY))
+                    .collect();
+                for (r, v) in per_run.iter().enumerate() {
+                    dr.push(&[
+                        Value::Str(&s.name),
+                        Value::Str(&f.label),
+                        Value::I64(Some(r as i64)),
+                        Value::Str(state),
+                        Value::F64(v.is_finite().then_some(*v)),
+                    ])?;
+                }
+                per_run.sort_by(f64::total_cmp);
+                let diverged = per_run.iter().filter(|v| v.is_finite()).count();
+                d.push(&[
+                    Value::Str(&s.name),
+                    Value::Str(&f.label),
+                    Value::Str(state),
+                    Value::F64(Some(thr[i])),
+                    Value::F64(max_scale),
+                    Value::F64(scale_of(tracker.mc_crossing(i))),
+                    Value::I64(Some(plan.runs as i64)),
+                    Value::I64(Some(diverged as i64)),
+                    Value::F64(quantile_sorted(&per_run, 0.05)),
+                    Value::F64(quantile_sorted(&per_run, 0.50)),
+                    Value::F64(quantile_sorted(&per_run, 0.95)),
+                ])?;
+            }
+        }
+    }
+    Ok((d, dr))
+}

@@ -1,0 +1,357 @@
+//! One Monte Carlo run: simulate the truth once, run every filter on it (paired comparison),
+//! and reduce each filter's run to per-step values and a per-run record.
+//!
+//! This is where the model and filter enums are matched — once per run — before entering the
+//! monomorphised step loop [`run_filter`]. The executor ([`crate::runner`]) only sees the
+//! object-safe [`Trial`] trait.
+
+use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
+use crate::filter::{Ekf, Filter, FilterError, RunningMean};
+use crate::linalg::{cholesky, diag_from_std, inverse_quadratic_form, Matrix, Vector};
+use crate::metrics::{FilterRun, StepValues};
+use crate::model::planar::{Planar, PlanarImu, PlanarP1};
+use crate::model::{Model, Names};
+use crate::scenario::Scenario;
+use crate::sim::seed::run_seed;
+use crate::sim::{simulate, NoiseDraws, Trajectory, TruthNoise};
+
+/// One unit of work: a run of one (scenario, noise scale) cell.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Unit {
+    /// Index into the plan's scenarios.
+    pub scenario: usize,
+    /// Index into the plan's noise scales.
+    pub scale: usize,
+    /// Run index within the cell.
+    pub run: usize,
+}
+
+/// Full trajectories of a traced run, flattened row-major by step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RunTrace {
+    /// u_k, `nu` per step.
+    pub u: Vec<f64>,
+    /// x_k, `nx` per step.
+    pub truth: Vec<f64>,
+    /// z_k, `nz` per step (NaN where a component did not report).
+    pub z: Vec<f64>,
+    /// Per filter: x̂_k, `nx` per step (NaN after a failure).
+    pub est: Vec<Vec<f64>>,
+    /// Per filter: diag P_k, `nx` per step (NaN without a covariance).
+    pub var: Vec<Vec<f64>>,
+}
+
+/// What one unit produces.
+#[derive(Clone, Debug, PartialEq)]
+pub struct UnitResult {
+    /// The unit.
+    pub unit: Unit,
+    /// The run's seed (all its streams derive from it).
+    pub seed: u64,
+    /// One record per filter, in plan order.
+    pub filters: Vec<FilterRun>,
+    /// Present for traced runs.
+    pub trace: Option<RunTrace>,
+}
+
+/// A study that can execute units. Implemented once, generically, for every model.
+pub trait Trial: Sync {
+    /// Runs one unit.
+    fn run(&self, unit: &Unit) -> UnitResult;
+    /// Number of transitions K of a scenario.
+    fn steps(&self, scenario: usize) -> usize;
+    /// Column names of the model.
+    fn names(&self) -> Names;
+}
+
+/// Everything a filter run needs besides the filter.
+pub struct RunContext<'a, const NX: usize, const NU: usize, const NZ: usize> {
+    /// The scenario (controls).
+    pub scenario: &'a Scenario<NX, NU>,
+    /// The simulated run.
+    pub trajectory: &'a Trajectory<NX, NZ>,
+    /// P_0.
+    pub p0: &'a Matrix<NX, NX>,
+    /// Divergence thresholds.
+    pub thresholds: Option<&'a [f64]>,
+    /// State names (for status details).
+    pub state_names: &'a [&'static str],
+    /// Whether to keep the estimate trajectory.
+    pub trace: bool,
+}
+
+/// One filter's run: the record, and the trajectories when traced.
+pub struct FilterOutput {
+    /// The per-run record and per-step values.
+    pub run: FilterRun,
+    /// x̂_k and diag P_k when traced.
+    pub trace: Option<(Vec<f64>, Vec<f64>)>,
+}
+
+/// The monomorphised step loop: predict, update, and per-step metrics.
+pub fn run_filter<const NX: usize, const NU: usize, const NZ: usize, M, F>(
+    model: &M,
+    filter: &F,
+    ctx: &RunContext<'_, NX, NU, NZ>,
+) -> FilterOutput
+where
+    M: Model<NX, NU, NZ>,
+    F: Filter<NX, NU, NZ, M>,
+{
+    let traj = ctx.trajectory;
+    let steps = traj.truth.len() - 1;
+    let mut values = StepValues::new(NX, steps);
+    let mut est = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * NX]);
+    let mut var = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * NX]);
+    let mut repairs = 0u32;
+    let mut failure: Option<(usize, String)> = None;
+    let mut belief = filter.init(model, &traj.x0_hat, ctx.p0, &traj.measurements[0]);
+
+    for k in 0..=steps {
+        let mut nis = f64::NAN;
+        if k > 0 {
+            let u = &ctx.scenario.controls[k];
+            let step = filter.predict(model, &mut belief, u).and_then(|()| {
+                filter.update(model, &mut belief, u, &traj.measurements[k])
+            });
+            match step {
+                Ok(Some(inn)) => nis = inn.nis,
+                Ok(None) => {}
+                Err(e) => {
+                    failure = Some((k, e.to_string()));
+                    break;
+                }
+            }
+        }
+        let mean = filter.mean(&belief);
+        let e: Vector<NX> = traj.truth[k] - mean;
+        let mut nees = f64::NAN;
+        if let Some(p) = filter.covariance(&belief) {
+            let chol = match cholesky(&p) {
+                Some(c) => Some(c),
+                None if filter.repair_covariance(&mut belief) => {
+                    repairs += 1;
+                    filter.covariance(&belief).and_then(|p| cholesky(&p))
+                }
+                None => None,
+            };
+            let Some(chol) = chol else {
+                let err = FilterError::NotPositiveDefinite {
+                    which: "state covariance P",
+                };
+                failure = Some((k, err.to_string()));
+                break;
+            };
+            nees = inverse_quadratic_form(&chol, &e);
+            if let Some(var) = var.as_mut() {
+                let p = filter.covariance(&belief).unwrap_or(p);
+                for i in 0..NX {
+                    var[k * NX + i] = p[(i, i)];
+                }
+            }
+        }
+        if let Some(est) = est.as_mut() {
+            est[k * NX..(k + 1) * NX].copy_from_slice(filter.mean(&belief).as_slice());
+        }
+        for i in 0..NX {
+            values.sq_err[k * NX + i] = e[i] * e[i];
+        }
+        values.nees[k] = nees;
+        values.nis[k] = nis;
+        values.completed = k + 1;
+    }
+    let run = values.finish(failure, ctx.thresholds, ctx.state_names, repairs);
+    FilterOutput {
+        run,
+        trace: est.zip(var),
+    }
+}
+
+/// Runs a configured filter kind on a model. Implemented per model, because some filters
+/// only exist for some models (the running mean reads P1's measurements directly).
+pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
+    Model<NX, NU, NZ> + Sized
+{
+    /// Dispatches `kind` with assumed noise `q`, `r`.
+    fn run_kind(
+        &self,
+        kind: &FilterKind,
+        q: Matrix<NX, NX>,
+        r: Matrix<NZ, NZ>,
+        ctx: &RunContext<'_, NX, NU, NZ>,
+    ) -> FilterOutput;
+}
+
+impl FilterSet<6, 2, 3> for PlanarP1 {
+    fn run_kind(
+        &self,
+        kind: &FilterKind,
+        q: Matrix<6, 6>,
+        r: Matrix<3, 3>,
+        ctx: &RunContext<'_, 6, 2, 3>,
+    ) -> FilterOutput {
+        match kind {
+            FilterKind::Ekf { update } => run_filter(
+                self,
+                &Ekf {
+                    q,
+                    r,
+                    update_form: *update,
+                },
+                ctx,
+            ),
+            FilterKind::RunningMean { window } => {
+                run_filter(self, &RunningMean { window: *window }, ctx)
+            }
+        }
+    }
+}
+
+impl FilterSet<6, 2, 4> for PlanarImu {
+    fn run_kind(
+        &self,
+        kind: &FilterKind,
+        q: Matrix<6, 6>,
+        r: Matrix<4, 4>,
+        ctx: &RunContext<'_, 6, 2, 4>,
+    ) -> FilterOutput {
+        match kind {
+            FilterKind::Ekf { update } => run_filter(
+                self,
+                &Ekf {
+                    q,
+                    r,
+                    update_form: *update,
+                },
+                ctx,
+            ),
+            FilterKind::RunningMean { .. } => {
+                unreachable!("plan validation rejects running_mean unless model.sensor = \"p1\"")
+            }
+        }
+    }
+}
+
+/// A plan bound to a concrete model type.
+pub struct Study<const NX: usize, const NU: usize, const NZ: usize, M> {
+    model: M,
+    scenarios: Vec<Scenario<NX, NU>>,
+    noise: TruthNoise<NX, NZ>,
+    p0: Matrix<NX, NX>,
+    p0_factor: Option<Matrix<NX, NX>>,
+    plan: Plan,
+    state_names: Vec<&'static str>,
+}
+
+impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>>
+    Study<NX, NU, NZ, M>
+{
+    fn new(model: M, scenarios: Vec<Scenario<NX, NU>>, plan: &Plan) -> Self {
+        let p0_std = Vector::<NX>::from_column_slice(&plan.p0_std);
+        let p0 = diag_from_std(&p0_std);
+        let p0_factor =
+            (plan.initial == InitialMode::Sampled).then(|| Matrix::<NX, NX>::from_diagonal(&p0_std));
+        let state_names = model.names().states;
+        Study {
+            noise: TruthNoise {
+                process_std: Vector::<NX>::from_column_slice(&plan.model.process_noise_std),
+                measurement_std: Vector::<NZ>::from_column_slice(&plan.model.measurement_noise_std),
+            },
+            model,
+            scenarios,
+            p0,
+            p0_factor,
+            plan: plan.clone(),
+            state_names,
+        }
+    }
+}
+
+impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>> Trial
+    for Study<NX, NU, NZ, M>
+{
+    fn run(&self, unit: &Unit) -> UnitResult {
+        let plan = &self.plan;
+        let scenario = &self.scenarios[unit.scenario];
+        let noise_scale = plan.noise_scales[unit.scale];
+        let seed = run_seed(plan.master_seed, &scenario.name, unit.run as u64);
+        let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
+        let trajectory = simulate(
+            &self.model,
+            scenario,
+            &self.noise,
+            noise_scale,
+            self.p0_factor.as_ref(),
+            &draws,
+        );
+        let traced = unit.run < plan.trace_runs;
+        let ctx = RunContext {
+            scenario,
+            trajectory: &trajectory,
+            p0: &self.p0,
+            thresholds: plan.rmse_thresholds.as_deref(),
+            state_names: &self.state_names,
+            trace: traced,
+        };
+        let filter_scale = match plan.filter_noise {
+            FilterNoiseMode::Nominal => 1.0,
+            FilterNoiseMode::Matched => noise_scale,
+        };
+        let mut filters = Vec::with_capacity(plan.filters.len());
+        let mut est = Vec::new();
+        let mut var = Vec::new();
+        for f in &plan.filters {
+            let q = diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale));
+            let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale));
+            let out = self.model.run_kind(&f.kind, q, r, &ctx);
+            if let Some((e, v)) = out.trace {
+                est.push(e);
+                var.push(v);
+            }
+            filters.push(out.run);
+        }
+        let trace = traced.then(|| RunTrace {
+            u: scenario.controls.iter().flat_map(|u| u.iter().copied()).collect(),
+            truth: trajectory.truth.iter().flat_map(|x| x.iter().copied()).collect(),
+            z: trajectory
+                .measurements
+                .iter()
+                .flat_map(|m| (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN }))
+                .collect(),
+            est,
+            var,
+        });
+        UnitResult {
+            unit: *unit,
+            seed,
+            filters,
+            trace,
+        }
+    }
+
+    fn steps(&self, scenario: usize) -> usize {
+        self.scenarios[scenario].steps()
+    }
+
+    fn names(&self) -> Names {
+        self.model.names()
+    }
+}
+
+/// Binds a plan to its model type.
+pub fn build(plan: &Plan) -> Box<dyn Trial> {
+    let dt = plan.model.params.dt_s;
+    let scenarios: Vec<Scenario<6, 2>> = plan.scenarios.iter().map(|s| s.expand(dt)).collect();
+    match plan.model.kind {
+        ModelKind::PlanarP1 => Box::new(Study::<6, 2, 3, _>::new(
+            Planar::<3>::new(plan.model.params),
+            scenarios,
+            plan,
+        )),
+        ModelKind::PlanarImu => Box::new(Study::<6, 2, 4, _>::new(
+            Planar::<4>::new(plan.model.params),
+            scenarios,
+            plan,
+        )),
+    }
+}
