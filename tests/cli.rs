@@ -1,0 +1,141 @@
+//! The `kfmc` binary: commands, exit codes, error messages with key paths, clean output.
+
+mod common;
+
+use common::{kfmc, repo, small_spec, spec_in_tempdir, EKF_AND_MEAN};
+
+fn output(args: &[&str]) -> (i32, String, String) {
+    let o = kfmc().args(args).output().expect("kfmc runs");
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn every_command_has_help() {
+    for cmd in [vec!["--help"], vec!["run", "--help"], vec!["validate", "--help"], vec!["summary", "--help"], vec!["list", "--help"]] {
+        let (code, out, _) = output(&cmd);
+        assert_eq!(code, 0, "{cmd:?}");
+        assert!(out.contains("Usage:"), "{cmd:?}: {out}");
+    }
+    let (_, out, _) = output(&["--help"]);
+    assert!(out.contains("Exit codes"));
+}
+
+#[test]
+fn bundled_specs_validate() {
+    for spec in ["planar_seed_study", "planar_noise_cases", "planar_robustness", "planar_imu"] {
+        let path = repo().join(format!("experiments/{spec}.toml"));
+        let (code, out, err) = output(&["validate", path.to_str().unwrap()]);
+        assert_eq!(code, 0, "{spec}: {err}");
+        assert!(out.contains("cells"), "{spec}: {out}");
+    }
+    let (_, out, _) = output(&["validate", repo().join("experiments/planar_robustness.toml").to_str().unwrap()]);
+    assert!(out.contains("1000 cells × 100 runs = 100000 runs"), "{out}");
+}
+
+#[test]
+fn bad_specs_exit_2_naming_the_file_and_key_path() {
+    let cases: [(&str, &[&str]); 5] = [
+        (
+            "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"ekf\"\nkind = \"ekf\"\nq_sdt = 0.1\n",
+            &["filters[0].q_sdt", "unknown field"],
+        ),
+        (
+            "[model]\nkind = \"planar_quadrotor\"\nsensor = \"imu\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"rm\"\nkind = \"running_mean\"\n",
+            &["filters[0].kind", "sensor"],
+        ),
+        (
+            "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"ekf\"\nkind = \"ekf\"\nr_std = [0.01, 0.0, 0.01]\n",
+            &["filters[0].r_std[1]", "positive"],
+        ),
+        (
+            "runs = -3\n[model]\nkind = \"planar_quadrotor\"\n",
+            &["runs", "line 1"],
+        ),
+        (
+            "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"ekf\"\nkind = \"ukf\"\n[noise]\nscales = [1.0, 1.0]\n",
+            &["filters[0].kind", "unknown value `ukf`", "noise.scales", "duplicate"],
+        ),
+    ];
+    for (text, needles) in cases {
+        let (_dir, spec) = spec_in_tempdir(text);
+        for cmd in ["validate", "run"] {
+            let (code, out, err) = output(&[cmd, spec.to_str().unwrap()]);
+            assert_eq!(code, 2, "{cmd} {text}: {err}");
+            assert!(out.is_empty());
+            assert!(err.contains("spec.toml"), "{err}");
+            assert!(!err.contains("panicked"), "{err}");
+            for n in needles {
+                assert!(err.contains(n), "missing `{n}` in: {err}");
+            }
+        }
+    }
+    let (code, _, err) = output(&["run", "/nonexistent/spec.toml"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("/nonexistent/spec.toml") && err.contains("cannot read"), "{err}");
+}
+
+#[test]
+fn run_writes_the_tables_and_summary_reads_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("res");
+    let (_d, spec) = spec_in_tempdir(&small_spec(&out, 5, "[1.0, 2.0]", EKF_AND_MEAN));
+    let (code, stdout, stderr) = output(&["run", spec.to_str().unwrap(), "--trace-runs", "1", "--threads", "2"]);
+    assert_eq!(code, 0, "{stderr}");
+    // Not a terminal: no progress bar, no escape codes.
+    assert!(!stderr.contains('\u{1b}') && stderr.is_empty(), "{stderr:?}");
+    assert!(stdout.contains("20 runs"), "{stdout}");
+    for t in ["runs", "steps", "summary", "divergence", "divergence_runs", "traces"] {
+        assert!(out.join(format!("{t}.parquet")).exists(), "{t}");
+    }
+    let manifest = std::fs::read_to_string(out.join("manifest.toml")).unwrap();
+    for key in ["spec_hash", "kfmc_version", "master_seed = 11", "runs = 20", "wall_s", "[[tables]]"] {
+        assert!(manifest.contains(key), "manifest lacks {key}");
+    }
+    assert!(std::fs::read_dir(&out).unwrap().all(|e| !e.unwrap().file_name().to_string_lossy().ends_with(".partial")));
+
+    let (code, s, err) = output(&["summary", out.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    for needle in ["rmse_thetadot", "running_mean", "basic", "roll", "Divergence"] {
+        assert!(s.contains(needle), "summary lacks {needle}:\n{s}");
+    }
+    let (_, s2, _) = output(&["summary", out.to_str().unwrap(), "--noise-scale", "2"]);
+    assert!(s2.lines().count() < s.lines().count());
+
+    // --quiet prints nothing at all.
+    let (code, stdout, stderr) = output(&["run", spec.to_str().unwrap(), "--quiet", "--runs", "2"]);
+    assert_eq!(code, 0);
+    assert!(stdout.is_empty() && stderr.is_empty());
+    // A second run without tracing removes the earlier traces table: one folder, one study.
+    assert!(!out.join("traces.parquet").exists());
+}
+
+#[test]
+fn summary_of_a_missing_folder_exits_1() {
+    let (code, _, err) = output(&["summary", "/nonexistent/results"]);
+    assert_eq!(code, 1);
+    assert!(err.contains("/nonexistent/results"), "{err}");
+}
+
+#[test]
+fn unwritable_output_exits_1_and_leaves_nothing_half_written() {
+    let tmp = tempfile::tempdir().unwrap();
+    let blocker = tmp.path().join("file");
+    std::fs::write(&blocker, "not a folder").unwrap();
+    let (_d, spec) = spec_in_tempdir(&small_spec(&blocker.join("out"), 2, "[1.0]", EKF_AND_MEAN));
+    let (code, _, err) = output(&["run", spec.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("cannot create the output folder"), "{err}");
+}
+
+#[test]
+fn list_names_the_models_scenarios_and_filters() {
+    let (code, out, _) = output(&["list"]);
+    assert_eq!(code, 0);
+    for n in ["planar_quadrotor", "p1", "imu", "basic", "horizontal", "roll", "fall", "ekf", "running_mean"] {
+        assert!(out.contains(n), "list lacks {n}");
+    }
+}
