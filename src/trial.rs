@@ -7,7 +7,7 @@
 
 use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
 use crate::filter::{Ekf, Filter, FilterError, RunningMean};
-use crate::linalg::{cholesky, diag_from_std, inverse_quadratic_form, Matrix, Vector};
+use crate::linalg::{diag_from_std, Matrix, SmallCholesky, Vector};
 use crate::metrics::{FilterRun, StepValues};
 use crate::model::planar::{Planar, PlanarImu, PlanarP1};
 use crate::model::{Model, Names};
@@ -127,11 +127,11 @@ where
         let e: Vector<NX> = traj.truth[k] - mean;
         let mut nees = f64::NAN;
         if let Some(p) = filter.covariance(&belief) {
-            let chol = match cholesky(&p) {
+            let chol = match SmallCholesky::new(&p) {
                 Some(c) => Some(c),
                 None if filter.repair_covariance(&mut belief) => {
                     repairs += 1;
-                    filter.covariance(&belief).and_then(|p| cholesky(&p))
+                    filter.covariance(&belief).and_then(|p| SmallCholesky::new(&p))
                 }
                 None => None,
             };
@@ -142,7 +142,7 @@ where
                 failure = Some((k, err.to_string()));
                 break;
             };
-            nees = inverse_quadratic_form(&chol, &e);
+            nees = chol.inverse_quadratic_form(&e);
             if let Some(var) = var.as_mut() {
                 let p = filter.covariance(&belief).unwrap_or(p);
                 for i in 0..NX {
