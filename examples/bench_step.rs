@@ -16,16 +16,23 @@ use std::time::Instant;
 use kfmc::experiment;
 use kfmc::filter::{CovarianceUpdate, Ekf, Filter};
 use kfmc::linalg::{Matrix, Vector};
-use kfmc::model::planar::{PlanarP1, PlanarParams};
 use kfmc::model::Measurement;
+use kfmc::model::planar::{PlanarP1, PlanarParams};
 use kfmc::scenario::planar::builtin;
-use kfmc::sim::{seed::run_seed, simulate, NoiseDraws, TruthNoise};
-use kfmc::trial::{build, Unit};
+use kfmc::sim::{NoiseDraws, TruthNoise, seed::run_seed, simulate};
+use kfmc::trial::{Unit, build};
 
 /// The baseline: the seed's EKF step written out by hand for exactly this model, with
 /// nalgebra fixed-size matrices, an explicit 3×3 inverse and nothing else.
 #[inline(never)]
-fn hand_step(x: &mut Vector<6>, p: &mut Matrix<6, 6>, u: &Vector<2>, z: &Vector<3>, q: &Matrix<6, 6>, r: &Matrix<3, 3>) {
+fn hand_step(
+    x: &mut Vector<6>,
+    p: &mut Matrix<6, 6>,
+    u: &Vector<2>,
+    z: &Vector<3>,
+    q: &Matrix<6, 6>,
+    r: &Matrix<3, 3>,
+) {
     let (m, arm, inertia, g, dt) = (0.5, 0.15, 0.005, 9.81, 0.01);
     let thrust = u[0] + u[1];
     let (s, c) = x[4].sin_cos();
@@ -49,7 +56,8 @@ fn hand_step(x: &mut Vector<6>, p: &mut Matrix<6, 6>, u: &Vector<2>, z: &Vector<
     h[(1, 4)] = 1.0;
     h[(2, 5)] = 1.0;
     let mut nu = z - Vector::<3>::new(x[2], x[4], x[5]);
-    nu[1] = (nu[1] + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI;
+    nu[1] = (nu[1] + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI)
+        - std::f64::consts::PI;
     let s_mat = h * pp * h.transpose() + r;
     let k = pp * h.transpose() * s_mat.try_inverse().expect("S invertible");
     *x += k * nu;
@@ -72,7 +80,11 @@ fn main() {
     let traj = simulate(&model, &sc, &noise, 1.0, None, &draws);
     let q = Matrix::<6, 6>::identity() * 0.003f64.powi(2);
     let r = Matrix::<3, 3>::identity() * 0.01f64.powi(2);
-    let ekf = Ekf { q, r, update_form: CovarianceUpdate::Standard };
+    let ekf = Ekf {
+        q,
+        r,
+        update_form: CovarianceUpdate::Standard,
+    };
     let steps = sc.steps();
     let reps = 200;
 
@@ -85,7 +97,14 @@ fn main() {
             let mut x = traj.x0_hat;
             let mut p = Matrix::<6, 6>::identity();
             for k in 1..=steps {
-                hand_step(&mut x, &mut p, &sc.controls[k], &traj.measurements[k].z, &q, &r);
+                hand_step(
+                    &mut x,
+                    &mut p,
+                    &sc.controls[k],
+                    &traj.measurements[k].z,
+                    &q,
+                    &r,
+                );
             }
             checksum += black_box(x[0]);
         }
@@ -93,7 +112,13 @@ fn main() {
 
         let t = Instant::now();
         for _ in 0..reps {
-            let mut b = Filter::<6, 2, 3, PlanarP1>::init(&ekf, &model, &traj.x0_hat, &Matrix::<6, 6>::identity(), &traj.measurements[0]);
+            let mut b = Filter::<6, 2, 3, PlanarP1>::init(
+                &ekf,
+                &model,
+                &traj.x0_hat,
+                &Matrix::<6, 6>::identity(),
+                &traj.measurements[0],
+            );
             for k in 1..=steps {
                 let u = &sc.controls[k];
                 let z: &Measurement<3> = &traj.measurements[k];
@@ -106,9 +131,19 @@ fn main() {
     }
     let (b, k) = (median(base), median(kf));
     println!("P1 EKF step (predict + update), median of 15 rounds × {reps} runs × {steps} steps:");
-    println!("  hand-written fixed-size baseline  {:8.1} ns/step", b * 1e9);
-    println!("  kfmc Ekf via the Filter trait      {:8.1} ns/step   ratio {:.2}×", k * 1e9, k / b);
-    println!("  (checksum {:.3e}: both compute the same estimates)", checksum);
+    println!(
+        "  hand-written fixed-size baseline  {:8.1} ns/step",
+        b * 1e9
+    );
+    println!(
+        "  kfmc Ekf via the Filter trait      {:8.1} ns/step   ratio {:.2}×",
+        k * 1e9,
+        k / b
+    );
+    println!(
+        "  (checksum {:.3e}: both compute the same estimates)",
+        checksum
+    );
 
     // Whole Monte Carlo run: simulate + EKF + running mean + per-step metrics, one thread.
     let spec = Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/planar_robustness.toml");
@@ -119,7 +154,11 @@ fn main() {
     for round in 0..9 {
         let t = Instant::now();
         for run in 0..50 {
-            black_box(trial.run(&Unit { scenario: 2, scale: 4, run: round * 50 + run }));
+            black_box(trial.run(&Unit {
+                scenario: 2,
+                scale: 4,
+                run: round * 50 + run,
+            }));
         }
         per_run.push(t.elapsed().as_secs_f64() / 50.0);
         let t = Instant::now();
@@ -127,14 +166,27 @@ fn main() {
             let mut x = traj.x0_hat;
             let mut p = Matrix::<6, 6>::identity();
             for k in 1..=steps {
-                hand_step(&mut x, &mut p, &sc.controls[k], &traj.measurements[k].z, &q, &r);
+                hand_step(
+                    &mut x,
+                    &mut p,
+                    &sc.controls[k],
+                    &traj.measurements[k].z,
+                    &q,
+                    &r,
+                );
             }
             black_box(x);
         }
         base_run.push(t.elapsed().as_secs_f64() / 50.0);
     }
     let (pr, br) = (median(per_run), median(base_run));
-    println!("Whole Monte Carlo run (1,001 samples: truth + measurements, EKF, running mean, errors, NEES/NIS), one thread:");
-    println!("  kfmc run                 {:8.1} µs   = {:.2}× one bare hand-written EKF pass over the same steps", pr * 1e6, pr / br);
+    println!(
+        "Whole Monte Carlo run (1,001 samples: truth + measurements, EKF, running mean, errors, NEES/NIS), one thread:"
+    );
+    println!(
+        "  kfmc run                 {:8.1} µs   = {:.2}× one bare hand-written EKF pass over the same steps",
+        pr * 1e6,
+        pr / br
+    );
     println!("  bare EKF pass (baseline) {:8.1} µs", br * 1e6);
 }

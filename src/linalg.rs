@@ -36,8 +36,8 @@ impl<const N: usize> SmallCholesky<N> {
             for k in 0..j {
                 d -= l[(j, k)] * l[(j, k)];
             }
-            // `!(d > 0)` also rejects NaN.
-            if !(d > 0.0) {
+            // Rejects NaN too: a NaN pivot is neither positive nor comparable.
+            if d.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                 return None;
             }
             let djj = d.sqrt();
@@ -116,7 +116,11 @@ pub fn to_faer<const R: usize, const C: usize>(a: &Matrix<R, C>) -> faer::Mat<f6
 /// # Panics
 /// When the shapes differ; callers build the faer matrix from the same dimensions.
 pub fn from_faer<const R: usize, const C: usize>(a: faer::MatRef<'_, f64>) -> Matrix<R, C> {
-    assert_eq!((a.nrows(), a.ncols()), (R, C), "faer/nalgebra shape mismatch");
+    assert_eq!(
+        (a.nrows(), a.ncols()),
+        (R, C),
+        "faer/nalgebra shape mismatch"
+    );
     Matrix::<R, C>::from_fn(|i, j| a[(i, j)])
 }
 
@@ -157,7 +161,6 @@ mod tests {
         assert!(SmallCholesky::new(&Matrix::<2, 2>::new(1.0, 2.0, 2.0, 1.0)).is_none());
         assert!(SmallCholesky::new(&Matrix::<1, 1>::new(f64::NAN)).is_none());
     }
-
 
     #[test]
     fn faer_round_trip_and_rank() {

@@ -6,11 +6,11 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::Plan;
 use crate::metrics::divergence::DivergenceTracker;
-use crate::metrics::{mean_std, quantile_sorted, RunStatus, StepAccumulator};
+use crate::metrics::{RunStatus, StepAccumulator, mean_std, quantile_sorted};
 use crate::output::manifest::{Manifest, TableEntry};
-use crate::output::{schema, TableWriter, Value};
-use crate::runner::{execute, RunObserver};
-use crate::trial::{build, Trial, Unit, UnitResult};
+use crate::output::{TableWriter, Value, schema};
+use crate::runner::{RunObserver, execute};
+use crate::trial::{Trial, Unit, UnitResult, build};
 
 /// Options of a study execution that do not change its results.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -56,10 +56,18 @@ struct Aggregator<'a> {
 impl Aggregator<'_> {
     fn fold(&mut self, r: UnitResult) -> Result<(), OutputError> {
         let plan = self.plan;
-        let Unit { scenario, scale, run } = r.unit;
+        let Unit {
+            scenario,
+            scale,
+            run,
+        } = r.unit;
         let nx = self.states.len();
         let nf = plan.filters.len();
-        if self.cell.as_ref().is_none_or(|(s, j, _)| (*s, *j) != (scenario, scale)) {
+        if self
+            .cell
+            .as_ref()
+            .is_none_or(|(s, j, _)| (*s, *j) != (scenario, scale))
+        {
             let steps = self.trial.steps(scenario);
             self.cell = Some((
                 scenario,
@@ -101,7 +109,11 @@ impl Aggregator<'_> {
                 cell.rmse[fi].push(fr.rmse.clone());
             }
             if let Some(thr) = &plan.rmse_thresholds {
-                let rmse: Vec<f64> = if failed { vec![f64::NAN; nx] } else { fr.rmse.clone() };
+                let rmse: Vec<f64> = if failed {
+                    vec![f64::NAN; nx]
+                } else {
+                    fr.rmse.clone()
+                };
                 self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr);
             }
         }
@@ -119,7 +131,8 @@ impl Aggregator<'_> {
                         Value::I64(Some(k as i64)),
                         Value::F64(Some(k as f64 * dt)),
                     ];
-                    let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+                    let f64s =
+                        |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
                     row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
                     row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
                     row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
@@ -190,7 +203,11 @@ impl Aggregator<'_> {
 }
 
 /// Runs the study described by `plan`, writing its tables and manifest into `plan.output`.
-pub fn run(plan: &Plan, opts: &ExecOptions, observer: &dyn RunObserver) -> Result<StudyReport, KfmcError> {
+pub fn run(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<StudyReport, KfmcError> {
     let started = Instant::now();
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -220,7 +237,10 @@ pub fn run(plan: &Plan, opts: &ExecOptions, observer: &dyn RunObserver) -> Resul
         } else {
             None
         },
-        divergence: vec![DivergenceTracker::new(plan.runs, states.len()); plan.scenarios.len() * nf],
+        divergence: vec![
+            DivergenceTracker::new(plan.runs, states.len());
+            plan.scenarios.len() * nf
+        ],
         states,
         cell: None,
     };
@@ -229,7 +249,11 @@ pub fn run(plan: &Plan, opts: &ExecOptions, observer: &dyn RunObserver) -> Resul
     for scenario in 0..plan.scenarios.len() {
         for scale in 0..plan.noise_scales.len() {
             for run in 0..plan.runs {
-                units.push(Unit { scenario, scale, run });
+                units.push(Unit {
+                    scenario,
+                    scale,
+                    run,
+                });
             }
         }
     }

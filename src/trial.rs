@@ -7,13 +7,13 @@
 
 use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
 use crate::filter::{Ekf, Filter, FilterError, RunningMean};
-use crate::linalg::{diag_from_std, Matrix, SmallCholesky, Vector};
+use crate::linalg::{Matrix, SmallCholesky, Vector, diag_from_std};
 use crate::metrics::{FilterRun, StepValues};
 use crate::model::planar::{Planar, PlanarImu, PlanarP1};
 use crate::model::{Model, Names};
 use crate::scenario::Scenario;
 use crate::sim::seed::run_seed;
-use crate::sim::{simulate, NoiseDraws, Trajectory, TruthNoise};
+use crate::sim::{NoiseDraws, Trajectory, TruthNoise, simulate};
 
 /// One unit of work: a run of one (scenario, noise scale) cell.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -111,9 +111,9 @@ where
         let mut nis = f64::NAN;
         if k > 0 {
             let u = &ctx.scenario.controls[k];
-            let step = filter.predict(model, &mut belief, u).and_then(|()| {
-                filter.update(model, &mut belief, u, &traj.measurements[k])
-            });
+            let step = filter
+                .predict(model, &mut belief, u)
+                .and_then(|()| filter.update(model, &mut belief, u, &traj.measurements[k]));
             match step {
                 Ok(Some(inn)) => nis = inn.nis,
                 Ok(None) => {}
@@ -131,7 +131,9 @@ where
                 Some(c) => Some(c),
                 None if filter.repair_covariance(&mut belief) => {
                     repairs += 1;
-                    filter.covariance(&belief).and_then(|p| SmallCholesky::new(&p))
+                    filter
+                        .covariance(&belief)
+                        .and_then(|p| SmallCholesky::new(&p))
                 }
                 None => None,
             };
@@ -249,8 +251,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
     fn new(model: M, scenarios: Vec<Scenario<NX, NU>>, plan: &Plan) -> Self {
         let p0_std = Vector::<NX>::from_column_slice(&plan.p0_std);
         let p0 = diag_from_std(&p0_std);
-        let p0_factor =
-            (plan.initial == InitialMode::Sampled).then(|| Matrix::<NX, NX>::from_diagonal(&p0_std));
+        let p0_factor = (plan.initial == InitialMode::Sampled)
+            .then(|| Matrix::<NX, NX>::from_diagonal(&p0_std));
         let state_names = model.names().states;
         Study {
             noise: TruthNoise {
@@ -311,12 +313,22 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
             filters.push(out.run);
         }
         let trace = traced.then(|| RunTrace {
-            u: scenario.controls.iter().flat_map(|u| u.iter().copied()).collect(),
-            truth: trajectory.truth.iter().flat_map(|x| x.iter().copied()).collect(),
+            u: scenario
+                .controls
+                .iter()
+                .flat_map(|u| u.iter().copied())
+                .collect(),
+            truth: trajectory
+                .truth
+                .iter()
+                .flat_map(|x| x.iter().copied())
+                .collect(),
             z: trajectory
                 .measurements
                 .iter()
-                .flat_map(|m| (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN }))
+                .flat_map(|m| {
+                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
+                })
                 .collect(),
             est,
             var,

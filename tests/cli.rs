@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{kfmc, repo, small_spec, spec_in_tempdir, EKF_AND_MEAN};
+use common::{EKF_AND_MEAN, kfmc, repo, small_spec, spec_in_tempdir};
 
 fn output(args: &[&str]) -> (i32, String, String) {
     let o = kfmc().args(args).output().expect("kfmc runs");
@@ -15,7 +15,13 @@ fn output(args: &[&str]) -> (i32, String, String) {
 
 #[test]
 fn every_command_has_help() {
-    for cmd in [vec!["--help"], vec!["run", "--help"], vec!["validate", "--help"], vec!["summary", "--help"], vec!["list", "--help"]] {
+    for cmd in [
+        vec!["--help"],
+        vec!["run", "--help"],
+        vec!["validate", "--help"],
+        vec!["summary", "--help"],
+        vec!["list", "--help"],
+    ] {
         let (code, out, _) = output(&cmd);
         assert_eq!(code, 0, "{cmd:?}");
         assert!(out.contains("Usage:"), "{cmd:?}: {out}");
@@ -26,13 +32,24 @@ fn every_command_has_help() {
 
 #[test]
 fn bundled_specs_validate() {
-    for spec in ["planar_seed_study", "planar_noise_cases", "planar_robustness", "planar_imu"] {
+    for spec in [
+        "planar_seed_study",
+        "planar_noise_cases",
+        "planar_robustness",
+        "planar_imu",
+    ] {
         let path = repo().join(format!("experiments/{spec}.toml"));
         let (code, out, err) = output(&["validate", path.to_str().unwrap()]);
         assert_eq!(code, 0, "{spec}: {err}");
         assert!(out.contains("cells"), "{spec}: {out}");
     }
-    let (_, out, _) = output(&["validate", repo().join("experiments/planar_robustness.toml").to_str().unwrap()]);
+    let (_, out, _) = output(&[
+        "validate",
+        repo()
+            .join("experiments/planar_robustness.toml")
+            .to_str()
+            .unwrap(),
+    ]);
     assert!(out.contains("1000 cells × 100 runs = 100000 runs"), "{out}");
 }
 
@@ -57,7 +74,12 @@ fn bad_specs_exit_2_naming_the_file_and_key_path() {
         ),
         (
             "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"ekf\"\nkind = \"ukf\"\n[noise]\nscales = [1.0, 1.0]\n",
-            &["filters[0].kind", "unknown value `ukf`", "noise.scales", "duplicate"],
+            &[
+                "filters[0].kind",
+                "unknown value `ukf`",
+                "noise.scales",
+                "duplicate",
+            ],
         ),
     ];
     for (text, needles) in cases {
@@ -75,7 +97,10 @@ fn bad_specs_exit_2_naming_the_file_and_key_path() {
     }
     let (code, _, err) = output(&["run", "/nonexistent/spec.toml"]);
     assert_eq!(code, 2);
-    assert!(err.contains("/nonexistent/spec.toml") && err.contains("cannot read"), "{err}");
+    assert!(
+        err.contains("/nonexistent/spec.toml") && err.contains("cannot read"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -83,23 +108,58 @@ fn run_writes_the_tables_and_summary_reads_them() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("res");
     let (_d, spec) = spec_in_tempdir(&small_spec(&out, 5, "[1.0, 2.0]", EKF_AND_MEAN));
-    let (code, stdout, stderr) = output(&["run", spec.to_str().unwrap(), "--trace-runs", "1", "--threads", "2"]);
+    let (code, stdout, stderr) = output(&[
+        "run",
+        spec.to_str().unwrap(),
+        "--trace-runs",
+        "1",
+        "--threads",
+        "2",
+    ]);
     assert_eq!(code, 0, "{stderr}");
     // Not a terminal: no progress bar, no escape codes.
-    assert!(!stderr.contains('\u{1b}') && stderr.is_empty(), "{stderr:?}");
+    assert!(
+        !stderr.contains('\u{1b}') && stderr.is_empty(),
+        "{stderr:?}"
+    );
     assert!(stdout.contains("20 runs"), "{stdout}");
-    for t in ["runs", "steps", "summary", "divergence", "divergence_runs", "traces"] {
+    for t in [
+        "runs",
+        "steps",
+        "summary",
+        "divergence",
+        "divergence_runs",
+        "traces",
+    ] {
         assert!(out.join(format!("{t}.parquet")).exists(), "{t}");
     }
     let manifest = std::fs::read_to_string(out.join("manifest.toml")).unwrap();
-    for key in ["spec_hash", "kfmc_version", "master_seed = 11", "runs = 20", "wall_s", "[[tables]]"] {
+    for key in [
+        "spec_hash",
+        "kfmc_version",
+        "master_seed = 11",
+        "runs = 20",
+        "wall_s",
+        "[[tables]]",
+    ] {
         assert!(manifest.contains(key), "manifest lacks {key}");
     }
-    assert!(std::fs::read_dir(&out).unwrap().all(|e| !e.unwrap().file_name().to_string_lossy().ends_with(".partial")));
+    assert!(std::fs::read_dir(&out).unwrap().all(|e| {
+        !e.unwrap()
+            .file_name()
+            .to_string_lossy()
+            .ends_with(".partial")
+    }));
 
     let (code, s, err) = output(&["summary", out.to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
-    for needle in ["rmse_thetadot", "running_mean", "basic", "roll", "Divergence"] {
+    for needle in [
+        "rmse_thetadot",
+        "running_mean",
+        "basic",
+        "roll",
+        "Divergence",
+    ] {
         assert!(s.contains(needle), "summary lacks {needle}:\n{s}");
     }
     let (_, s2, _) = output(&["summary", out.to_str().unwrap(), "--noise-scale", "2"]);
@@ -135,7 +195,17 @@ fn unwritable_output_exits_1_and_leaves_nothing_half_written() {
 fn list_names_the_models_scenarios_and_filters() {
     let (code, out, _) = output(&["list"]);
     assert_eq!(code, 0);
-    for n in ["planar_quadrotor", "p1", "imu", "basic", "horizontal", "roll", "fall", "ekf", "running_mean"] {
+    for n in [
+        "planar_quadrotor",
+        "p1",
+        "imu",
+        "basic",
+        "horizontal",
+        "roll",
+        "fall",
+        "ekf",
+        "running_mean",
+    ] {
         assert!(out.contains(n), "list lacks {n}");
     }
 }

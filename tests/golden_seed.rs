@@ -5,14 +5,14 @@
 
 mod common;
 
-use common::{repo, Csv};
-use kfmc::filter::CovarianceUpdate;
+use common::{Csv, repo};
 use kfmc::experiment::FilterKind;
-use kfmc::linalg::{diag_from_std, Matrix, Vector};
-use kfmc::model::planar::{Planar, PlanarParams};
+use kfmc::filter::CovarianceUpdate;
+use kfmc::linalg::{Matrix, Vector, diag_from_std};
 use kfmc::model::Model;
+use kfmc::model::planar::{Planar, PlanarParams};
 use kfmc::scenario::planar::builtin;
-use kfmc::sim::{simulate, NoiseDraws, TruthNoise};
+use kfmc::sim::{NoiseDraws, TruthNoise, simulate};
 use kfmc::trial::{FilterSet, RunContext};
 
 const STATES: [&str; 6] = ["x", "xdot", "y", "ydot", "theta", "thetadot"];
@@ -79,7 +79,14 @@ where
     };
     let q = diag_from_std(&Vector::<6>::repeat(case.filter_std.0));
     let r = diag_from_std(&Vector::<NZ>::from_fn(|i, _| case.filter_std.1[i]));
-    let ekf = model.run_kind(&FilterKind::Ekf { update: CovarianceUpdate::Standard }, q, r, &ctx);
+    let ekf = model.run_kind(
+        &FilterKind::Ekf {
+            update: CovarianceUpdate::Standard,
+        },
+        q,
+        r,
+        &ctx,
+    );
     let (est, var) = ekf.trace.expect("traced");
     let mut worst = 0.0f64;
     for k in 0..n {
@@ -105,13 +112,20 @@ where
     let row = rmse_row("ekf");
     for (i, s) in STATES.iter().enumerate() {
         let g = golden.f(row, &format!("rmse_{s}"));
-        assert!((ekf.run.rmse[i] - g).abs() < 1e-9 * g.max(1e-3), "{}: ekf rmse_{s}", case.file);
+        assert!(
+            (ekf.run.rmse[i] - g).abs() < 1e-9 * g.max(1e-3),
+            "{}: ekf rmse_{s}",
+            case.file
+        );
     }
 
     if NZ == 3 {
         let rm = model.run_kind(&FilterKind::RunningMean { window: 11 }, q, r, &ctx);
         let (est, var) = rm.trace.expect("traced");
-        assert!(var.iter().all(|v| v.is_nan()), "the running mean has no covariance");
+        assert!(
+            var.iter().all(|v| v.is_nan()),
+            "the running mean has no covariance"
+        );
         assert_eq!(rm.run.nees_mean, None);
         for k in 0..n {
             for (i, s) in STATES.iter().enumerate() {
@@ -123,7 +137,11 @@ where
         let row = rmse_row("running_mean");
         for (i, s) in STATES.iter().enumerate() {
             let g = golden.f(row, &format!("rmse_{s}"));
-            assert!((rm.run.rmse[i] - g).abs() < 1e-10 * g.max(1e-3), "{}: rm rmse_{s}", case.file);
+            assert!(
+                (rm.run.rmse[i] - g).abs() < 1e-10 * g.max(1e-3),
+                "{}: rm rmse_{s}",
+                case.file
+            );
         }
     }
 }
@@ -139,7 +157,12 @@ fn p1_scenarios_match_the_reference() {
         ("planar_p1_roll.csv", "roll"),
         ("planar_p1_fall.csv", "fall"),
     ] {
-        check::<3>(&Case { file, scenario, truth_std: P1, filter_std: P1 });
+        check::<3>(&Case {
+            file,
+            scenario,
+            truth_std: P1,
+            filter_std: P1,
+        });
     }
 }
 
@@ -155,7 +178,15 @@ fn p1_nominal_filter_under_20x_truth_noise_matches_the_reference() {
 
 #[test]
 fn p2_imu_sensor_matches_the_reference() {
-    for (file, scenario) in [("planar_p2_basic.csv", "basic"), ("planar_p2_roll.csv", "roll")] {
-        check::<4>(&Case { file, scenario, truth_std: P2, filter_std: P2 });
+    for (file, scenario) in [
+        ("planar_p2_basic.csv", "basic"),
+        ("planar_p2_roll.csv", "roll"),
+    ] {
+        check::<4>(&Case {
+            file,
+            scenario,
+            truth_std: P2,
+            filter_std: P2,
+        });
     }
 }

@@ -6,11 +6,11 @@ mod common;
 
 use std::path::Path;
 
-use common::{small_spec, spec_in_tempdir, EKF_AND_MEAN};
+use common::{EKF_AND_MEAN, small_spec, spec_in_tempdir};
 use kfmc::experiment;
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
-use kfmc::study::{run, ExecOptions};
+use kfmc::study::{ExecOptions, run};
 use polars::prelude::*;
 
 fn run_spec(text: &str, threads: usize) -> (tempfile::TempDir, std::path::PathBuf) {
@@ -33,7 +33,9 @@ fn rows(dir: &Path, table: &str, filter: &str, scenario: &str, scale: f64) -> Ve
     let s = df.column("scenario").unwrap().str().unwrap().clone();
     let n = df.column("noise_scale").unwrap().f64().unwrap().clone();
     (0..df.height())
-        .filter(|&i| f.get(i) == Some(filter) && s.get(i) == Some(scenario) && n.get(i) == Some(scale))
+        .filter(|&i| {
+            f.get(i) == Some(filter) && s.get(i) == Some(scenario) && n.get(i) == Some(scale)
+        })
         .map(|i| {
             df.columns()
                 .iter()
@@ -57,8 +59,19 @@ fn tables_are_bit_identical_for_one_and_two_threads() {
     };
     let (_a, one) = run_spec(&spec("t1"), 1);
     let (_b, two) = run_spec(&spec("t2"), 2);
-    for table in ["runs", "steps", "summary", "divergence", "divergence_runs", "traces"] {
-        assert_eq!(bytes(&one, table), bytes(&two, table), "{table}.parquet differs");
+    for table in [
+        "runs",
+        "steps",
+        "summary",
+        "divergence",
+        "divergence_runs",
+        "traces",
+    ] {
+        assert_eq!(
+            bytes(&one, table),
+            bytes(&two, table),
+            "{table}.parquet differs"
+        );
     }
 }
 
@@ -71,7 +84,9 @@ fn adding_a_filter_a_scale_or_a_scenario_leaves_existing_runs_unchanged() {
         &tmp.path().join("more"),
         8,
         "[0.5, 1.0, 2.0]",
-        &format!("{EKF_AND_MEAN}[[filters]]\nlabel = \"ekf_joseph\"\nkind = \"ekf\"\ncovariance_update = \"joseph\"\n"),
+        &format!(
+            "{EKF_AND_MEAN}[[filters]]\nlabel = \"ekf_joseph\"\nkind = \"ekf\"\ncovariance_update = \"joseph\"\n"
+        ),
     );
     // Scenario order swapped and one removed: streams depend on the name, not the position.
     let roll_only = small_spec(&tmp.path().join("roll"), 8, "[1.0]", ekf_only)
@@ -83,7 +98,11 @@ fn adding_a_filter_a_scale_or_a_scenario_leaves_existing_runs_unchanged() {
         for scenario in ["basic", "roll"] {
             let a = rows(&base, table, "ekf", scenario, 1.0);
             assert!(!a.is_empty());
-            assert_eq!(a, rows(&more, table, "ekf", scenario, 1.0), "{table} {scenario}");
+            assert_eq!(
+                a,
+                rows(&more, table, "ekf", scenario, 1.0),
+                "{table} {scenario}"
+            );
         }
         assert_eq!(
             rows(&base, table, "ekf", "roll", 1.0),
@@ -115,7 +134,10 @@ fn every_filter_of_a_run_sees_the_same_truth_and_measurements() {
     assert_eq!(cols.len(), 6 + 3 + 2);
     let mut ekf = std::collections::HashMap::new();
     for i in 0..df.height() {
-        let vals: Vec<Option<f64>> = cols.iter().map(|c| df.column(c).unwrap().f64().unwrap().get(i)).collect();
+        let vals: Vec<Option<f64>> = cols
+            .iter()
+            .map(|c| df.column(c).unwrap().f64().unwrap().get(i))
+            .collect();
         if filter.get(i) == Some("ekf") {
             ekf.insert(key(i), vals);
         }
@@ -123,7 +145,10 @@ fn every_filter_of_a_run_sees_the_same_truth_and_measurements() {
     let mut compared = 0;
     for i in 0..df.height() {
         if filter.get(i) == Some("running_mean") {
-            let vals: Vec<Option<f64>> = cols.iter().map(|c| df.column(c).unwrap().f64().unwrap().get(i)).collect();
+            let vals: Vec<Option<f64>> = cols
+                .iter()
+                .map(|c| df.column(c).unwrap().f64().unwrap().get(i))
+                .collect();
             assert_eq!(ekf[&key(i)], vals);
             compared += 1;
         }
@@ -134,7 +159,10 @@ fn every_filter_of_a_run_sees_the_same_truth_and_measurements() {
 #[test]
 fn runs_share_their_seed_across_noise_scales() {
     let tmp = tempfile::tempdir().unwrap();
-    let (_d, out) = run_spec(&small_spec(&tmp.path().join("o"), 4, "[1.0, 2.0]", EKF_AND_MEAN), 2);
+    let (_d, out) = run_spec(
+        &small_spec(&tmp.path().join("o"), 4, "[1.0, 2.0]", EKF_AND_MEAN),
+        2,
+    );
     let df = read(&out.join("runs.parquet")).unwrap();
     let seeds = df.column("seed").unwrap().u64().unwrap().clone();
     let scale = df.column("noise_scale").unwrap().f64().unwrap().clone();
@@ -143,7 +171,13 @@ fn runs_share_their_seed_across_noise_scales() {
     for i in 0..df.height() {
         for j in 0..df.height() {
             if run.get(i) == run.get(j) && scen.get(i) == scen.get(j) {
-                assert_eq!(seeds.get(i), seeds.get(j), "scales {:?} {:?}", scale.get(i), scale.get(j));
+                assert_eq!(
+                    seeds.get(i),
+                    seeds.get(j),
+                    "scales {:?} {:?}",
+                    scale.get(i),
+                    scale.get(j)
+                );
             } else if scen.get(i) == scen.get(j) {
                 assert_ne!(seeds.get(i), seeds.get(j));
             }

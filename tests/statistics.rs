@@ -6,7 +6,7 @@ use common::{repo, spec_in_tempdir};
 use kfmc::experiment::{self, Overrides};
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
-use kfmc::study::{run, ExecOptions};
+use kfmc::study::{ExecOptions, run};
 
 /// Table 1 of seed 001 (horizontal scenario, one MATLAB run with rng(47)):
 /// EKF and running-mean RMSE per state.
@@ -24,7 +24,11 @@ fn mean_rmse(dir: &std::path::Path, filter: &str, scenario: &str) -> Vec<f64> {
         .iter()
         .map(|state| {
             (0..df.height())
-                .find(|&i| f.get(i) == Some(filter) && s.get(i) == Some(scenario) && st.get(i) == Some(state))
+                .find(|&i| {
+                    f.get(i) == Some(filter)
+                        && s.get(i) == Some(scenario)
+                        && st.get(i) == Some(state)
+                })
                 .and_then(|i| m.get(i))
                 .expect("row")
         })
@@ -48,12 +52,25 @@ fn monte_carlo_means_match_the_orders_of_magnitude_of_table_1() {
     let rm = mean_rmse(tmp.path(), "running_mean", "horizontal");
     for i in 0..6 {
         // Same order of magnitude: within a factor of 10 either way.
-        for (got, want, who) in [(ekf[i], TABLE1_EKF[i], "ekf"), (rm[i], TABLE1_RM[i], "running_mean")] {
+        for (got, want, who) in [
+            (ekf[i], TABLE1_EKF[i], "ekf"),
+            (rm[i], TABLE1_RM[i], "running_mean"),
+        ] {
             let r = (got / want).log10().abs();
-            assert!(r < 1.0, "{who} rmse_{}: {got:.4} vs Table 1 {want}", STATES[i]);
+            assert!(
+                r < 1.0,
+                "{who} rmse_{}: {got:.4} vs Table 1 {want}",
+                STATES[i]
+            );
         }
         // The seeds' conclusion: the EKF beats the running mean on every state.
-        assert!(ekf[i] < rm[i], "rmse_{}: ekf {} ≥ running mean {}", STATES[i], ekf[i], rm[i]);
+        assert!(
+            ekf[i] < rm[i],
+            "rmse_{}: ekf {} ≥ running mean {}",
+            STATES[i],
+            ekf[i],
+            rm[i]
+        );
     }
     // Directly measured states: the EKF's RMSE lies below the sensor's σ = 0.01.
     for i in [2, 4, 5] {
@@ -92,8 +109,22 @@ p0_std = 0.01
     let plan = experiment::load(&spec).unwrap();
     run(&plan, &ExecOptions { threads: 0 }, &NullObserver).unwrap();
     let df = read(&tmp.path().join("runs.parquet")).unwrap();
-    let nees: Vec<f64> = df.column("nees_mean").unwrap().f64().unwrap().iter().flatten().collect();
-    let nis: Vec<f64> = df.column("nis_mean").unwrap().f64().unwrap().iter().flatten().collect();
+    let nees: Vec<f64> = df
+        .column("nees_mean")
+        .unwrap()
+        .f64()
+        .unwrap()
+        .iter()
+        .flatten()
+        .collect();
+    let nis: Vec<f64> = df
+        .column("nis_mean")
+        .unwrap()
+        .f64()
+        .unwrap()
+        .iter()
+        .flatten()
+        .collect();
     assert_eq!(nees.len(), 100);
     let m = nees.iter().sum::<f64>() / 100.0;
     let p = nis.iter().sum::<f64>() / 100.0;
@@ -127,7 +158,11 @@ fn numerical_trouble_is_recorded_per_run_and_never_aborts_the_batch() {
         if scenario.get(i) == Some("blowup") {
             assert_eq!(status.get(i), Some("numerical_failure"));
             assert_eq!(step.get(i), Some(1));
-            assert!(detail.get(i).unwrap().contains("non-finite"), "{:?}", detail.get(i));
+            assert!(
+                detail.get(i).unwrap().contains("non-finite"),
+                "{:?}",
+                detail.get(i)
+            );
             assert_eq!(rmse.get(i), None);
         } else {
             assert_ne!(status.get(i), Some("numerical_failure"));
@@ -135,7 +170,14 @@ fn numerical_trouble_is_recorded_per_run_and_never_aborts_the_batch() {
         }
     }
     let summary = read(&tmp.path().join("summary.parquet")).unwrap();
-    let failed: i64 = summary.column("runs_failed").unwrap().i64().unwrap().iter().flatten().sum();
+    let failed: i64 = summary
+        .column("runs_failed")
+        .unwrap()
+        .i64()
+        .unwrap()
+        .iter()
+        .flatten()
+        .sum();
     // blowup: 2 scales × 2 filters × 6 states rows, each counting 3 failed runs.
     assert_eq!(failed, 2 * 2 * 6 * 3);
     // The steps table keeps step 0 (before the failure) and drops the failed runs after it.

@@ -15,7 +15,7 @@ use clap::{Parser, Subcommand};
 
 use crate::error::KfmcError;
 use crate::experiment::{self, FilterKind, Overrides, Plan};
-use crate::scenario::planar::{builtin, BUILTIN_PLANAR};
+use crate::scenario::planar::{BUILTIN_PLANAR, builtin};
 use progress::ProgressObserver;
 
 /// Exit code: success.
@@ -96,7 +96,12 @@ fn describe(plan: &Plan) -> String {
         total = size.runs,
         fr = size.filter_runs,
         steps = size.filter_steps,
-        scen = plan.scenarios.iter().map(|s| s.name.as_str()).collect::<Vec<_>>().join(", "),
+        scen = plan
+            .scenarios
+            .iter()
+            .map(|s| s.name.as_str())
+            .collect::<Vec<_>>()
+            .join(", "),
         filters = filters.join(", "),
         seed = plan.master_seed,
         out = plan.output.display(),
@@ -115,7 +120,12 @@ fn list() -> String {
             .profile
             .stages
             .iter()
-            .map(|st| format!("k≥{}: [{}, {}] N", st.from_step, st.thrust_n[0], st.thrust_n[1]))
+            .map(|st| {
+                format!(
+                    "k≥{}: [{}, {}] N",
+                    st.from_step, st.thrust_n[0], st.thrust_n[1]
+                )
+            })
             .collect();
         s.push_str(&format!(
             "  {name:<11} x0 = {:?}; {}\n",
@@ -125,8 +135,16 @@ fn list() -> String {
     }
     s.push_str("filters (filters[].kind):\n");
     for (k, d) in [
-        (FilterKind::Ekf { update: crate::filter::CovarianceUpdate::Standard }, "extended Kalman filter; q_std, r_std, covariance_update = standard | joseph"),
-        (FilterKind::RunningMean { window: 11 }, "running-mean baseline of seed 000 (sensor p1 only); window (samples, default 11)"),
+        (
+            FilterKind::Ekf {
+                update: crate::filter::CovarianceUpdate::Standard,
+            },
+            "extended Kalman filter; q_std, r_std, covariance_update = standard | joseph",
+        ),
+        (
+            FilterKind::RunningMean { window: 11 },
+            "running-mean baseline of seed 000 (sensor p1 only); window (samples, default 11)",
+        ),
     ] {
         s.push_str(&format!("  {:<13} {d}\n", k.tag()));
     }
@@ -168,9 +186,10 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             })
             .map_err(KfmcError::from)?;
             let observer = ProgressObserver::new(!quiet);
-            let report = crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
-                .map_err(anyhow::Error::from)
-                .map_err(|e| e.context(format!("running {}", spec.display())))?;
+            let report =
+                crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
+                    .map_err(anyhow::Error::from)
+                    .map_err(|e| e.context(format!("running {}", spec.display())))?;
             if !quiet {
                 println!(
                     "{} runs in {:.1} s ({:.0} runs/s) → {}",
@@ -193,7 +212,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Summary { dir, noise_scale } => {
             let text = summary::render(&dir, noise_scale)
                 .map_err(KfmcError::from)
-                .map_err(|e| anyhow::Error::from(e).context(format!("reading results in {}", dir.display())))?;
+                .map_err(|e| {
+                    anyhow::Error::from(e).context(format!("reading results in {}", dir.display()))
+                })?;
             print!("{text}");
             Ok(())
         }

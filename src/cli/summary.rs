@@ -95,7 +95,11 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
         .collect();
     let sw = rows.iter().map(|r| r.0.len()).max().unwrap_or(8).max(8);
     let fw = rows.iter().map(|r| r.2.len()).max().unwrap_or(6).max(6);
-    let _ = write!(out, "RMSE (mean ± std over runs)\n{:<sw$}  {:>11}  {:<fw$}", "scenario", "noise_scale", "filter");
+    let _ = write!(
+        out,
+        "RMSE (mean ± std over runs)\n{:<sw$}  {:>11}  {:<fw$}",
+        "scenario", "noise_scale", "filter"
+    );
     for (s, w) in states.iter().zip(&widths) {
         let _ = write!(out, "  {:>w$}", format!("rmse_{s}"));
     }
@@ -103,7 +107,10 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
     for (ri, (s, nz, f)) in rows.iter().enumerate() {
         let _ = write!(out, "{s:<sw$}  {:>11}  {f:<fw$}", format!("{nz}"));
         for (st, w) in states.iter().zip(&widths) {
-            let c = cells.get(&(ri, st.clone())).cloned().unwrap_or_else(|| "—".into());
+            let c = cells
+                .get(&(ri, st.clone()))
+                .cloned()
+                .unwrap_or_else(|| "—".into());
             let _ = write!(out, "  {c:>w$}");
         }
         out.push('\n');
@@ -127,7 +134,12 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
             let _ = writeln!(
                 out,
                 "{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}",
-                scen[i], filt[i], state[i], num(thr[i]), num(mc[i]), num(p50[i])
+                scen[i],
+                filt[i],
+                state[i],
+                num(thr[i]),
+                num(mc[i]),
+                num(p50[i])
             );
         }
     }

@@ -9,7 +9,9 @@ pub mod spec;
 
 use std::path::Path;
 
-pub use plan::{FilterKind, FilterNoiseMode, FilterPlan, InitialMode, ModelKind, Overrides, Plan, PlanSize};
+pub use plan::{
+    FilterKind, FilterNoiseMode, FilterPlan, InitialMode, ModelKind, Overrides, Plan, PlanSize,
+};
 
 use crate::error::{SpecError, SpecErrors};
 
@@ -34,11 +36,15 @@ pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
             message,
         }])
     };
-    let de = toml::de::Deserializer::parse(text).map_err(|e| one(String::new(), with_line(text, e)))?;
+    let de =
+        toml::de::Deserializer::parse(text).map_err(|e| one(String::new(), with_line(text, e)))?;
     let spec: spec::Spec = serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
         let inner = e.into_inner();
-        one(if path == "." { String::new() } else { path }, with_line(text, inner))
+        one(
+            if path == "." { String::new() } else { path },
+            with_line(text, inner),
+        )
     })?;
     plan::validate(spec, path, text)
 }

@@ -6,8 +6,10 @@ use std::path::{Path, PathBuf};
 use super::spec::{OneOrMany, Scales, Spec};
 use crate::error::{SpecError, SpecErrors};
 use crate::filter::CovarianceUpdate;
-use crate::model::planar::{PlanarParams, PLANAR_STATES};
-use crate::scenario::planar::{builtin, PlanarScenarioDef, ThrustProfile, ThrustStage, BUILTIN_PLANAR};
+use crate::model::planar::{PLANAR_STATES, PlanarParams};
+use crate::scenario::planar::{
+    BUILTIN_PLANAR, PlanarScenarioDef, ThrustProfile, ThrustStage, builtin,
+};
 use crate::sim::seed::hash_str;
 
 /// Which model (and sensor set) a study uses.
@@ -211,7 +213,10 @@ impl Plan {
         if self.trace_runs > self.runs {
             errs.push(self.err(
                 "trace_runs",
-                format!("{} traced runs but only {} runs", self.trace_runs, self.runs),
+                format!(
+                    "{} traced runs but only {} runs",
+                    self.trace_runs, self.runs
+                ),
             ));
         }
         if errs.is_empty() {
@@ -260,10 +265,7 @@ impl Checker {
             Some(OneOrMany::One(x)) => vec![*x; n],
             Some(OneOrMany::Many(xs)) if xs.len() == n => xs.clone(),
             Some(OneOrMany::Many(xs)) => {
-                self.err(
-                    key,
-                    format!("expected 1 or {n} values, got {}", xs.len()),
-                );
+                self.err(key, format!("expected 1 or {n} values, got {}", xs.len()));
                 return default.to_vec();
             }
         };
@@ -281,12 +283,21 @@ impl Checker {
         out
     }
 
-    fn choice<'a>(&mut self, key: &str, v: Option<&'a str>, default: &'a str, allowed: &[&str]) -> &'a str {
+    fn choice<'a>(
+        &mut self,
+        key: &str,
+        v: Option<&'a str>,
+        default: &'a str,
+        allowed: &[&str],
+    ) -> &'a str {
         let s = v.unwrap_or(default);
         if !allowed.contains(&s) {
             self.err(
                 key,
-                format!("unknown value `{s}`; expected one of: {}", allowed.join(", ")),
+                format!(
+                    "unknown value `{s}`; expected one of: {}",
+                    allowed.join(", ")
+                ),
             );
         }
         s
@@ -308,7 +319,11 @@ pub fn expand_range(start: f64, stop: f64, step: f64) -> Vec<f64> {
         .map(|i| {
             let v = start + i as f64 * step;
             let mag = 10f64.powi(11 - v.abs().log10().floor() as i32);
-            if v == 0.0 { 0.0 } else { (v * mag).round() / mag }
+            if v == 0.0 {
+                0.0
+            } else {
+                (v * mag).round() / mag
+            }
         })
         .collect()
 }
@@ -325,7 +340,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     if m.kind != "planar_quadrotor" {
         c.err(
             "model.kind",
-            format!("unknown model `{}`; expected one of: planar_quadrotor", m.kind),
+            format!(
+                "unknown model `{}`; expected one of: planar_quadrotor",
+                m.kind
+            ),
         );
     }
     let sensor = c.choice("model.sensor", m.sensor.as_deref(), "p1", &["p1", "imu"]);
@@ -338,7 +356,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     let mut param = |key: &str, v: Option<f64>, def: f64| {
         let x = v.unwrap_or(def);
         if !positive(x) {
-            c.err(format!("model.{key}"), format!("{x} is not a positive number"));
+            c.err(
+                format!("model.{key}"),
+                format!("{x} is not a positive number"),
+            );
         }
         x
     };
@@ -376,7 +397,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     for (i, s) in spec.scenarios.iter().enumerate() {
         let key = format!("scenarios[{i}]");
         if !names.insert(s.name.clone()) {
-            c.err(format!("{key}.name"), format!("duplicate scenario name `{}`", s.name));
+            c.err(
+                format!("{key}.name"),
+                format!("duplicate scenario name `{}`", s.name),
+            );
         }
         let base_name = s.base.as_deref().unwrap_or(&s.name);
         let base = builtin(base_name);
@@ -404,14 +428,20 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         def.name = s.name.clone();
         if let Some(x0) = &s.x0 {
             if x0.len() != 6 || !x0.iter().all(|v| v.is_finite()) {
-                c.err(format!("{key}.x0"), format!("expected 6 finite numbers, got {x0:?}"));
+                c.err(
+                    format!("{key}.x0"),
+                    format!("expected 6 finite numbers, got {x0:?}"),
+                );
             } else {
                 def.x0.copy_from_slice(x0);
             }
         }
         if let Some(dur) = s.duration_s {
             if !positive(dur) || dur < params.dt_s {
-                c.err(format!("{key}.duration_s"), format!("{dur} is shorter than one sample"));
+                c.err(
+                    format!("{key}.duration_s"),
+                    format!("{dur} is shorter than one sample"),
+                );
             }
             def.duration_s = dur;
         }
@@ -430,7 +460,8 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                     continue;
                 }
                 let prev = def.profile.stages.last().map(|p: &ThrustStage| p.from_step);
-                if (j == 0 && st.from_step != 0) || prev.is_some_and(|p| st.from_step as usize <= p) {
+                if (j == 0 && st.from_step != 0) || prev.is_some_and(|p| st.from_step as usize <= p)
+                {
                     c.err(
                         format!("{skey}.from_step"),
                         "stages must start at step 0 and increase strictly",
@@ -457,12 +488,23 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     for (i, f) in spec.filters.iter().enumerate() {
         let key = format!("filters[{i}]");
         if f.label.trim().is_empty() || f.label.contains(char::is_whitespace) {
-            c.err(format!("{key}.label"), "must be non-empty and contain no spaces");
+            c.err(
+                format!("{key}.label"),
+                "must be non-empty and contain no spaces",
+            );
         }
         if !labels.insert(f.label.clone()) {
-            c.err(format!("{key}.label"), format!("duplicate filter label `{}`", f.label));
+            c.err(
+                format!("{key}.label"),
+                format!("duplicate filter label `{}`", f.label),
+            );
         }
-        let kind_tag = c.choice(&format!("{key}.kind"), Some(&f.kind), "ekf", &["ekf", "running_mean"]);
+        let kind_tag = c.choice(
+            &format!("{key}.kind"),
+            Some(&f.kind),
+            "ekf",
+            &["ekf", "running_mean"],
+        );
         let fk = match kind_tag {
             "running_mean" => {
                 if kind != ModelKind::PlanarP1 {
@@ -488,7 +530,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             }
             _ => {
                 if f.window.is_some() {
-                    c.err(format!("{key}.window"), "only a running_mean filter has a window");
+                    c.err(
+                        format!("{key}.window"),
+                        "only a running_mean filter has a window",
+                    );
                 }
                 let form = c.choice(
                     &format!("{key}.covariance_update"),
@@ -553,7 +598,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         c.err("noise.scales", "at least one noise scale is required");
     }
     if let Some(bad) = noise_scales.iter().find(|x| !non_negative(**x)) {
-        c.err("noise.scales", format!("{bad} is not a non-negative number"));
+        c.err(
+            "noise.scales",
+            format!("{bad} is not a non-negative number"),
+        );
     }
     noise_scales.sort_by(f64::total_cmp);
     if noise_scales.windows(2).any(|w| w[0] == w[1]) {
@@ -614,7 +662,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     }
     let trace_runs = spec.trace_runs.unwrap_or(0);
     if trace_runs > runs {
-        c.err("trace_runs", format!("{trace_runs} traced runs but only {runs} runs"));
+        c.err(
+            "trace_runs",
+            format!("{trace_runs} traced runs but only {runs} runs"),
+        );
     }
     let name = spec.name.clone().unwrap_or_else(|| {
         path.file_stem()

@@ -1,8 +1,8 @@
 //! Raw spec types mirroring the TOML file exactly (`deny_unknown_fields`). Code past
 //! [`super::plan`] never sees these; validation turns them into a typed [`super::Plan`].
 
-use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
 use serde::Deserialize;
+use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
 use std::fmt;
 
 /// The whole experiment spec.

@@ -15,7 +15,7 @@
 //! Welch & Bishop, *An Introduction to the Kalman Filter*, TR 95-041 (2002) — the seeds' source.
 
 use super::{Filter, FilterError, Innovation};
-use crate::linalg::{symmetrize, Matrix, SmallCholesky, Vector};
+use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
 use crate::model::{Availability, Measurement, Model};
 
 /// How the covariance is updated after a measurement.
@@ -52,7 +52,9 @@ pub struct Gaussian<const NX: usize> {
 #[inline]
 fn check_finite<const NX: usize>(b: &Gaussian<NX>) -> Result<(), FilterError> {
     if !b.x.sum().is_finite() {
-        return Err(FilterError::NonFinite { what: "state estimate" });
+        return Err(FilterError::NonFinite {
+            what: "state estimate",
+        });
     }
     if !b.p.trace().is_finite() {
         return Err(FilterError::NonFinite {

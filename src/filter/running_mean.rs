@@ -125,8 +125,8 @@ impl Filter<6, 2, 3, PlanarP1> for RunningMean {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::planar::PlanarParams;
     use crate::model::Availability;
+    use crate::model::planar::PlanarParams;
 
     #[test]
     fn window_averages_the_last_samples_including_z0() {
@@ -136,7 +136,12 @@ mod tests {
             z: Vector::<3>::new(v, 0.0, 0.0),
             available: Availability::all(3),
         };
-        let mut b = f.init(&model, &Vector::<6>::zeros(), &Matrix::<6, 6>::identity(), &meas(1.0));
+        let mut b = f.init(
+            &model,
+            &Vector::<6>::zeros(),
+            &Matrix::<6, 6>::identity(),
+            &meas(1.0),
+        );
         let u = Vector::<2>::new(2.4525, 2.4525); // hover: thrust = m g
         f.update(&model, &mut b, &u, &meas(2.0)).unwrap();
         assert_eq!(f.mean(&b)[2], 1.5);

@@ -123,12 +123,10 @@ impl StepValues {
         for k in 0..self.completed {
             for (i, s) in sums.iter_mut().enumerate() {
                 *s += self.sq_err[k * nx + i];
-                if crossed.is_none() {
-                    if let Some(t) = thresholds {
-                        if *s > t[i] * t[i] * total {
-                            crossed = Some((k, i));
-                        }
-                    }
+                if let (None, Some(t)) = (crossed, thresholds)
+                    && *s > t[i] * t[i] * total
+                {
+                    crossed = Some((k, i));
                 }
             }
         }

@@ -30,8 +30,14 @@ fn col(name: impl Into<String>, dtype: Dtype) -> ColumnDef {
     }
 }
 
-fn per<'a>(prefix: &'a str, names: &'a [&str], dtype: Dtype) -> impl Iterator<Item = ColumnDef> + 'a {
-    names.iter().map(move |n| col(format!("{prefix}{n}"), dtype))
+fn per<'a>(
+    prefix: &'a str,
+    names: &'a [&str],
+    dtype: Dtype,
+) -> impl Iterator<Item = ColumnDef> + 'a {
+    names
+        .iter()
+        .map(move |n| col(format!("{prefix}{n}"), dtype))
 }
 
 /// The key columns shared by every per-cell table.

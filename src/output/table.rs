@@ -96,14 +96,21 @@ impl TableWriter {
     /// On a row of the wrong length or type: a programming error in the caller, whose rows
     /// are built from the same schema.
     pub fn push(&mut self, row: &[Value<'_>]) -> Result<(), OutputError> {
-        assert_eq!(row.len(), self.columns.len(), "row length must match the schema");
+        assert_eq!(
+            row.len(),
+            self.columns.len(),
+            "row length must match the schema"
+        );
         for (i, (b, v)) in self.buffers.iter_mut().zip(row).enumerate() {
             match (b, v) {
                 (Buffer::Str(b), Value::Str(s)) => b.push((*s).to_string()),
                 (Buffer::F64(b), Value::F64(x)) => b.push(x.filter(|x| !x.is_nan())),
                 (Buffer::I64(b), Value::I64(x)) => b.push(*x),
                 (Buffer::U64(b), Value::U64(x)) => b.push(*x),
-                _ => panic!("value of the wrong type for column {}", self.columns[i].name),
+                _ => panic!(
+                    "value of the wrong type for column {}",
+                    self.columns[i].name
+                ),
             }
         }
         self.buffered += 1;
@@ -203,8 +210,14 @@ mod tests {
 
     fn cols() -> Vec<ColumnDef> {
         vec![
-            ColumnDef { name: "a".into(), dtype: Dtype::Str },
-            ColumnDef { name: "b".into(), dtype: Dtype::F64 },
+            ColumnDef {
+                name: "a".into(),
+                dtype: Dtype::Str,
+            },
+            ColumnDef {
+                name: "b".into(),
+                dtype: Dtype::F64,
+            },
         ]
     }
 
@@ -228,7 +241,8 @@ mod tests {
             let v = if i % 3 == 0 { None } else { Some(i as f64) };
             w.push(&[Value::Str("x"), Value::F64(v)]).unwrap();
         }
-        w.push(&[Value::Str("nan"), Value::F64(Some(f64::NAN))]).unwrap();
+        w.push(&[Value::Str("nan"), Value::F64(Some(f64::NAN))])
+            .unwrap();
         let (path, rows) = w.commit().unwrap();
         assert_eq!(rows, n as u64 + 1);
         let df = read(&path).unwrap();

@@ -64,7 +64,10 @@ pub fn builtin(name: &str) -> Option<PlanarScenarioDef> {
     let u = 5.0;
     let pi = std::f64::consts::PI;
     let (x0, st) = match name {
-        "basic" => ([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], stages(&[(0, u * 0.6, u * 0.6)])),
+        "basic" => (
+            [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+            stages(&[(0, u * 0.6, u * 0.6)]),
+        ),
         "horizontal" => (
             [0.0, 3.0, 10.0, 0.0, -pi / 2.0, 0.0],
             stages(&[
@@ -83,7 +86,14 @@ pub fn builtin(name: &str) -> Option<PlanarScenarioDef> {
             ]),
         ),
         "fall" => (
-            [0.0, -1.0, 15.0, -3.0, -(pi / 2.0 - (3.0f64 / 1.0).atan()), 0.0],
+            [
+                0.0,
+                -1.0,
+                15.0,
+                -3.0,
+                -(pi / 2.0 - (3.0f64 / 1.0).atan()),
+                0.0,
+            ],
             stages(&[(0, u * 0.54, u * 0.54)]),
         ),
         _ => return None,

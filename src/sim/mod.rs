@@ -13,7 +13,7 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::linalg::{Matrix, Vector};
 use crate::model::{Measurement, Model};
 use crate::scenario::Scenario;
-use seed::{stream, StreamKind};
+use seed::{StreamKind, stream};
 
 /// The standard normals of one run.
 #[derive(Clone, Debug, PartialEq)]

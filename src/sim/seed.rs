@@ -36,7 +36,10 @@ pub fn hash_str(s: &str) -> u64 {
 
 /// The seed of one run, recorded in the `seed` column of `runs.parquet`.
 pub fn run_seed(master_seed: u64, scenario: &str, run: u64) -> u64 {
-    mix64(mix64(master_seed ^ mix64(hash_str(scenario))).wrapping_add(mix64(run ^ 0x5851_f42d_4c95_7f2d)))
+    mix64(
+        mix64(master_seed ^ mix64(hash_str(scenario)))
+            .wrapping_add(mix64(run ^ 0x5851_f42d_4c95_7f2d)),
+    )
 }
 
 /// The PCG-64 generator of one stream of a run.
@@ -59,9 +62,21 @@ mod tests {
         let draw = |seed, kind| stream(seed, kind).random::<u64>();
         let base = draw(s, StreamKind::ProcessNoise);
         assert_ne!(base, draw(s, StreamKind::MeasurementNoise));
-        assert_ne!(base, draw(run_seed(47, "basic", 1), StreamKind::ProcessNoise));
-        assert_ne!(base, draw(run_seed(47, "roll", 0), StreamKind::ProcessNoise));
-        assert_ne!(base, draw(run_seed(48, "basic", 0), StreamKind::ProcessNoise));
-        assert_eq!(base, draw(run_seed(47, "basic", 0), StreamKind::ProcessNoise));
+        assert_ne!(
+            base,
+            draw(run_seed(47, "basic", 1), StreamKind::ProcessNoise)
+        );
+        assert_ne!(
+            base,
+            draw(run_seed(47, "roll", 0), StreamKind::ProcessNoise)
+        );
+        assert_ne!(
+            base,
+            draw(run_seed(48, "basic", 0), StreamKind::ProcessNoise)
+        );
+        assert_eq!(
+            base,
+            draw(run_seed(47, "basic", 0), StreamKind::ProcessNoise)
+        );
     }
 }

@@ -12,9 +12,15 @@ pub struct Csv {
 
 impl Csv {
     pub fn read(path: &Path) -> Csv {
-        let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let text =
+            std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let mut lines = text.lines();
-        let header = lines.next().expect("header").split(',').map(str::to_string).collect();
+        let header = lines
+            .next()
+            .expect("header")
+            .split(',')
+            .map(str::to_string)
+            .collect();
         let rows = lines
             .filter(|l| !l.is_empty())
             .map(|l| l.split(',').map(str::to_string).collect())
@@ -31,7 +37,11 @@ impl Csv {
         self.rows[row][self.col(name)].parse().expect("a number")
     }
     pub fn index(&self) -> HashMap<String, usize> {
-        self.header.iter().enumerate().map(|(i, h)| (h.clone(), i)).collect()
+        self.header
+            .iter()
+            .enumerate()
+            .map(|(i, h)| (h.clone(), i))
+            .collect()
     }
 }
 
