@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::{kfmc, repo, small_spec, spec_in_tempdir, EKF_AND_MEAN};
+use common::{EKF_AND_MEAN, kfmc, repo, small_spec, spec_in_tempdir};
 
 #[test]
 fn tables_read_the_same_in_pyarrow_pandas_duckdb_and_polars() {
@@ -14,7 +14,13 @@ fn tables_read_the_same_in_pyarrow_pandas_duckdb_and_polars() {
     let out = tmp.path().join("res");
     let (_d, spec) = spec_in_tempdir(&small_spec(&out, 4, "[1.0, 2.0]", EKF_AND_MEAN));
     let st = kfmc()
-        .args(["run", spec.to_str().unwrap(), "--trace-runs", "1", "--quiet"])
+        .args([
+            "run",
+            spec.to_str().unwrap(),
+            "--trace-runs",
+            "1",
+            "--quiet",
+        ])
         .status()
         .unwrap();
     assert!(st.success());
