@@ -169,11 +169,20 @@ where
     }
 }
 
-/// Runs a configured filter kind on a model. Implemented per model, because some filters
-/// only exist for some models (the running mean reads P1's measurements directly).
+/// Runs a configured filter kind on a model. Filters that work on any model (the EKF) are
+/// dispatched here once; a model adds the filters that only exist for it (the running mean
+/// reads P1's measurements directly) in [`FilterSet::run_model_specific`].
 pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
     Model<NX, NU, NZ> + Sized
 {
+    /// Runs a filter kind that is specific to this model, or `None` if the model has no
+    /// such filter (plan validation rejects those combinations).
+    fn run_model_specific(
+        &self,
+        kind: &FilterKind,
+        ctx: &RunContext<'_, NX, NU, NZ>,
+    ) -> Option<FilterOutput>;
+
     /// Dispatches `kind` with assumed noise `q`, `r`.
     fn run_kind(
         &self,
@@ -181,16 +190,6 @@ pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
         q: Matrix<NX, NX>,
         r: Matrix<NZ, NZ>,
         ctx: &RunContext<'_, NX, NU, NZ>,
-    ) -> FilterOutput;
-}
-
-impl FilterSet<6, 2, 3> for PlanarP1 {
-    fn run_kind(
-        &self,
-        kind: &FilterKind,
-        q: Matrix<6, 6>,
-        r: Matrix<3, 3>,
-        ctx: &RunContext<'_, 6, 2, 3>,
     ) -> FilterOutput {
         match kind {
             FilterKind::Ekf { update } => run_filter(
@@ -202,35 +201,35 @@ impl FilterSet<6, 2, 3> for PlanarP1 {
                 },
                 ctx,
             ),
+            other => self.run_model_specific(other, ctx).unwrap_or_else(|| {
+                unreachable!("plan validation rejects {} for this model", other.tag())
+            }),
+        }
+    }
+}
+
+impl FilterSet<6, 2, 3> for PlanarP1 {
+    fn run_model_specific(
+        &self,
+        kind: &FilterKind,
+        ctx: &RunContext<'_, 6, 2, 3>,
+    ) -> Option<FilterOutput> {
+        match kind {
             FilterKind::RunningMean { window } => {
-                run_filter(self, &RunningMean { window: *window }, ctx)
+                Some(run_filter(self, &RunningMean { window: *window }, ctx))
             }
+            _ => None,
         }
     }
 }
 
 impl FilterSet<6, 2, 4> for PlanarImu {
-    fn run_kind(
+    fn run_model_specific(
         &self,
-        kind: &FilterKind,
-        q: Matrix<6, 6>,
-        r: Matrix<4, 4>,
-        ctx: &RunContext<'_, 6, 2, 4>,
-    ) -> FilterOutput {
-        match kind {
-            FilterKind::Ekf { update } => run_filter(
-                self,
-                &Ekf {
-                    q,
-                    r,
-                    update_form: *update,
-                },
-                ctx,
-            ),
-            FilterKind::RunningMean { .. } => {
-                unreachable!("plan validation rejects running_mean unless model.sensor = \"p1\"")
-            }
-        }
+        _kind: &FilterKind,
+        _ctx: &RunContext<'_, 6, 2, 4>,
+    ) -> Option<FilterOutput> {
+        None
     }
 }
 
