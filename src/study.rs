@@ -245,22 +245,17 @@ pub fn run(
         cell: None,
     };
 
-    let mut units = Vec::with_capacity(plan.size().runs);
-    for scenario in 0..plan.scenarios.len() {
-        for scale in 0..plan.noise_scales.len() {
-            for run in 0..plan.runs {
-                units.push(Unit {
-                    scenario,
-                    scale,
-                    run,
-                });
-            }
-        }
-    }
-    execute::<_, _, KfmcError>(
-        &units,
+    // Unit i ↔ (scenario, scale, run) in scenario-major order, so cells complete in order.
+    let (n_scales, n_runs) = (plan.noise_scales.len(), plan.runs);
+    let unit_of = |i: usize| Unit {
+        scenario: i / (n_scales * n_runs),
+        scale: i / n_runs % n_scales,
+        run: i % n_runs,
+    };
+    execute::<_, KfmcError>(
+        plan.size().runs,
         opts.threads,
-        |u| trial.run(u),
+        |i| trial.run(&unit_of(i)),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
     )?;

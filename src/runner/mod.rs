@@ -24,19 +24,19 @@ pub struct NullObserver;
 impl RunObserver for NullObserver {}
 
 /// Units per window: large enough to keep every core busy, small enough to bound memory.
-const WINDOW: usize = 512;
+const WINDOW: usize = 256;
 
-/// Runs `work` over `units` on `threads` threads (0 = all cores) and feeds each result to
-/// `sink` in unit order.
-pub fn execute<U, R, E>(
-    units: &[U],
+/// Runs `work(i)` for every unit index `i` in `0..units` on `threads` threads (0 = all
+/// cores) and feeds each result to `sink` in index order. Units are indices, not a list, so
+/// nothing here grows with the number of runs.
+pub fn execute<R, E>(
+    units: usize,
     threads: usize,
-    work: impl Fn(&U) -> R + Sync,
+    work: impl Fn(usize) -> R + Sync,
     observer: &dyn RunObserver,
     mut sink: impl FnMut(R) -> Result<(), E>,
 ) -> Result<(), E>
 where
-    U: Sync,
     R: Send,
     E: From<KfmcError>,
 {
@@ -44,11 +44,12 @@ where
         .num_threads(threads)
         .build()
         .map_err(|source| KfmcError::ThreadPool { threads, source })?;
-    observer.on_start(units.len() as u64);
-    for window in units.chunks(WINDOW) {
+    observer.on_start(units as u64);
+    for start in (0..units).step_by(WINDOW) {
+        let window = start..(start + WINDOW).min(units);
         let results: Vec<R> = pool.install(|| {
             window
-                .par_iter()
+                .into_par_iter()
                 .map(|u| {
                     let r = work(u);
                     observer.on_units_done(1);
@@ -75,11 +76,11 @@ mod tests {
 
     #[test]
     fn results_arrive_in_unit_order_for_any_thread_count() {
-        let units: Vec<u64> = (0..2000).collect();
+        let units: Vec<usize> = (0..2000).collect();
         for threads in [1, 2, 3] {
             let mut seen = Vec::new();
-            execute::<_, _, KfmcError>(
-                &units,
+            execute::<_, KfmcError>(
+                units.len(),
                 threads,
                 |u| u * 3,
                 &NullObserver,
