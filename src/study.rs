@@ -4,9 +4,10 @@ use std::path::PathBuf;
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use crate::error::{KfmcError, OutputError};
-use crate::experiment::Plan;
+use crate::experiment::{FilterPlan, Plan};
 use crate::metrics::divergence::DivergenceTracker;
-use crate::metrics::{RunStatus, StepAccumulator, mean_std, quantile_sorted};
+use crate::metrics::consistency::{BandCache, cell_tests};
+use crate::metrics::{RunConsistency, RunStatus, StepAccumulator, mean_std, quantile_sorted};
 use crate::output::manifest::{Manifest, TableEntry};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute};
@@ -32,9 +33,22 @@ pub struct StudyReport {
     pub runs: u64,
 }
 
+/// The key values of a cell row: scenario, noise scale, filter label, q_scale, r_scale.
+fn cell_key<'a>(scenario: &'a str, noise: f64, f: &'a FilterPlan) -> [Value<'a>; 5] {
+    [
+        Value::Str(scenario),
+        Value::F64(Some(noise)),
+        Value::Str(&f.label),
+        Value::F64(Some(f.q_scale)),
+        Value::F64(Some(f.r_scale)),
+    ]
+}
+
 /// The per-cell state while its runs are being folded.
 struct CellState {
     acc: Vec<StepAccumulator>,
+    /// Per filter: the runs' consistency sums (when the study asks for the tests).
+    consistency: Vec<Vec<RunConsistency>>,
     /// Per filter: RMSE rows of the runs that completed (failures excluded).
     rmse: Vec<Vec<Vec<f64>>>,
     failed: Vec<u64>,
@@ -48,6 +62,8 @@ struct Aggregator<'a> {
     steps: TableWriter,
     summary: TableWriter,
     traces: Option<TableWriter>,
+    consistency: Option<TableWriter>,
+    bands: BandCache,
     /// Per (scenario, filter).
     divergence: Vec<DivergenceTracker>,
     cell: Option<(usize, usize, CellState)>,
@@ -75,6 +91,7 @@ impl Aggregator<'_> {
                 CellState {
                     acc: vec![StepAccumulator::new(nx, steps); nf],
                     rmse: vec![Vec::with_capacity(plan.runs); nf],
+                    consistency: vec![Vec::new(); nf],
                     failed: vec![0; nf],
                 },
             ));
@@ -83,18 +100,15 @@ impl Aggregator<'_> {
         let noise = plan.noise_scales[scale];
         let (_, _, cell) = self.cell.as_mut().expect("set above");
         for (fi, fr) in r.filters.iter().enumerate() {
-            let label = plan.filters[fi].label.as_str();
             let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
-            let mut row = vec![
-                Value::Str(sname),
-                Value::F64(Some(noise)),
-                Value::Str(label),
+            let mut row = cell_key(sname, noise, &plan.filters[fi]).to_vec();
+            row.extend([
                 Value::I64(Some(run as i64)),
                 Value::U64(r.seed),
                 Value::Str(fr.status.label()),
                 Value::I64(fr.status.step().map(|s| s as i64)),
                 Value::Str(fr.status.detail().unwrap_or("")),
-            ];
+            ]);
             row.extend(fr.rmse.iter().map(|v| Value::F64((!failed).then_some(*v))));
             row.extend([
                 Value::F64(fr.nees_mean),
@@ -103,6 +117,9 @@ impl Aggregator<'_> {
             ]);
             self.runs.push(&row)?;
             cell.acc[fi].fold(&fr.steps);
+            if let Some(c) = &fr.consistency {
+                cell.consistency[fi].push(c.clone());
+            }
             if failed {
                 cell.failed[fi] += 1;
             } else {
@@ -123,14 +140,12 @@ impl Aggregator<'_> {
             let dt = plan.model.params.dt_s;
             for (fi, f) in plan.filters.iter().enumerate() {
                 for k in 0..tr.truth.len() / nx {
-                    let mut row = vec![
-                        Value::Str(sname),
-                        Value::F64(Some(noise)),
-                        Value::Str(&f.label),
+                    let mut row = cell_key(sname, noise, f).to_vec();
+                    row.extend([
                         Value::I64(Some(run as i64)),
                         Value::I64(Some(k as i64)),
                         Value::F64(Some(k as f64 * dt)),
-                    ];
+                    ]);
                     let f64s =
                         |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
                     row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
@@ -157,22 +172,68 @@ impl Aggregator<'_> {
         let noise = plan.noise_scales[scale];
         let dt = plan.model.params.dt_s;
         let nf = plan.filters.len();
+        let n = self.states.len() as u64;
         for (fi, f) in plan.filters.iter().enumerate() {
             let acc = &cell.acc[fi];
+            let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
             for k in 0..acc.len() {
                 let s = acc.row(k);
-                let mut row = vec![
-                    Value::Str(sname),
-                    Value::F64(Some(noise)),
-                    Value::Str(&f.label),
+                let nees_band = s.anees.and_then(|_| self.bands.band(s.nees_runs as u64 * n, s.nees_runs as u64));
+                let nis_band = s.anis.and_then(|_| self.bands.band(s.nis_dof, s.nis_runs as u64));
+                let nees_inside = s.anees.zip(nees_band).map(|(a, b)| b.contains(a));
+                let nis_inside = s.anis.zip(nis_band).map(|(a, b)| b.contains(a));
+                // Step 0 is the prior, not a filter output: the descriptive fractions skip it.
+                if k > 0 {
+                    if let Some(i) = nees_inside {
+                        nees_steps += 1;
+                        nees_in += i as u64;
+                    }
+                    if let Some(i) = nis_inside {
+                        nis_steps += 1;
+                        nis_in += i as u64;
+                    }
+                }
+                let mut row = cell_key(sname, noise, f).to_vec();
+                row.extend([
                     Value::I64(Some(k as i64)),
                     Value::F64(Some(k as f64 * dt)),
                     Value::I64(Some(s.runs as i64)),
                     Value::F64(s.anees),
+                    Value::F64(nees_band.map(|b| b.lo)),
+                    Value::F64(nees_band.map(|b| b.hi)),
+                    Value::Bool(nees_inside),
                     Value::F64(s.anis),
-                ];
+                    Value::F64(nis_band.map(|b| b.lo)),
+                    Value::F64(nis_band.map(|b| b.hi)),
+                    Value::Bool(nis_inside),
+                ]);
                 row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
                 self.steps.push(&row)?;
+            }
+            if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency) {
+                let frac = |i: u64, n: u64| (n > 0).then(|| i as f64 / n as f64);
+                let runs = &cell.consistency[fi];
+                let burn_in = runs
+                    .iter()
+                    .map(|r| r.first_step)
+                    .try_fold(0usize, |m, s| s.map(|s| m.max(s)));
+                for t in cell_tests(runs, self.states.len(), &self.states, cp.alpha, (frac(nees_in, nees_steps), frac(nis_in, nis_steps))) {
+                    let mut row = cell_key(sname, noise, f).to_vec();
+                    row.extend([
+                        Value::Str(&t.test),
+                        Value::F64(Some(t.statistic)),
+                        Value::F64(t.lower),
+                        Value::F64(t.upper),
+                        Value::F64(t.dof),
+                        Value::F64(t.p_value),
+                        Value::Bool(Some(t.pass)),
+                        Value::Str(t.direction.map_or("", |d| d.label())),
+                        Value::F64(Some(cp.alpha)),
+                        Value::I64(Some(runs.len() as i64)),
+                        Value::I64(burn_in.map(|b| b as i64)),
+                    ]);
+                    w.push(&row)?;
+                }
             }
             let mut means = Vec::with_capacity(self.states.len());
             for (i, state) in self.states.iter().enumerate() {
@@ -180,10 +241,8 @@ impl Aggregator<'_> {
                 let (mean, std) = mean_std(&v);
                 v.sort_by(f64::total_cmp);
                 means.push(mean.unwrap_or(f64::NAN));
-                self.summary.push(&[
-                    Value::Str(sname),
-                    Value::F64(Some(noise)),
-                    Value::Str(&f.label),
+                let mut row = cell_key(sname, noise, f).to_vec();
+                row.extend([
                     Value::Str(state),
                     Value::I64(Some(v.len() as i64)),
                     Value::I64(Some(cell.failed[fi] as i64)),
@@ -192,7 +251,8 @@ impl Aggregator<'_> {
                     Value::F64(quantile_sorted(&v, 0.05)),
                     Value::F64(quantile_sorted(&v, 0.50)),
                     Value::F64(quantile_sorted(&v, 0.95)),
-                ])?;
+                ]);
+                self.summary.push(&row)?;
             }
             if let Some(thr) = &plan.rmse_thresholds {
                 self.divergence[scenario * nf + fi].observe_mean(scale, &means, thr);
@@ -237,6 +297,12 @@ pub fn run(
         } else {
             None
         },
+        consistency: if plan.consistency.is_some() {
+            Some(TableWriter::create(dir, "consistency", schema::consistency())?)
+        } else {
+            None
+        },
+        bands: BandCache::new(plan.alpha),
         divergence: vec![
             DivergenceTracker::new(plan.runs, states.len());
             plan.scenarios.len() * nf
@@ -270,9 +336,11 @@ pub fn run(
         steps,
         summary,
         traces,
+        consistency,
         ..
     } = agg;
     written.extend([runs, steps, summary]);
+    written.extend(consistency);
     written.extend(traces);
 
     // Commit every table, then drop tables of an earlier run that this one did not write, so
@@ -354,6 +422,12 @@ fn divergence_tables(
     for (si, s) in plan.scenarios.iter().enumerate() {
         for (fi, f) in plan.filters.iter().enumerate() {
             let tracker = &agg.divergence[si * nf + fi];
+            let key = [
+                Value::Str(&s.name),
+                Value::Str(&f.label),
+                Value::F64(Some(f.q_scale)),
+                Value::F64(Some(f.r_scale)),
+            ];
             for (i, state) in agg.states.iter().enumerate() {
                 // Runs that never crossed are censored beyond the largest scale: +∞ in the
                 // ordering, so a quantile that needs them is unknown (null), not invented.
@@ -361,19 +435,18 @@ fn divergence_tables(
                     .map(|r| scale_of(tracker.run_crossing(r, i)).unwrap_or(f64::INFINITY))
                     .collect();
                 for (r, v) in per_run.iter().enumerate() {
-                    dr.push(&[
-                        Value::Str(&s.name),
-                        Value::Str(&f.label),
+                    let mut row = key.to_vec();
+                    row.extend([
                         Value::I64(Some(r as i64)),
                         Value::Str(state),
                         Value::F64(v.is_finite().then_some(*v)),
-                    ])?;
+                    ]);
+                    dr.push(&row)?;
                 }
                 per_run.sort_by(f64::total_cmp);
                 let diverged = per_run.iter().filter(|v| v.is_finite()).count();
-                d.push(&[
-                    Value::Str(&s.name),
-                    Value::Str(&f.label),
+                let mut row = key.to_vec();
+                row.extend([
                     Value::Str(state),
                     Value::F64(Some(thr[i])),
                     Value::F64(max_scale),
@@ -383,7 +456,8 @@ fn divergence_tables(
                     Value::F64(quantile_sorted(&per_run, 0.05)),
                     Value::F64(quantile_sorted(&per_run, 0.50)),
                     Value::F64(quantile_sorted(&per_run, 0.95)),
-                ])?;
+                ]);
+                d.push(&row)?;
             }
         }
     }

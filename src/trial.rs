@@ -6,9 +6,9 @@
 //! object-safe [`Trial`] trait.
 
 use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
-use crate::filter::{Ekf, Filter, FilterError, RunningMean};
+use crate::filter::{Ekf, Filter, FilterError, Innovation, RunningMean};
 use crate::linalg::{Matrix, SmallCholesky, Vector, diag_from_std};
-use crate::metrics::{FilterRun, StepValues};
+use crate::metrics::{FilterRun, RunConsistency, StepValues};
 use crate::model::planar::{Planar, PlanarImu, PlanarP1};
 use crate::model::{Model, Names};
 use crate::scenario::Scenario;
@@ -64,6 +64,92 @@ pub trait Trial: Sync {
     fn names(&self) -> Names;
 }
 
+/// What the consistency tests need computed during a run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConsistencyOptions {
+    /// Innovation-whiteness lags 1..=L.
+    pub lags: usize,
+    /// Whether x̂_0 equals the truth, so a burn-in is needed until the prior is forgotten.
+    pub burn_in: bool,
+}
+
+/// The initial-error term tr(P_k⁻¹ G_k) below which a step counts as free of the prior.
+pub const BURN_IN_THRESHOLD: f64 = 1e-3;
+
+/// Consistency sums from one starting step on: W_k for ρ, the whitened-innovation lags, …
+struct Window<const NX: usize, const NZ: usize> {
+    first: usize,
+    w: Matrix<NX, NX>,
+    started: bool,
+    sums: RunConsistency,
+    recent: std::collections::VecDeque<(Vector<NZ>, crate::model::Availability)>,
+}
+
+impl<const NX: usize, const NZ: usize> Window<NX, NZ> {
+    fn new(first: usize, lags: usize) -> Self {
+        Window {
+            first,
+            w: Matrix::<NX, NX>::zeros(),
+            started: false,
+            sums: RunConsistency {
+                first_step: Some(first),
+                rho_sum: Some(0.0),
+                nme_sum: vec![0.0; NX],
+                lag_prod: vec![0.0; lags],
+                lag_pairs: vec![0; lags],
+                ..Default::default()
+            },
+            recent: std::collections::VecDeque::with_capacity(lags + 1),
+        }
+    }
+
+    /// Adds step k; `a` is A_k, `p_prev` is P_{k−1}.
+    #[allow(clippy::too_many_arguments)]
+    fn observe(
+        &mut self,
+        chol: &SmallCholesky<NX>,
+        p: &Matrix<NX, NX>,
+        p_prev: &Matrix<NX, NX>,
+        a: Option<&Matrix<NX, NX>>,
+        e: &Vector<NX>,
+        nees: f64,
+        innovation: Option<&Innovation<NZ>>,
+        lags: usize,
+    ) {
+        match (a, self.started, &mut self.sums.rho_sum) {
+            (Some(a), true, Some(rho)) => {
+                self.w = a * (self.w + p_prev) * a.transpose();
+                *rho += chol.solve(&self.w).trace();
+            }
+            (None, _, rho) => *rho = None,
+            _ => {}
+        }
+        self.started = true;
+        let s = &mut self.sums;
+        s.nees_sum += nees;
+        s.nees_n += 1;
+        for i in 0..NX {
+            s.nme_sum[i] += e[i] / p[(i, i)].sqrt();
+        }
+        if let Some(inn) = innovation {
+            s.nis_sum += inn.nis;
+            s.nis_dof += inn.dof as u64;
+            s.nis_n += 1;
+            s.w_sq += inn.whitened.norm_squared();
+            for (l, (w_old, av_old)) in self.recent.iter().rev().enumerate() {
+                s.lag_prod[l] += w_old.dot(&inn.whitened);
+                s.lag_pairs[l] += (av_old.0 & inn.available.0).count_ones() as u64;
+            }
+            if lags > 0 {
+                if self.recent.len() == lags {
+                    self.recent.pop_front();
+                }
+                self.recent.push_back((inn.whitened, inn.available));
+            }
+        }
+    }
+}
+
 /// Everything a filter run needs besides the filter.
 pub struct RunContext<'a, const NX: usize, const NU: usize, const NZ: usize> {
     /// The scenario (controls).
@@ -78,6 +164,8 @@ pub struct RunContext<'a, const NX: usize, const NU: usize, const NZ: usize> {
     pub state_names: &'a [&'static str],
     /// Whether to keep the estimate trajectory.
     pub trace: bool,
+    /// Consistency sums to compute, if any.
+    pub consistency: Option<ConsistencyOptions>,
 }
 
 /// One filter's run: the record, and the trajectories when traced.
@@ -106,16 +194,29 @@ where
     let mut repairs = 0u32;
     let mut failure: Option<(usize, String)> = None;
     let mut belief = filter.init(model, &traj.x0_hat, ctx.p0, &traj.measurements[0]);
+    let opts = ctx.consistency;
+    let lags = opts.map_or(0, |o| o.lags);
+    // Truth mode: one window from step 1 and one from the end of the burn-in (G_k tracks the
+    // prior's share of P_k); sampled mode: the prior is real, so every step from 1 counts.
+    let mut from_start = opts.map(|_| Window::<NX, NZ>::new(1, lags));
+    let mut after_burn_in: Option<Window<NX, NZ>> = None;
+    let mut g = opts.filter(|o| o.burn_in).map(|_| *ctx.p0);
+    let mut p_prev = *ctx.p0;
 
     for k in 0..=steps {
         let mut nis = f64::NAN;
+        let mut innovation = None;
         if k > 0 {
             let u = &ctx.scenario.controls[k];
             let step = filter
                 .predict(model, &mut belief, u)
                 .and_then(|()| filter.update(model, &mut belief, u, &traj.measurements[k]));
             match step {
-                Ok(Some(inn)) => nis = inn.nis,
+                Ok(Some(inn)) => {
+                    nis = inn.nis;
+                    values.nis_dof[k] = inn.dof as u8;
+                    innovation = Some(inn);
+                }
                 Ok(None) => {}
                 Err(e) => {
                     failure = Some((k, e.to_string()));
@@ -145,6 +246,20 @@ where
                 break;
             };
             nees = chol.inverse_quadratic_form(&e);
+            let p_now = filter.covariance(&belief).unwrap_or(p);
+            if k > 0 && opts.is_some() {
+                let a = filter.error_transition(&belief);
+                if let (Some(gm), Some(a)) = (g.as_mut(), a.as_ref()) {
+                    *gm = a * *gm * a.transpose();
+                    if after_burn_in.is_none() && chol.solve(gm).trace() <= BURN_IN_THRESHOLD {
+                        after_burn_in = Some(Window::new(k, lags));
+                    }
+                }
+                for w in [from_start.as_mut(), after_burn_in.as_mut()].into_iter().flatten() {
+                    w.observe(&chol, &p_now, &p_prev, a.as_ref(), &e, nees, innovation.as_ref(), lags);
+                }
+            }
+            p_prev = p_now;
             if let Some(var) = var.as_mut() {
                 let p = filter.covariance(&belief).unwrap_or(p);
                 for i in 0..NX {
@@ -162,7 +277,17 @@ where
         values.nis[k] = nis;
         values.completed = k + 1;
     }
-    let run = values.finish(failure, ctx.thresholds, ctx.state_names, repairs);
+    let mut run = values.finish(failure, ctx.thresholds, ctx.state_names, repairs);
+    run.consistency = match (after_burn_in, from_start) {
+        (Some(w), _) => Some(w.sums),
+        (None, Some(w)) if w.started => {
+            let mut sums = w.sums;
+            // In truth mode the burn-in was never reached: say so; sampled mode starts at 1.
+            sums.first_step = (!opts.is_some_and(|o| o.burn_in)).then_some(w.first);
+            Some(sums)
+        }
+        _ => None,
+    };
     FilterOutput {
         run,
         trace: est.zip(var),
@@ -293,6 +418,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
             thresholds: plan.rmse_thresholds.as_deref(),
             state_names: &self.state_names,
             trace: traced,
+            consistency: plan.consistency.map(|c| ConsistencyOptions {
+                lags: c.whiteness_lags,
+                burn_in: plan.initial == InitialMode::Truth,
+            }),
         };
         let filter_scale = match plan.filter_noise {
             FilterNoiseMode::Nominal => 1.0,
@@ -302,8 +431,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
         let mut est = Vec::new();
         let mut var = Vec::new();
         for f in &plan.filters {
-            let q = diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale));
-            let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale));
+            let q = diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale)) * f.q_scale;
+            let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale)) * f.r_scale;
             let out = self.model.run_kind(&f.kind, q, r, &ctx);
             if let Some((e, v)) = out.trace {
                 est.push(e);

@@ -76,6 +76,7 @@ where
         thresholds: None,
         state_names: &STATES,
         trace: true,
+        consistency: None,
     };
     let q = diag_from_std(&Vector::<6>::repeat(case.filter_std.0));
     let r = diag_from_std(&Vector::<NZ>::from_fn(|i, _| case.filter_std.1[i]));

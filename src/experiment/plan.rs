@@ -4,6 +4,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
 use super::spec::{OneOrMany, Scales, Spec};
+
 use crate::error::{SpecError, SpecErrors};
 use crate::filter::CovarianceUpdate;
 use crate::model::planar::{PLANAR_STATES, PlanarParams};
@@ -88,6 +89,19 @@ pub struct FilterPlan {
     pub q_std: Vec<f64>,
     /// Assumed measurement-noise std per component.
     pub r_std: Vec<f64>,
+    /// Multiplier of the assumed Q = diag(q_std²) (the `q_scale` column).
+    pub q_scale: f64,
+    /// Multiplier of the assumed R = diag(r_std²) (the `r_scale` column).
+    pub r_scale: f64,
+}
+
+/// The validated `[consistency]` section.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ConsistencyPlan {
+    /// Significance level of every test.
+    pub alpha: f64,
+    /// Whiteness lags 1..=L.
+    pub whiteness_lags: usize,
 }
 
 /// What the filters assume when the truth noise is scaled.
@@ -145,6 +159,10 @@ pub struct Plan {
     pub output: PathBuf,
     /// RMSE divergence thresholds per state.
     pub rmse_thresholds: Option<Vec<f64>>,
+    /// Significance level of the per-step ANEES/ANIS bands in steps.parquet.
+    pub alpha: f64,
+    /// Consistency tests, when the spec asks for them.
+    pub consistency: Option<ConsistencyPlan>,
 }
 
 /// Command-line overrides of spec values.
@@ -326,6 +344,36 @@ pub fn expand_range(start: f64, stop: f64, step: f64) -> Vec<f64> {
             }
         })
         .collect()
+}
+
+/// Expands a list or range of multipliers, checking each is `ok`; `None` gives `default`.
+fn scale_list(c: &mut Checker, key: &str, v: Option<&Scales>, default: f64, ok: fn(f64) -> bool, what: &str) -> Vec<f64> {
+    let mut out = match v {
+        None => vec![default],
+        Some(Scales::List(v)) => v.clone(),
+        Some(Scales::Range { start, stop, step }) => {
+            if !(positive(*step) && non_negative(*start) && stop.is_finite() && stop >= start) {
+                c.err(key, "a range needs 0 ≤ start ≤ stop and step > 0");
+                vec![default]
+            } else if (stop - start) / step > 1e6 {
+                c.err(key, "more than a million values");
+                vec![default]
+            } else {
+                expand_range(*start, *stop, *step)
+            }
+        }
+    };
+    if out.is_empty() {
+        c.err(key, "at least one value is required");
+    }
+    if let Some(bad) = out.iter().find(|x| !ok(**x)) {
+        c.err(key, format!("{bad} is not {what}"));
+    }
+    out.sort_by(f64::total_cmp);
+    if out.windows(2).any(|w| w[0] == w[1]) {
+        c.err(key, "duplicate values");
+    }
+    out
 }
 
 /// Validates a parsed spec into a plan.
@@ -566,47 +614,41 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             positive,
             "a positive number (R must be positive definite)",
         );
-        filters.push(FilterPlan {
-            label: f.label.clone(),
-            kind: fk,
-            q_std,
-            r_std,
-        });
+        if matches!(fk, FilterKind::RunningMean { .. }) {
+            for (k, present) in [("q_scale", f.q_scale.is_some()), ("r_scale", f.r_scale.is_some())] {
+                if present {
+                    c.err(format!("{key}.{k}"), "not used by a running_mean filter");
+                }
+            }
+        }
+        let q_scales = scale_list(&mut c, &format!("{key}.q_scale"), f.q_scale.as_ref(), 1.0, positive, "a positive number");
+        let r_scales = scale_list(&mut c, &format!("{key}.r_scale"), f.r_scale.as_ref(), 1.0, positive, "a positive number");
+        // Each (q_scale, r_scale) pair is a filter variant with the same label; the scales
+        // are key columns of every table.
+        for &q_scale in &q_scales {
+            for &r_scale in &r_scales {
+                filters.push(FilterPlan {
+                    label: f.label.clone(),
+                    kind: fk.clone(),
+                    q_std: q_std.clone(),
+                    r_std: r_std.clone(),
+                    q_scale,
+                    r_scale,
+                });
+            }
+        }
     }
 
     // Noise sweep.
     let noise = spec.noise.as_ref();
-    let mut noise_scales = match noise.and_then(|n| n.scales.as_ref()) {
-        None => vec![1.0],
-        Some(Scales::List(v)) => v.clone(),
-        Some(Scales::Range { start, stop, step }) => {
-            if !(positive(*step) && non_negative(*start) && stop.is_finite() && stop >= start) {
-                c.err(
-                    "noise.scales",
-                    "a range needs 0 ≤ start ≤ stop and step > 0",
-                );
-                vec![1.0]
-            } else if (stop - start) / step > 1e6 {
-                c.err("noise.scales", "more than a million noise scales");
-                vec![1.0]
-            } else {
-                expand_range(*start, *stop, *step)
-            }
-        }
-    };
-    if noise_scales.is_empty() {
-        c.err("noise.scales", "at least one noise scale is required");
-    }
-    if let Some(bad) = noise_scales.iter().find(|x| !non_negative(**x)) {
-        c.err(
-            "noise.scales",
-            format!("{bad} is not a non-negative number"),
-        );
-    }
-    noise_scales.sort_by(f64::total_cmp);
-    if noise_scales.windows(2).any(|w| w[0] == w[1]) {
-        c.err("noise.scales", "duplicate noise scales");
-    }
+    let noise_scales = scale_list(
+        &mut c,
+        "noise.scales",
+        noise.and_then(|n| n.scales.as_ref()),
+        1.0,
+        non_negative,
+        "a non-negative number",
+    );
     let fmode = c.choice(
         "noise.filter_noise",
         noise.and_then(|n| n.filter_noise.as_deref()),
@@ -655,6 +697,20 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                 "a positive number",
             )
         });
+
+    let cs = spec.consistency.as_ref();
+    let alpha = cs.and_then(|c| c.alpha).unwrap_or(0.05);
+    if !(alpha > 0.0 && alpha < 1.0) {
+        c.err("consistency.alpha", format!("{alpha} is not in (0, 1)"));
+    }
+    let whiteness_lags = cs.and_then(|c| c.whiteness_lags).unwrap_or(5);
+    if whiteness_lags > 50 {
+        c.err("consistency.whiteness_lags", "at most 50 lags");
+    }
+    let consistency = cs.map(|_| ConsistencyPlan {
+        alpha,
+        whiteness_lags: whiteness_lags as usize,
+    });
 
     let runs = spec.runs.unwrap_or(100);
     if runs == 0 {
@@ -707,6 +763,8 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         trace_runs: trace_runs as usize,
         output,
         rmse_thresholds,
+        alpha,
+        consistency,
     })
 }
 

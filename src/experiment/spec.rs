@@ -35,6 +35,18 @@ pub struct Spec {
     pub initial_estimate: Option<InitialEstimateSpec>,
     /// Divergence thresholds.
     pub divergence: Option<DivergenceSpec>,
+    /// Consistency tests (NEES/NIS χ², whiteness, bias) and their significance level.
+    pub consistency: Option<ConsistencySpec>,
+}
+
+/// `[consistency]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConsistencySpec {
+    /// Significance level α of every test (default 0.05).
+    pub alpha: Option<f64>,
+    /// Innovation-whiteness lags 1..=L (default 5).
+    pub whiteness_lags: Option<u64>,
 }
 
 /// `[model]`
@@ -107,6 +119,10 @@ pub struct FilterSpec {
     pub covariance_update: Option<String>,
     /// Window length in samples (running mean; the seeds average 11).
     pub window: Option<u64>,
+    /// Multipliers of the assumed Q (a number, a list or a range): a sweep axis.
+    pub q_scale: Option<Scales>,
+    /// Multipliers of the assumed R: a sweep axis.
+    pub r_scale: Option<Scales>,
 }
 
 /// `[noise]`
@@ -206,7 +222,13 @@ struct ScalesVisitor;
 impl<'de> Visitor<'de> for ScalesVisitor {
     type Value = Scales;
     fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
-        f.write_str("a list of numbers or a table { start, stop, step }")
+        f.write_str("a number, a list of numbers or a table { start, stop, step }")
+    }
+    fn visit_f64<E: de::Error>(self, v: f64) -> Result<Scales, E> {
+        Ok(Scales::List(vec![v]))
+    }
+    fn visit_i64<E: de::Error>(self, v: i64) -> Result<Scales, E> {
+        Ok(Scales::List(vec![v as f64]))
     }
     fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Scales, A::Error> {
         let mut v = Vec::new();

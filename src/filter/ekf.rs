@@ -38,13 +38,28 @@ pub struct Ekf<const NX: usize, const NZ: usize> {
     pub update_form: CovarianceUpdate,
 }
 
-/// The EKF's belief: mean and covariance.
+/// The EKF's belief: mean and covariance, plus the last step's F and I − KH (kept so the
+/// error transition A_k can be formed on demand without costing every step a product).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Gaussian<const NX: usize> {
     /// x̂
     pub x: Vector<NX>,
     /// P
     pub p: Matrix<NX, NX>,
+    f: Matrix<NX, NX>,
+    i_kh: Matrix<NX, NX>,
+}
+
+impl<const NX: usize> Gaussian<NX> {
+    /// A belief with mean `x` and covariance `p`.
+    pub fn new(x: Vector<NX>, p: Matrix<NX, NX>) -> Self {
+        Gaussian {
+            x,
+            p,
+            f: Matrix::<NX, NX>::identity(),
+            i_kh: Matrix::<NX, NX>::identity(),
+        }
+    }
 }
 
 /// A NaN or ±∞ anywhere in x̂ or on P's diagonal makes the sum non-finite; an off-diagonal
@@ -102,7 +117,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         p0: &Matrix<NX, NX>,
         _z0: &Measurement<NZ>,
     ) -> Gaussian<NX> {
-        Gaussian { x: *x0_hat, p: *p0 }
+        Gaussian::new(*x0_hat, *p0)
     }
 
     #[inline]
@@ -110,6 +125,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let f = model.transition_jacobian(&b.x, u);
         b.x = model.propagate(&b.x, u);
         b.p = f * b.p * f.transpose() + self.q;
+        b.f = f;
+        b.i_kh = Matrix::<NX, NX>::identity();
         check_finite(b)
     }
 
@@ -134,18 +151,22 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         })?;
         // Kᵀ = S⁻¹ H P⁻ because S and P⁻ are symmetric.
         let k = chol.solve(&hp).transpose();
-        let nis = chol.inverse_quadratic_form(&nu);
+        let whitened = chol.solve_lower(&nu);
+        let nis = whitened.norm_squared();
         b.x += k * nu;
         let i_kh = Matrix::<NX, NX>::identity() - k * h;
         b.p = match self.update_form {
             CovarianceUpdate::Standard => i_kh * b.p,
             CovarianceUpdate::Joseph => i_kh * b.p * i_kh.transpose() + k * r * k.transpose(),
         };
+        b.i_kh = i_kh;
         check_finite(b)?;
         Ok(Some(Innovation {
             residual: nu,
             nis,
             dof: z.available.count(),
+            whitened,
+            available: z.available,
         }))
     }
 
@@ -155,6 +176,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 
     fn covariance(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
         Some(b.p)
+    }
+
+    fn error_transition(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
+        Some(b.i_kh * b.f)
     }
 
     fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {
@@ -186,10 +211,10 @@ mod tests {
             r: Matrix::<3, 3>::identity() * 0.01f64.powi(2),
             update_form: CovarianceUpdate::Standard,
         };
-        let b = Gaussian {
-            x: Vector::<6>::new(0.0, 3.0, 10.0, 0.0, -1.5, 0.1),
-            p: Matrix::<6, 6>::identity(),
-        };
+        let b = Gaussian::new(
+            Vector::<6>::new(0.0, 3.0, 10.0, 0.0, -1.5, 0.1),
+            Matrix::<6, 6>::identity(),
+        );
         (model, ekf, b)
     }
 

@@ -10,7 +10,7 @@ pub mod ekf;
 pub mod running_mean;
 
 use crate::linalg::{Matrix, Vector};
-use crate::model::{Measurement, Model};
+use crate::model::{Availability, Measurement, Model};
 
 pub use ekf::{CovarianceUpdate, Ekf};
 pub use running_mean::RunningMean;
@@ -24,6 +24,11 @@ pub struct Innovation<const NZ: usize> {
     pub nis: f64,
     /// Degrees of freedom of the NIS (number of reporting components).
     pub dof: usize,
+    /// The whitened innovation L⁻¹ν (S = L Lᵀ): i.i.d. N(0, 1) components for a consistent
+    /// filter, used by the whiteness test. Zero in components that did not report.
+    pub whitened: Vector<NZ>,
+    /// The components that reported.
+    pub available: Availability,
 }
 
 /// Numerical trouble inside one run. It becomes that run's status, never a batch abort.
@@ -82,6 +87,13 @@ pub trait Filter<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX,
 
     /// The estimate's covariance P_k, or `None` when the filter carries none.
     fn covariance(&self, belief: &Self::Belief) -> Option<Matrix<NX, NX>>;
+
+    /// A_k, the matrix that maps the previous estimation error into the current one to first
+    /// order: (I − K_k H_k) F_k after an update, F_k after a prediction alone. The calibrated
+    /// NEES test and the burn-in rule need it; filters without one return `None`.
+    fn error_transition(&self, _belief: &Self::Belief) -> Option<Matrix<NX, NX>> {
+        None
+    }
 
     /// Makes a covariance that failed a Cholesky factorisation usable again (symmetrise and
     /// add jitter). Returns whether a repair was made; every repair is counted per run.

@@ -7,6 +7,7 @@
 //!   factors; `nees_mean` averages k = 1..=K (k = 0 is the prior, not a filter output) and
 //!   `nis_mean` the steps with a measurement update.
 
+pub mod consistency;
 pub mod divergence;
 
 /// How a run ended.
@@ -73,8 +74,38 @@ pub struct StepValues {
     pub nees: Vec<f64>,
     /// NIS_k.
     pub nis: Vec<f64>,
+    /// NIS degrees of freedom per step (0 without an update).
+    pub nis_dof: Vec<u8>,
     /// Steps actually computed (K + 1 unless the run failed).
     pub completed: usize,
+}
+
+/// Per-run sums for the consistency tests, over the steps after the burn-in.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RunConsistency {
+    /// First step included in the sums; `None` when the initial-error term never fell below
+    /// its threshold (the prior is never forgotten) and every step from 1 was used.
+    pub first_step: Option<usize>,
+    /// Σ NEES_k.
+    pub nees_sum: f64,
+    /// Steps in `nees_sum`.
+    pub nees_n: u64,
+    /// Σ tr(P_k⁻¹ W_k), `None` when the filter exposes no error transition.
+    pub rho_sum: Option<f64>,
+    /// Σ NIS_k.
+    pub nis_sum: f64,
+    /// Σ p_k (degrees of freedom of the NIS terms).
+    pub nis_dof: u64,
+    /// Update steps in `nis_sum`.
+    pub nis_n: u64,
+    /// Per state: Σ e_k,i / √P_k,ii (the normalised error, for the bias test).
+    pub nme_sum: Vec<f64>,
+    /// Per lag l = 1..L: Σ w_kᵀ w_{k+l} over whitened innovations.
+    pub lag_prod: Vec<f64>,
+    /// Per lag: number of component pairs in `lag_prod`.
+    pub lag_pairs: Vec<u64>,
+    /// Σ ‖w_k‖².
+    pub w_sq: f64,
 }
 
 /// The per-run record of one filter (one row of `runs.parquet`).
@@ -92,6 +123,8 @@ pub struct FilterRun {
     pub covariance_repairs: u32,
     /// Per-step values for the cell accumulators.
     pub steps: StepValues,
+    /// Consistency sums, when the study asks for them and the filter has a covariance.
+    pub consistency: Option<RunConsistency>,
 }
 
 impl StepValues {
@@ -102,6 +135,7 @@ impl StepValues {
             sq_err: vec![f64::NAN; (steps + 1) * nx],
             nees: vec![f64::NAN; steps + 1],
             nis: vec![f64::NAN; steps + 1],
+            nis_dof: vec![0; steps + 1],
             completed: 0,
         }
     }
@@ -159,6 +193,7 @@ impl StepValues {
             status,
             covariance_repairs,
             steps: self,
+            consistency: None,
         }
     }
 }
@@ -174,6 +209,7 @@ pub struct StepAccumulator {
     nees_n: Vec<u32>,
     nis_sum: Vec<f64>,
     nis_n: Vec<u32>,
+    nis_dof: Vec<u64>,
 }
 
 /// One row of the per-step table after folding.
@@ -185,6 +221,12 @@ pub struct StepRow {
     pub anees: Option<f64>,
     /// ANIS_k.
     pub anis: Option<f64>,
+    /// Runs with a NEES at this step.
+    pub nees_runs: u32,
+    /// Runs with a NIS at this step.
+    pub nis_runs: u32,
+    /// Σ over runs of the NIS degrees of freedom at this step.
+    pub nis_dof: u64,
     /// Mean squared error per state.
     pub mse: Vec<f64>,
 }
@@ -200,6 +242,7 @@ impl StepAccumulator {
             nees_n: vec![0; steps + 1],
             nis_sum: vec![0.0; steps + 1],
             nis_n: vec![0; steps + 1],
+            nis_dof: vec![0; steps + 1],
         }
     }
 
@@ -218,6 +261,7 @@ impl StepAccumulator {
             if !v.nis[k].is_nan() {
                 self.nis_sum[k] += v.nis[k];
                 self.nis_n[k] += 1;
+                self.nis_dof[k] += v.nis_dof[k] as u64;
             }
         }
     }
@@ -240,6 +284,9 @@ impl StepAccumulator {
             runs: n,
             anees: avg(self.nees_sum[k], self.nees_n[k]),
             anis: avg(self.nis_sum[k], self.nis_n[k]),
+            nees_runs: self.nees_n[k],
+            nis_runs: self.nis_n[k],
+            nis_dof: self.nis_dof[k],
             mse: (0..self.nx)
                 .map(|i| {
                     if n > 0 {

@@ -12,6 +12,8 @@ pub enum Dtype {
     I64,
     /// 64-bit unsigned integer.
     U64,
+    /// Boolean, nullable.
+    Bool,
 }
 
 /// A column definition.
@@ -40,20 +42,34 @@ fn per<'a>(
         .map(move |n| col(format!("{prefix}{n}"), dtype))
 }
 
-/// The key columns shared by every per-cell table.
+/// The key columns shared by every per-cell table: (scenario, truth-noise multiplier,
+/// filter label, the filter's Q and R multipliers).
 fn cell_keys() -> Vec<ColumnDef> {
     vec![
         col("scenario", Dtype::Str),
         col("noise_scale", Dtype::F64),
         col("filter", Dtype::Str),
+        col("q_scale", Dtype::F64),
+        col("r_scale", Dtype::F64),
+    ]
+}
+
+/// The key columns of per-(scenario, filter variant) tables.
+fn filter_keys() -> Vec<ColumnDef> {
+    vec![
+        col("scenario", Dtype::Str),
+        col("filter", Dtype::Str),
+        col("q_scale", Dtype::F64),
+        col("r_scale", Dtype::F64),
     ]
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 6] = [
+pub const TABLES: [&str; 7] = [
     "runs",
     "steps",
     "summary",
+    "consistency",
     "divergence",
     "divergence_runs",
     "traces",
@@ -86,9 +102,34 @@ pub fn steps(states: &[&str]) -> Vec<ColumnDef> {
         col("t", Dtype::F64),
         col("runs", Dtype::I64),
         col("anees", Dtype::F64),
+        col("anees_lo", Dtype::F64),
+        col("anees_hi", Dtype::F64),
+        col("anees_inside", Dtype::Bool),
         col("anis", Dtype::F64),
+        col("anis_lo", Dtype::F64),
+        col("anis_hi", Dtype::F64),
+        col("anis_inside", Dtype::Bool),
     ]);
     c.extend(per("mse_", states, Dtype::F64));
+    c
+}
+
+/// `consistency.parquet`: one row per cell × filter × test.
+pub fn consistency() -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("test", Dtype::Str),
+        col("statistic", Dtype::F64),
+        col("lower", Dtype::F64),
+        col("upper", Dtype::F64),
+        col("dof", Dtype::F64),
+        col("p_value", Dtype::F64),
+        col("pass", Dtype::Bool),
+        col("direction", Dtype::Str),
+        col("alpha", Dtype::F64),
+        col("runs", Dtype::I64),
+        col("burn_in_steps", Dtype::I64),
+    ]);
     c
 }
 
@@ -110,9 +151,8 @@ pub fn summary() -> Vec<ColumnDef> {
 
 /// `divergence.parquet`: one row per scenario × filter × state.
 pub fn divergence() -> Vec<ColumnDef> {
-    vec![
-        col("scenario", Dtype::Str),
-        col("filter", Dtype::Str),
+    let mut c = filter_keys();
+    c.extend([
         col("state", Dtype::Str),
         col("threshold", Dtype::F64),
         col("max_noise_scale", Dtype::F64),
@@ -122,18 +162,19 @@ pub fn divergence() -> Vec<ColumnDef> {
         col("run_divergence_p05", Dtype::F64),
         col("run_divergence_p50", Dtype::F64),
         col("run_divergence_p95", Dtype::F64),
-    ]
+    ]);
+    c
 }
 
 /// `divergence_runs.parquet`: one row per scenario × filter × run × state.
 pub fn divergence_runs() -> Vec<ColumnDef> {
-    vec![
-        col("scenario", Dtype::Str),
-        col("filter", Dtype::Str),
+    let mut c = filter_keys();
+    c.extend([
         col("run", Dtype::I64),
         col("state", Dtype::Str),
         col("divergence_scale", Dtype::F64),
-    ]
+    ]);
+    c
 }
 
 /// `traces.parquet`: one row per traced run × filter × step.

@@ -19,6 +19,8 @@ pub enum Value<'a> {
     I64(Option<i64>),
     /// Unsigned integer.
     U64(u64),
+    /// Nullable boolean.
+    Bool(Option<bool>),
 }
 
 enum Buffer {
@@ -26,6 +28,7 @@ enum Buffer {
     F64(Vec<Option<f64>>),
     I64(Vec<Option<i64>>),
     U64(Vec<u64>),
+    Bool(Vec<Option<bool>>),
 }
 
 /// Rows per Parquet row group; bounds the writer's memory.
@@ -59,6 +62,7 @@ impl TableWriter {
                 Dtype::F64 => DataType::Float64,
                 Dtype::I64 => DataType::Int64,
                 Dtype::U64 => DataType::UInt64,
+                Dtype::Bool => DataType::Boolean,
             };
             Field::new(c.name.as_str().into(), dt)
         }));
@@ -77,6 +81,7 @@ impl TableWriter {
                 Dtype::F64 => Buffer::F64(Vec::new()),
                 Dtype::I64 => Buffer::I64(Vec::new()),
                 Dtype::U64 => Buffer::U64(Vec::new()),
+                Dtype::Bool => Buffer::Bool(Vec::new()),
             })
             .collect();
         Ok(TableWriter {
@@ -107,6 +112,7 @@ impl TableWriter {
                 (Buffer::F64(b), Value::F64(x)) => b.push(x.filter(|x| !x.is_nan())),
                 (Buffer::I64(b), Value::I64(x)) => b.push(*x),
                 (Buffer::U64(b), Value::U64(x)) => b.push(*x),
+                (Buffer::Bool(b), Value::Bool(x)) => b.push(*x),
                 _ => panic!(
                     "value of the wrong type for column {}",
                     self.columns[i].name
@@ -135,6 +141,7 @@ impl TableWriter {
                     Buffer::F64(v) => Column::new(name, std::mem::take(v)),
                     Buffer::I64(v) => Column::new(name, std::mem::take(v)),
                     Buffer::U64(v) => Column::new(name, std::mem::take(v)),
+                    Buffer::Bool(v) => Column::new(name, std::mem::take(v)),
                 }
             })
             .collect();

@@ -43,9 +43,9 @@ for t in manifest["tables"]:
                 failures.append(f"{path.name}.{c.name}: sums differ pandas={a} duckdb={b} polars={p}")
 
 runs = pandas.read_parquet(d / "runs.parquet")
-expected = ["scenario", "noise_scale", "filter", "run", "seed", "status"]
-if list(runs.columns[:6]) != expected:
-    failures.append(f"runs.parquet key columns {list(runs.columns[:6])} != {expected}")
+expected = ["scenario", "noise_scale", "filter", "q_scale", "r_scale", "run", "seed", "status"]
+if list(runs.columns[:8]) != expected:
+    failures.append(f"runs.parquet key columns {list(runs.columns[:8])} != {expected}")
 rm = runs[runs["filter"] == "running_mean"]
 if len(rm) and rm["nees_mean"].notna().any():
     failures.append("running_mean rows must have null nees_mean")
