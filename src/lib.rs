@@ -33,6 +33,7 @@
 
 #![warn(missing_docs)]
 
+pub mod check;
 pub mod cli;
 pub mod error;
 pub mod experiment;

@@ -5,8 +5,8 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::{FilterPlan, Plan};
-use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::consistency::{BandCache, cell_tests};
+use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::{RunConsistency, RunStatus, StepAccumulator, mean_std, quantile_sorted};
 use crate::output::manifest::{Manifest, TableEntry};
 use crate::output::{TableWriter, Value, schema};
@@ -178,8 +178,12 @@ impl Aggregator<'_> {
             let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
             for k in 0..acc.len() {
                 let s = acc.row(k);
-                let nees_band = s.anees.and_then(|_| self.bands.band(s.nees_runs as u64 * n, s.nees_runs as u64));
-                let nis_band = s.anis.and_then(|_| self.bands.band(s.nis_dof, s.nis_runs as u64));
+                let nees_band = s
+                    .anees
+                    .and_then(|_| self.bands.band(s.nees_runs as u64 * n, s.nees_runs as u64));
+                let nis_band = s
+                    .anis
+                    .and_then(|_| self.bands.band(s.nis_dof, s.nis_runs as u64));
                 let nees_inside = s.anees.zip(nees_band).map(|(a, b)| b.contains(a));
                 let nis_inside = s.anis.zip(nis_band).map(|(a, b)| b.contains(a));
                 // Step 0 is the prior, not a filter output: the descriptive fractions skip it.
@@ -217,7 +221,13 @@ impl Aggregator<'_> {
                     .iter()
                     .map(|r| r.first_step)
                     .try_fold(0usize, |m, s| s.map(|s| m.max(s)));
-                for t in cell_tests(runs, self.states.len(), &self.states, cp.alpha, (frac(nees_in, nees_steps), frac(nis_in, nis_steps))) {
+                for t in cell_tests(
+                    runs,
+                    self.states.len(),
+                    &self.states,
+                    cp.alpha,
+                    (frac(nees_in, nees_steps), frac(nis_in, nis_steps)),
+                ) {
                     let mut row = cell_key(sname, noise, f).to_vec();
                     row.extend([
                         Value::Str(&t.test),
@@ -298,7 +308,11 @@ pub fn run(
             None
         },
         consistency: if plan.consistency.is_some() {
-            Some(TableWriter::create(dir, "consistency", schema::consistency())?)
+            Some(TableWriter::create(
+                dir,
+                "consistency",
+                schema::consistency(),
+            )?)
         } else {
             None
         },

@@ -255,8 +255,20 @@ where
                         after_burn_in = Some(Window::new(k, lags));
                     }
                 }
-                for w in [from_start.as_mut(), after_burn_in.as_mut()].into_iter().flatten() {
-                    w.observe(&chol, &p_now, &p_prev, a.as_ref(), &e, nees, innovation.as_ref(), lags);
+                for w in [from_start.as_mut(), after_burn_in.as_mut()]
+                    .into_iter()
+                    .flatten()
+                {
+                    w.observe(
+                        &chol,
+                        &p_now,
+                        &p_prev,
+                        a.as_ref(),
+                        &e,
+                        nees,
+                        innovation.as_ref(),
+                        lags,
+                    );
                 }
             }
             p_prev = p_now;
@@ -431,8 +443,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
         let mut est = Vec::new();
         let mut var = Vec::new();
         for f in &plan.filters {
-            let q = diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale)) * f.q_scale;
-            let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale)) * f.r_scale;
+            let q = diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale))
+                * f.q_scale;
+            let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale))
+                * f.r_scale;
             let out = self.model.run_kind(&f.kind, q, r, &ctx);
             if let Some((e, v)) = out.trace {
                 est.push(e);

@@ -209,3 +209,70 @@ fn list_names_the_models_scenarios_and_filters() {
         assert!(out.contains(n), "list lacks {n}");
     }
 }
+
+#[test]
+fn check_passes_on_the_tuned_spec_and_fails_with_exit_3_when_q_is_mistuned() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = repo().join("experiments/ci_consistency.toml");
+    let junit = tmp.path().join("junit.xml");
+    let out = tmp.path().join("ok");
+    let (code, stdout, err) = output(&[
+        "check",
+        spec.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--junit",
+        junit.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{stdout}{err}");
+    assert!(stdout.contains("6 cases, 6 passed, 0 failed"), "{stdout}");
+    let xml = std::fs::read_to_string(&junit).unwrap();
+    assert!(
+        xml.contains("<testsuites") && xml.contains("tests=\"6\" failures=\"0\""),
+        "{xml}"
+    );
+    assert_eq!(xml.matches("<testcase ").count(), 6);
+
+    let text = std::fs::read_to_string(&spec)
+        .unwrap()
+        .replace("q_scale = 1.0 ", "q_scale = 2.0 ");
+    let (_d, bad) = spec_in_tempdir(&text);
+    let (code, stdout, _) = output(&[
+        "check",
+        bad.to_str().unwrap(),
+        "--out",
+        tmp.path().join("bad").to_str().unwrap(),
+        "--junit",
+        junit.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert_eq!(code, 3, "{stdout}");
+    assert!(
+        stdout.contains("FAIL  consistent[basic noise=1 ekf q=2 r=1]"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("pessimistic"),
+        "Q too large makes P too large: {stdout}"
+    );
+    let xml = std::fs::read_to_string(&junit).unwrap();
+    assert_eq!(xml.matches("<failure ").count(), 4, "{xml}");
+}
+
+#[test]
+fn check_without_assertions_or_with_a_bad_one_is_an_invalid_spec() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (_d, spec) = spec_in_tempdir(&small_spec(&tmp.path().join("o"), 2, "[1.0]", EKF_AND_MEAN));
+    let (code, _, err) = output(&["check", spec.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(err.contains("check.assert"), "{err}");
+    let text = small_spec(&tmp.path().join("o"), 2, "[1.0]", EKF_AND_MEAN)
+        + "[[check.assert]]\nkind = \"rmse_below\"\nfilter = \"ukf\"\nstate = \"q\"\nmax = 1\n";
+    let (_d2, spec) = spec_in_tempdir(&text);
+    let (code, _, err) = output(&["check", spec.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(
+        err.contains("check.assert[0].filter") && err.contains("check.assert[0].state"),
+        "{err}"
+    );
+}

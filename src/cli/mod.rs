@@ -3,7 +3,8 @@
 //! Exit codes:
 //! * 0 — success;
 //! * 1 — a runtime failure (I/O, an unreadable result folder);
-//! * 2 — an invalid spec or invalid command-line usage.
+//! * 2 — an invalid spec or invalid command-line usage;
+//! * 3 — `kfmc check`: the study ran and at least one assertion failed.
 
 pub mod progress;
 pub mod summary;
@@ -24,10 +25,20 @@ pub const EXIT_OK: u8 = 0;
 pub const EXIT_FAILURE: u8 = 1;
 /// Exit code: invalid spec or usage.
 pub const EXIT_INVALID_SPEC: u8 = 2;
+/// Exit code: `kfmc check` found a failing assertion.
+pub const EXIT_CHECK_FAILED: u8 = 3;
+
+/// A failed `kfmc check` (its report is already printed).
+#[derive(Debug, thiserror::Error)]
+#[error("{failed} of {total} check cases failed")]
+pub struct CheckFailed {
+    failed: usize,
+    total: usize,
+}
 
 /// kfmc — judge state estimators statistically with seeded Monte Carlo studies.
 #[derive(Debug, Parser)]
-#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage.")]
+#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed.")]
 pub struct Cli {
     /// The command.
     #[command(subcommand)]
@@ -57,6 +68,30 @@ pub enum Command {
         #[arg(long)]
         trace_runs: Option<usize>,
         /// No progress bar and no report.
+        #[arg(long, short)]
+        quiet: bool,
+    },
+    /// Run a study and evaluate its `[check]` assertions (consistency verdicts, RMSE bounds,
+    /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 2 for an invalid spec.
+    Check {
+        /// The experiment spec (TOML) with a `[check]` section.
+        spec: PathBuf,
+        /// Output folder (overrides the spec's `output`).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Runs per cell (overrides `runs`).
+        #[arg(long)]
+        runs: Option<usize>,
+        /// Worker threads; 0 = all cores.
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Master seed (overrides `master_seed`).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Also write the results as JUnit XML to this file.
+        #[arg(long)]
+        junit: Option<PathBuf>,
+        /// No progress bar.
         #[arg(long, short)]
         quiet: bool,
     },
@@ -156,6 +191,10 @@ pub fn main_with(cli: Cli) -> ExitCode {
     match dispatch(cli) {
         Ok(()) => ExitCode::from(EXIT_OK),
         Err(e) => {
+            if e.downcast_ref::<CheckFailed>().is_some() {
+                // The report already said what failed.
+                return ExitCode::from(EXIT_CHECK_FAILED);
+            }
             let code = match e.downcast_ref::<KfmcError>() {
                 Some(KfmcError::Spec(_)) => EXIT_INVALID_SPEC,
                 _ => EXIT_FAILURE,
@@ -201,6 +240,67 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
                 for (name, rows) in &report.tables {
                     println!("  {name}.parquet  {rows} rows");
                 }
+            }
+            Ok(())
+        }
+        Command::Check {
+            spec,
+            out,
+            runs,
+            threads,
+            seed,
+            junit,
+            quiet,
+        } => {
+            let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
+            plan.apply(&Overrides {
+                runs,
+                master_seed: seed,
+                output: out,
+                trace_runs: None,
+            })
+            .map_err(KfmcError::from)?;
+            if plan.assertions.is_empty() {
+                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+                    crate::error::SpecError {
+                        file: spec.clone(),
+                        key_path: "check.assert".into(),
+                        message: "kfmc check needs at least one [[check.assert]]".into(),
+                    },
+                ]))
+                .into());
+            }
+            // Consistency assertions need the tests even when the spec did not ask for them.
+            plan.consistency
+                .get_or_insert(crate::experiment::plan::ConsistencyPlan {
+                    alpha: plan.alpha,
+                    whiteness_lags: 5,
+                });
+            let observer = ProgressObserver::new(!quiet);
+            let report =
+                crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
+                    .map_err(anyhow::Error::from)
+                    .map_err(|e| e.context(format!("running {}", spec.display())))?;
+            let cases = crate::check::evaluate(&plan, &report.output)
+                .map_err(KfmcError::from)
+                .map_err(|e| anyhow::Error::from(e).context("evaluating the assertions"))?;
+            print!("{}", crate::check::render(&plan.name, &cases));
+            if let Some(path) = junit {
+                std::fs::write(
+                    &path,
+                    crate::check::junit(&plan.name, &cases, report.wall_s),
+                )
+                .map_err(|e| {
+                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
+                })?;
+            }
+            let failed = cases.iter().filter(|c| !c.pass).count();
+            if failed > 0 {
+                return Err(CheckFailed {
+                    failed,
+                    total: cases.len(),
+                }
+                .into());
             }
             Ok(())
         }

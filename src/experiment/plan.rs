@@ -95,6 +95,34 @@ pub struct FilterPlan {
     pub r_scale: f64,
 }
 
+/// One validated `[[check.assert]]`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Assertion {
+    /// The consistency test(s) named must pass (`consistent` → `verdict`,
+    /// `white` → `innovation_whiteness`, `unbiased` → `bias_<state>`, `test_passes` → any).
+    TestPasses {
+        /// The `kind` as written, for reports.
+        kind: String,
+        /// Test names in consistency.parquet.
+        tests: Vec<String>,
+        /// Filter label filter.
+        filter: Option<String>,
+        /// Scenario filter.
+        scenario: Option<String>,
+    },
+    /// The mean RMSE over runs of a state stays below a bound.
+    RmseBelow {
+        /// Filter label filter.
+        filter: Option<String>,
+        /// Scenario filter.
+        scenario: Option<String>,
+        /// The state.
+        state: String,
+        /// The bound.
+        max: f64,
+    },
+}
+
 /// The validated `[consistency]` section.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ConsistencyPlan {
@@ -163,6 +191,8 @@ pub struct Plan {
     pub alpha: f64,
     /// Consistency tests, when the spec asks for them.
     pub consistency: Option<ConsistencyPlan>,
+    /// `kfmc check` assertions.
+    pub assertions: Vec<Assertion>,
 }
 
 /// Command-line overrides of spec values.
@@ -347,7 +377,14 @@ pub fn expand_range(start: f64, stop: f64, step: f64) -> Vec<f64> {
 }
 
 /// Expands a list or range of multipliers, checking each is `ok`; `None` gives `default`.
-fn scale_list(c: &mut Checker, key: &str, v: Option<&Scales>, default: f64, ok: fn(f64) -> bool, what: &str) -> Vec<f64> {
+fn scale_list(
+    c: &mut Checker,
+    key: &str,
+    v: Option<&Scales>,
+    default: f64,
+    ok: fn(f64) -> bool,
+    what: &str,
+) -> Vec<f64> {
     let mut out = match v {
         None => vec![default],
         Some(Scales::List(v)) => v.clone(),
@@ -615,14 +652,31 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             "a positive number (R must be positive definite)",
         );
         if matches!(fk, FilterKind::RunningMean { .. }) {
-            for (k, present) in [("q_scale", f.q_scale.is_some()), ("r_scale", f.r_scale.is_some())] {
+            for (k, present) in [
+                ("q_scale", f.q_scale.is_some()),
+                ("r_scale", f.r_scale.is_some()),
+            ] {
                 if present {
                     c.err(format!("{key}.{k}"), "not used by a running_mean filter");
                 }
             }
         }
-        let q_scales = scale_list(&mut c, &format!("{key}.q_scale"), f.q_scale.as_ref(), 1.0, positive, "a positive number");
-        let r_scales = scale_list(&mut c, &format!("{key}.r_scale"), f.r_scale.as_ref(), 1.0, positive, "a positive number");
+        let q_scales = scale_list(
+            &mut c,
+            &format!("{key}.q_scale"),
+            f.q_scale.as_ref(),
+            1.0,
+            positive,
+            "a positive number",
+        );
+        let r_scales = scale_list(
+            &mut c,
+            &format!("{key}.r_scale"),
+            f.r_scale.as_ref(),
+            1.0,
+            positive,
+            "a positive number",
+        );
         // Each (q_scale, r_scale) pair is a filter variant with the same label; the scales
         // are key columns of every table.
         for &q_scale in &q_scales {
@@ -712,6 +766,117 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         whiteness_lags: whiteness_lags as usize,
     });
 
+    let states = kind.state_names();
+    let mut assertions = Vec::new();
+    for (i, a) in spec.check.iter().flat_map(|c| c.asserts.iter()).enumerate() {
+        let key = format!("check.assert[{i}]");
+        if let Some(f) = &a.filter
+            && !labels.contains(f)
+        {
+            c.err(format!("{key}.filter"), format!("no filter labelled `{f}`"));
+        }
+        if let Some(sc) = &a.scenario
+            && !names.contains(sc)
+        {
+            c.err(
+                format!("{key}.scenario"),
+                format!("no scenario named `{sc}`"),
+            );
+        }
+        if let Some(st) = &a.state
+            && !states.contains(&st.as_str())
+        {
+            c.err(
+                format!("{key}.state"),
+                format!("unknown state `{st}`; states: {}", states.join(", ")),
+            );
+        }
+        let unused = |c: &mut Checker, keys: &[(&str, bool)]| {
+            for (k, present) in keys {
+                if *present {
+                    c.err(
+                        format!("{key}.{k}"),
+                        format!("not used by kind = \"{}\"", a.kind),
+                    );
+                }
+            }
+        };
+        let tests = |names: Vec<String>| Assertion::TestPasses {
+            kind: a.kind.clone(),
+            tests: names,
+            filter: a.filter.clone(),
+            scenario: a.scenario.clone(),
+        };
+        let parsed = match a.kind.as_str() {
+            "consistent" | "white" => {
+                unused(
+                    &mut c,
+                    &[
+                        ("state", a.state.is_some()),
+                        ("max", a.max.is_some()),
+                        ("test", a.test.is_some()),
+                    ],
+                );
+                let t = if a.kind == "white" {
+                    "innovation_whiteness"
+                } else {
+                    "verdict"
+                };
+                Some(tests(vec![t.to_string()]))
+            }
+            "unbiased" => {
+                unused(
+                    &mut c,
+                    &[("max", a.max.is_some()), ("test", a.test.is_some())],
+                );
+                let which: Vec<String> = match &a.state {
+                    Some(s) => vec![format!("bias_{s}")],
+                    None => states.iter().map(|s| format!("bias_{s}")).collect(),
+                };
+                Some(tests(which))
+            }
+            "test_passes" => {
+                unused(
+                    &mut c,
+                    &[("state", a.state.is_some()), ("max", a.max.is_some())],
+                );
+                match &a.test {
+                    Some(t) => Some(tests(vec![t.clone()])),
+                    None => {
+                        c.err(
+                            format!("{key}.test"),
+                            "kind = \"test_passes\" needs a test name",
+                        );
+                        None
+                    }
+                }
+            }
+            "rmse_below" => {
+                unused(&mut c, &[("test", a.test.is_some())]);
+                match (&a.state, a.max) {
+                    (Some(state), Some(max)) if max > 0.0 => Some(Assertion::RmseBelow {
+                        filter: a.filter.clone(),
+                        scenario: a.scenario.clone(),
+                        state: state.clone(),
+                        max,
+                    }),
+                    _ => {
+                        c.err(key.clone(), "kind = \"rmse_below\" needs state and max > 0");
+                        None
+                    }
+                }
+            }
+            other => {
+                c.err(
+                    format!("{key}.kind"),
+                    format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below"),
+                );
+                None
+            }
+        };
+        assertions.extend(parsed);
+    }
+
     let runs = spec.runs.unwrap_or(100);
     if runs == 0 {
         c.err("runs", "must be at least 1");
@@ -765,6 +930,7 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         rmse_thresholds,
         alpha,
         consistency,
+        assertions,
     })
 }
 

@@ -37,6 +37,35 @@ pub struct Spec {
     pub divergence: Option<DivergenceSpec>,
     /// Consistency tests (NEES/NIS χ², whiteness, bias) and their significance level.
     pub consistency: Option<ConsistencySpec>,
+    /// Assertions for `kfmc check`.
+    pub check: Option<CheckSpec>,
+}
+
+/// `[check]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CheckSpec {
+    /// The assertions (`[[check.assert]]`).
+    #[serde(default, rename = "assert")]
+    pub asserts: Vec<AssertSpec>,
+}
+
+/// `[[check.assert]]`
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AssertSpec {
+    /// `consistent`, `white`, `unbiased`, `test_passes` or `rmse_below`.
+    pub kind: String,
+    /// Only this filter label (default: every filter).
+    pub filter: Option<String>,
+    /// Only this scenario (default: every scenario).
+    pub scenario: Option<String>,
+    /// The state (`rmse_below`; `unbiased` defaults to every state).
+    pub state: Option<String>,
+    /// The bound (`rmse_below`: on the mean RMSE over runs).
+    pub max: Option<f64>,
+    /// A test name of consistency.parquet (`test_passes`).
+    pub test: Option<String>,
 }
 
 /// `[consistency]`

@@ -173,7 +173,7 @@ pub fn scaled_chi2_test(test: &str, mean: f64, d: f64, nu: f64, alpha: f64) -> O
         dof: Some(nu),
         p_value: chi2_two_sided_p(mean * nu / d, nu),
         pass,
-        direction: (!pass).then(|| {
+        direction: (!pass).then_some({
             if mean > hi {
                 Direction::Optimistic
             } else {
@@ -186,7 +186,13 @@ pub fn scaled_chi2_test(test: &str, mean: f64, d: f64, nu: f64, alpha: f64) -> O
 /// A one-sample t-test of `values` against `mu` (two-sided). For per-run time averages of
 /// NEES (against n) or normalised errors (against 0): runs are independent, so the test is
 /// calibrated whatever the correlation in time.
-pub fn t_test(test: &str, values: &[f64], mu: f64, alpha: f64, high_is_optimistic: bool) -> Option<TestResult> {
+pub fn t_test(
+    test: &str,
+    values: &[f64],
+    mu: f64,
+    alpha: f64,
+    high_is_optimistic: bool,
+) -> Option<TestResult> {
     let n = values.len();
     if n < 2 {
         return None;
@@ -206,7 +212,7 @@ pub fn t_test(test: &str, values: &[f64], mu: f64, alpha: f64, high_is_optimisti
         dof: Some(nf - 1.0),
         p_value: t_two_sided_p(t, nf - 1.0),
         pass,
-        direction: (!pass).then(|| {
+        direction: (!pass).then_some({
             if (t > 0.0) == high_is_optimistic {
                 Direction::Optimistic
             } else {
@@ -246,7 +252,15 @@ pub fn cell_tests(
         .map(|r| r.rho_sum.map(|s| 1.0 + 2.0 * s / (nf * r.nees_n as f64)))
         .sum::<Option<f64>>()
         .map(|s| s / runs.len() as f64);
-    let nees = rho.and_then(|rho| scaled_chi2_test("nees_time_average", a_bar, nf, nf * nees_n as f64 / rho, alpha));
+    let nees = rho.and_then(|rho| {
+        scaled_chi2_test(
+            "nees_time_average",
+            a_bar,
+            nf,
+            nf * nees_n as f64 / rho,
+            alpha,
+        )
+    });
     out.extend(nees.clone());
 
     // NIS, exact: Σ NIS ~ χ²(Σ p).
@@ -256,7 +270,13 @@ pub fn cell_tests(
         .then(|| {
             let nis_sum: f64 = runs.iter().map(|r| r.nis_sum).sum();
             let p_bar = nis_dof as f64 / nis_n as f64;
-            scaled_chi2_test("nis_time_average", nis_sum / nis_n as f64, p_bar, nis_dof as f64, alpha)
+            scaled_chi2_test(
+                "nis_time_average",
+                nis_sum / nis_n as f64,
+                p_bar,
+                nis_dof as f64,
+                alpha,
+            )
         })
         .flatten();
     out.extend(nis.clone());
@@ -265,7 +285,10 @@ pub fn cell_tests(
     let per_run: Vec<f64> = runs.iter().map(|r| r.nees_sum / r.nees_n as f64).collect();
     out.extend(t_test("nees_run_average_t", &per_run, nf, alpha, true));
 
-    for (name, frac) in [("anees_steps_inside", steps_inside.0), ("anis_steps_inside", steps_inside.1)] {
+    for (name, frac) in [
+        ("anees_steps_inside", steps_inside.0),
+        ("anis_steps_inside", steps_inside.1),
+    ] {
         if let Some(f) = frac {
             out.push(TestResult {
                 test: name.into(),
@@ -315,7 +338,10 @@ pub fn cell_tests(
 
     // Bias: per state, the per-run mean normalised error e/√P_ii is N(0, ·) across runs.
     for (i, state) in state_names.iter().enumerate() {
-        let v: Vec<f64> = runs.iter().map(|r| r.nme_sum[i] / r.nees_n as f64).collect();
+        let v: Vec<f64> = runs
+            .iter()
+            .map(|r| r.nme_sum[i] / r.nees_n as f64)
+            .collect();
         if let Some(mut t) = t_test(&format!("bias_{state}"), &v, 0.0, alpha, true) {
             t.direction = None;
             out.push(t);
@@ -329,7 +355,11 @@ pub fn cell_tests(
         // The failing test's side of its band's centre (its expected value) says which way.
         let side = |t: &TestResult| {
             let centre = (t.lower.unwrap_or(0.0) + t.upper.unwrap_or(0.0)) / 2.0;
-            if t.statistic > centre { Direction::Optimistic } else { Direction::Pessimistic }
+            if t.statistic > centre {
+                Direction::Optimistic
+            } else {
+                Direction::Pessimistic
+            }
         };
         let p = pa.min(pb);
         let direction = (!pass).then(|| if pa <= pb { side(a) } else { side(b) });
