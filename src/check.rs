@@ -87,7 +87,11 @@ impl Table {
                 )
             })
             .collect();
-        Ok((names, sc, f))
+        Ok(Cells {
+            names,
+            scenario: sc,
+            filter: f,
+        })
     }
 }
 
