@@ -47,3 +47,4 @@ pub mod scenario;
 pub mod sim;
 pub mod study;
 pub mod trial;
+pub mod tune;

@@ -276,3 +276,44 @@ fn check_without_assertions_or_with_a_bad_one_is_an_invalid_spec() {
         "{err}"
     );
 }
+
+#[test]
+fn tune_finds_q_scale_near_1_for_a_matched_ekf_and_writes_tuning_parquet() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = repo().join("experiments/ci_consistency.toml");
+    let out = tmp.path().join("tune");
+    let (code, stdout, err) = output(&[
+        "tune",
+        spec.to_str().unwrap(),
+        "--runs",
+        "30",
+        "--out",
+        out.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let best: f64 = stdout
+        .split("best q_scale = ")
+        .nth(1)
+        .and_then(|s| s.split(',').next())
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no best q_scale in: {stdout}"));
+    // The coarse grid has half-decade steps and the refinement ±½ decade in 11 points.
+    assert!((0.6..=1.6).contains(&best), "best q_scale {best}: {stdout}");
+    let df = kfmc::output::table::read(&out.join("tuning.parquet")).unwrap();
+    for c in [
+        "stage",
+        "scenario",
+        "q_scale",
+        "r_scale",
+        "anees",
+        "anis",
+        "rmse_x",
+        "objective",
+    ] {
+        assert!(df.column(c).is_ok(), "tuning.parquet lacks {c}");
+    }
+    assert_eq!(df.height(), 2 * (13 + 11));
+    // The stages' own studies are kept beside it.
+    assert!(out.join("tune_coarse/consistency.parquet").exists());
+}

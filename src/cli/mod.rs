@@ -95,6 +95,36 @@ pub enum Command {
         #[arg(long, short)]
         quiet: bool,
     },
+    /// Search a filter's Q scale (and R scale with --tune-r) for consistency or minimum RMSE:
+    /// a coarse log grid, then a refinement; writes tuning.parquet.
+    Tune {
+        /// The experiment spec (TOML).
+        spec: PathBuf,
+        /// What to optimise.
+        #[arg(long, value_enum, default_value_t = crate::tune::Objective::Consistency)]
+        objective: crate::tune::Objective,
+        /// Also search the R scale (2-D grid).
+        #[arg(long)]
+        tune_r: bool,
+        /// The filter label to tune (default: the first EKF).
+        #[arg(long)]
+        filter: Option<String>,
+        /// Output folder (overrides the spec's `output`).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Runs per cell (overrides `runs`).
+        #[arg(long)]
+        runs: Option<usize>,
+        /// Worker threads; 0 = all cores.
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Master seed (overrides `master_seed`).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// No progress bar.
+        #[arg(long, short)]
+        quiet: bool,
+    },
     /// Check a spec and print the plan size, without running it.
     Validate {
         /// The experiment spec (TOML).
@@ -301,6 +331,82 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
                     total: cases.len(),
                 }
                 .into());
+            }
+            Ok(())
+        }
+        Command::Tune {
+            spec,
+            objective,
+            tune_r,
+            filter,
+            out,
+            runs,
+            threads,
+            seed,
+            quiet,
+        } => {
+            let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
+            plan.apply(&Overrides {
+                runs,
+                master_seed: seed,
+                output: out,
+                trace_runs: None,
+            })
+            .map_err(KfmcError::from)?;
+            let observer = ProgressObserver::new(!quiet);
+            let opts = crate::tune::TuneOptions {
+                objective,
+                tune_r,
+                filter,
+                threads,
+            };
+            let report = crate::tune::tune(&plan, &opts, &observer)
+                .map_err(anyhow::Error::from)
+                .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
+            let (q, r, obj) = report.best;
+            let pts: Vec<_> = report
+                .points
+                .iter()
+                .filter(|p| p.q_scale == q && p.r_scale == r)
+                .collect();
+            let mean = |f: &dyn Fn(&crate::tune::TunePoint) -> Option<f64>| {
+                let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
+                (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+            };
+            let fmt = |v: Option<f64>| v.map_or("—".into(), |x| format!("{x:.4}"));
+            println!(
+                "kfmc tune {}: filter {}, objective {:?}, {} candidates evaluated → {}",
+                plan.name,
+                report.filter,
+                objective,
+                report.points.len(),
+                report.table.display()
+            );
+            println!(
+                "best q_scale = {q}, r_scale = {r}: objective {obj:.4}, ANEES {} (n = {}), ANIS {} (p = {})",
+                fmt(mean(&|p| p.anees)),
+                plan.model.kind.nx(),
+                fmt(mean(&|p| p.anis)),
+                plan.model.kind.nz()
+            );
+            if report.per_noise_scale.len() > 1 {
+                println!("best per truth-noise scale (over the scenarios):");
+                for (s, q, r, o) in &report.per_noise_scale {
+                    let pts: Vec<_> = report
+                        .points
+                        .iter()
+                        .filter(|p| p.noise_scale == *s && p.q_scale == *q && p.r_scale == *r)
+                        .collect();
+                    let m = |f: &dyn Fn(&crate::tune::TunePoint) -> Option<f64>| {
+                        let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
+                        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+                    };
+                    println!(
+                        "  noise_scale {s:<6} q_scale {q:<10} r_scale {r:<10} objective {o:.4}  ANEES {}  ANIS {}",
+                        fmt(m(&|p| p.anees)),
+                        fmt(m(&|p| p.anis))
+                    );
+                }
             }
             Ok(())
         }

@@ -177,6 +177,23 @@ pub fn divergence_runs() -> Vec<ColumnDef> {
     c
 }
 
+/// `tuning.parquet`: one row per tuning stage × cell × candidate (q_scale, r_scale).
+pub fn tuning(states: &[&str]) -> Vec<ColumnDef> {
+    let mut c = vec![
+        col("stage", Dtype::Str),
+        col("scenario", Dtype::Str),
+        col("noise_scale", Dtype::F64),
+        col("filter", Dtype::Str),
+        col("q_scale", Dtype::F64),
+        col("r_scale", Dtype::F64),
+        col("anees", Dtype::F64),
+        col("anis", Dtype::F64),
+    ];
+    c.extend(per("rmse_", states, Dtype::F64));
+    c.push(col("objective", Dtype::F64));
+    c
+}
+
 /// `traces.parquet`: one row per traced run × filter × step.
 pub fn traces(states: &[&str], inputs: &[&str], meas: &[&str]) -> Vec<ColumnDef> {
     let mut c = cell_keys();

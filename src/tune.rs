@@ -1,0 +1,416 @@
+//! `kfmc tune`: searches a filter's Q scale (and R scale, when asked) for consistency or for
+//! minimum RMSE.
+//!
+//! Each stage is an ordinary study whose filter variants are the candidate scales, so every
+//! candidate sees the same truths and measurements (paired comparison) and the stage's
+//! tables are kept for inspection. Stage 1 is a coarse log grid (half-decades from 10⁻³ to
+//! 10³: 13 points, or 13 × 13 with the R scale); stage 2 refines around the best point
+//! (±½ decade: 11 points, or 7 × 7),
+//! separately for each truth-noise scale, because each scale has its own best tuning (the
+//! seeds' noise cases are four different truths).
+//!
+//! Objectives, averaged over the spec's scenarios and noise scales:
+//! * `consistency`: |ln(Ā_NEES/n)| + |ln(Ā_NIS/p)|, the run-and-time averages after burn-in
+//!   (zero for a perfectly calibrated filter);
+//! * `rmse`: Σ_states RMSE_state / min over the candidates of RMSE_state, so every state
+//!   counts equally whatever its units.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use crate::error::{KfmcError, OutputError};
+use crate::experiment::plan::ConsistencyPlan;
+use crate::experiment::{FilterKind, FilterPlan, Plan};
+use crate::output::table::read;
+use crate::output::{TableWriter, Value, schema};
+use crate::runner::RunObserver;
+use crate::study::{ExecOptions, run};
+
+/// What to optimise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Objective {
+    /// ANEES closest to n and ANIS closest to p.
+    Consistency,
+    /// Smallest RMSE over all states (each normalised by its best value).
+    Rmse,
+}
+
+/// Tuning options.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TuneOptions {
+    /// The objective.
+    pub objective: Objective,
+    /// Also search the R scale.
+    pub tune_r: bool,
+    /// The filter label (default: the first filter with a covariance).
+    pub filter: Option<String>,
+    /// Worker threads.
+    pub threads: usize,
+}
+
+/// One evaluated candidate in one cell.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TunePoint {
+    /// `coarse` or `refine`.
+    pub stage: &'static str,
+    /// Scenario.
+    pub scenario: String,
+    /// Truth-noise multiplier.
+    pub noise_scale: f64,
+    /// Q multiplier.
+    pub q_scale: f64,
+    /// R multiplier.
+    pub r_scale: f64,
+    /// Run-and-time average NEES.
+    pub anees: Option<f64>,
+    /// Run-and-time average NIS.
+    pub anis: Option<f64>,
+    /// Mean RMSE over runs per state.
+    pub rmse: Vec<f64>,
+    /// The cell's objective (lower is better).
+    pub objective: f64,
+}
+
+/// The search's result.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TuneReport {
+    /// The tuned filter's label.
+    pub filter: String,
+    /// Every evaluated point.
+    pub points: Vec<TunePoint>,
+    /// The best (q_scale, r_scale) over all cells, and its mean objective.
+    pub best: (f64, f64, f64),
+    /// Per noise scale: its best (noise_scale, q_scale, r_scale, mean objective over scenarios).
+    pub per_noise_scale: Vec<(f64, f64, f64, f64)>,
+    /// Per (scenario, noise scale): its own best (q_scale, r_scale, objective).
+    pub per_cell: Vec<(String, f64, f64, f64, f64)>,
+    /// Where tuning.parquet went.
+    pub table: PathBuf,
+}
+
+fn log_grid(center: f64, half_decades: f64, points: usize) -> Vec<f64> {
+    (0..points)
+        .map(|i| {
+            let t = if points > 1 {
+                i as f64 / (points - 1) as f64
+            } else {
+                0.5
+            };
+            let v = center * 10f64.powf(half_decades * (2.0 * t - 1.0));
+            // Round to 6 significant digits so the tables show readable scales.
+            let mag = 10f64.powi(5 - v.log10().floor() as i32);
+            (v * mag).round() / mag
+        })
+        .collect()
+}
+
+fn stage(
+    plan: &Plan,
+    base: &FilterPlan,
+    grid: &[(f64, f64)],
+    name: &'static str,
+    opts: &TuneOptions,
+    observer: &dyn RunObserver,
+) -> Result<Vec<TunePoint>, KfmcError> {
+    let mut p = plan.clone();
+    p.output = plan.output.join(match plan.noise_scales.as_slice() {
+        [one] if name == "refine" => format!("tune_{name}_noise_{one}"),
+        _ => format!("tune_{name}"),
+    });
+    p.trace_runs = 0;
+    p.assertions.clear();
+    p.rmse_thresholds = None;
+    p.consistency = Some(ConsistencyPlan {
+        alpha: plan.alpha,
+        whiteness_lags: 0,
+    });
+    p.filters = grid
+        .iter()
+        .map(|&(q, r)| FilterPlan {
+            q_scale: q,
+            r_scale: r,
+            ..base.clone()
+        })
+        .collect();
+    run(
+        &p,
+        &ExecOptions {
+            threads: opts.threads,
+        },
+        observer,
+    )?;
+
+    // Read the stage back from its tables: one code path for studies and tuning.
+    let err = |path: &std::path::Path, e| OutputError::Polars {
+        action: "unexpected columns in",
+        path: path.to_path_buf(),
+        source: e,
+    };
+    let mut points: BTreeMap<(String, u64, u64, u64), TunePoint> = BTreeMap::new();
+    let key =
+        |s: &str, n: f64, q: f64, r: f64| (s.to_string(), n.to_bits(), q.to_bits(), r.to_bits());
+    let spath = p.output.join("summary.parquet");
+    let s = read(&spath)?;
+    let col_s = |c: &str| {
+        s.column(c)
+            .and_then(|c| c.str().cloned())
+            .map_err(|e| err(&spath, e))
+    };
+    let col_f = |c: &str| {
+        s.column(c)
+            .and_then(|c| c.f64().cloned())
+            .map_err(|e| err(&spath, e))
+    };
+    let (sc, noise, q, r, state, mean) = (
+        col_s("scenario")?,
+        col_f("noise_scale")?,
+        col_f("q_scale")?,
+        col_f("r_scale")?,
+        col_s("state")?,
+        col_f("rmse_mean")?,
+    );
+    let states = p.model.kind.state_names();
+    for i in 0..s.height() {
+        let (scn, n, qq, rr) = (
+            sc.get(i).unwrap_or(""),
+            noise.get(i).unwrap_or(f64::NAN),
+            q.get(i).unwrap_or(f64::NAN),
+            r.get(i).unwrap_or(f64::NAN),
+        );
+        let pt = points
+            .entry(key(scn, n, qq, rr))
+            .or_insert_with(|| TunePoint {
+                stage: name,
+                scenario: scn.to_string(),
+                noise_scale: n,
+                q_scale: qq,
+                r_scale: rr,
+                anees: None,
+                anis: None,
+                rmse: vec![f64::NAN; states.len()],
+                objective: f64::NAN,
+            });
+        if let Some(si) = states.iter().position(|x| Some(*x) == state.get(i)) {
+            pt.rmse[si] = mean.get(i).unwrap_or(f64::NAN);
+        }
+    }
+    let cpath = p.output.join("consistency.parquet");
+    let c = read(&cpath)?;
+    let ccol_s = |n: &str| {
+        c.column(n)
+            .and_then(|c| c.str().cloned())
+            .map_err(|e| err(&cpath, e))
+    };
+    let ccol_f = |n: &str| {
+        c.column(n)
+            .and_then(|c| c.f64().cloned())
+            .map_err(|e| err(&cpath, e))
+    };
+    let (sc, noise, q, r, test, stat) = (
+        ccol_s("scenario")?,
+        ccol_f("noise_scale")?,
+        ccol_f("q_scale")?,
+        ccol_f("r_scale")?,
+        ccol_s("test")?,
+        ccol_f("statistic")?,
+    );
+    for i in 0..c.height() {
+        let k = key(
+            sc.get(i).unwrap_or(""),
+            noise.get(i).unwrap_or(f64::NAN),
+            q.get(i).unwrap_or(f64::NAN),
+            r.get(i).unwrap_or(f64::NAN),
+        );
+        if let Some(pt) = points.get_mut(&k) {
+            match test.get(i) {
+                Some("nees_time_average") => pt.anees = stat.get(i),
+                Some("nis_time_average") => pt.anis = stat.get(i),
+                _ => {}
+            }
+        }
+    }
+    Ok(points.into_values().collect())
+}
+
+/// Scores every point with the objective (the RMSE objective needs all points of a cell).
+fn score(points: &mut [TunePoint], objective: Objective, n: f64, p: f64) {
+    match objective {
+        Objective::Consistency => {
+            for pt in points.iter_mut() {
+                pt.objective = match (pt.anees, pt.anis) {
+                    (Some(a), Some(b)) if a > 0.0 && b > 0.0 => {
+                        (a / n).ln().abs() + (b / p).ln().abs()
+                    }
+                    _ => f64::INFINITY,
+                };
+            }
+        }
+        Objective::Rmse => {
+            let mut best: BTreeMap<(String, u64), Vec<f64>> = BTreeMap::new();
+            for pt in points.iter() {
+                let b = best
+                    .entry((pt.scenario.clone(), pt.noise_scale.to_bits()))
+                    .or_insert_with(|| vec![f64::INFINITY; pt.rmse.len()]);
+                for (bi, v) in b.iter_mut().zip(&pt.rmse) {
+                    *bi = bi.min(*v);
+                }
+            }
+            for pt in points.iter_mut() {
+                let b = &best[&(pt.scenario.clone(), pt.noise_scale.to_bits())];
+                pt.objective = pt.rmse.iter().zip(b).map(|(v, b)| v / b).sum();
+            }
+        }
+    }
+}
+
+/// The (q, r) with the lowest objective averaged over cells (those passing `keep`).
+fn best_overall(points: &[TunePoint], keep: impl Fn(&TunePoint) -> bool) -> (f64, f64, f64) {
+    let mut by: BTreeMap<(u64, u64), (f64, usize)> = BTreeMap::new();
+    for pt in points.iter().filter(|p| keep(p)) {
+        let e = by
+            .entry((pt.q_scale.to_bits(), pt.r_scale.to_bits()))
+            .or_insert((0.0, 0));
+        e.0 += pt.objective;
+        e.1 += 1;
+    }
+    by.into_iter()
+        .map(|((q, r), (s, c))| (f64::from_bits(q), f64::from_bits(r), s / c as f64))
+        .min_by(|a, b| a.2.total_cmp(&b.2))
+        .unwrap_or((1.0, 1.0, f64::INFINITY))
+}
+
+/// Runs the search and writes `tuning.parquet` into the plan's output folder.
+pub fn tune(
+    plan: &Plan,
+    opts: &TuneOptions,
+    observer: &dyn RunObserver,
+) -> Result<TuneReport, KfmcError> {
+    let base = plan
+        .filters
+        .iter()
+        .find(|f| {
+            matches!(f.kind, FilterKind::Ekf { .. })
+                && opts.filter.as_ref().is_none_or(|l| *l == f.label)
+        })
+        .cloned()
+        .ok_or_else(|| {
+            KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "filters".into(),
+                message: match &opts.filter {
+                    Some(l) => format!("no filter with a covariance labelled `{l}` to tune"),
+                    None => "no filter with a covariance (kind = \"ekf\") to tune".into(),
+                },
+            }]))
+        })?;
+    let (n, p) = (plan.model.kind.nx() as f64, plan.model.kind.nz() as f64);
+
+    let coarse: Vec<(f64, f64)> = if opts.tune_r {
+        let g = log_grid(1.0, 3.0, 13);
+        g.iter()
+            .flat_map(|&q| g.iter().map(move |&r| (q, r)))
+            .collect()
+    } else {
+        log_grid(1.0, 3.0, 13)
+            .into_iter()
+            .map(|q| (q, 1.0))
+            .collect()
+    };
+    let mut points = stage(plan, &base, &coarse, "coarse", opts, observer)?;
+    score(&mut points, opts.objective, n, p);
+
+    for &scale in &plan.noise_scales {
+        let (q0, r0, _) = best_overall(&points, |pt| pt.noise_scale == scale);
+        let refine: Vec<(f64, f64)> = if opts.tune_r {
+            let (gq, gr) = (log_grid(q0, 0.5, 7), log_grid(r0, 0.5, 7));
+            gq.iter()
+                .flat_map(|&q| gr.iter().map(move |&r| (q, r)))
+                .collect()
+        } else {
+            log_grid(q0, 0.5, 11)
+                .into_iter()
+                .map(|q| (q, 1.0))
+                .collect()
+        };
+        let mut sub = plan.clone();
+        sub.noise_scales = vec![scale];
+        let mut fine = stage(&sub, &base, &refine, "refine", opts, observer)?;
+        points.append(&mut fine);
+    }
+    // Re-score together: the RMSE objective normalises by the best of all candidates.
+    score(&mut points, opts.objective, n, p);
+    // Refined candidates exist for one noise scale each; only the coarse grid was run in
+    // every cell, so it alone can say what is best over all of them.
+    let single = plan.noise_scales.len() == 1;
+    let best = best_overall(&points, |pt| single || pt.stage == "coarse");
+    let per_noise_scale = plan
+        .noise_scales
+        .iter()
+        .map(|&s| {
+            let (q, r, o) = best_overall(&points, |pt| pt.noise_scale == s);
+            (s, q, r, o)
+        })
+        .collect();
+
+    let mut per_cell: BTreeMap<(String, u64), (f64, f64, f64)> = BTreeMap::new();
+    for pt in &points {
+        let e = per_cell
+            .entry((pt.scenario.clone(), pt.noise_scale.to_bits()))
+            .or_insert((f64::NAN, f64::NAN, f64::INFINITY));
+        if pt.objective < e.2 {
+            *e = (pt.q_scale, pt.r_scale, pt.objective);
+        }
+    }
+
+    let states = plan.model.kind.state_names();
+    std::fs::create_dir_all(&plan.output).map_err(|source| OutputError::Io {
+        action: "cannot create the output folder",
+        path: plan.output.clone(),
+        source,
+    })?;
+    let mut w = TableWriter::create(&plan.output, "tuning", schema::tuning(states))?;
+    for pt in &points {
+        let mut row = vec![
+            Value::Str(pt.stage),
+            Value::Str(&pt.scenario),
+            Value::F64(Some(pt.noise_scale)),
+            Value::Str(&base.label),
+            Value::F64(Some(pt.q_scale)),
+            Value::F64(Some(pt.r_scale)),
+            Value::F64(pt.anees),
+            Value::F64(pt.anis),
+        ];
+        row.extend(pt.rmse.iter().map(|v| Value::F64(Some(*v))));
+        row.push(Value::F64(Some(pt.objective).filter(|o| o.is_finite())));
+        w.push(&row)?;
+    }
+    let (table, _) = w.commit()?;
+    Ok(TuneReport {
+        filter: base.label.clone(),
+        points,
+        best,
+        per_noise_scale,
+        per_cell: per_cell
+            .into_iter()
+            .map(|((s, n), (q, r, o))| (s, f64::from_bits(n), q, r, o))
+            .collect(),
+        table,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_grid_is_symmetric_in_decades() {
+        let g = log_grid(1.0, 3.0, 13);
+        assert_eq!(g.len(), 13);
+        assert_eq!(g[0], 0.001);
+        assert_eq!(g[6], 1.0);
+        assert_eq!(g[12], 1000.0);
+        let g = log_grid(2.0, 0.5, 11);
+        assert!((g[5] - 2.0).abs() < 1e-12);
+        assert!((g[0] - 2.0 / 10f64.sqrt()).abs() < 1e-5);
+    }
+}
