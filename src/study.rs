@@ -172,6 +172,9 @@ impl Aggregator<'_> {
                     Value::F64(s.anis),
                 ];
                 row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
+                for q in 0..3 {
+                    row.extend(s.abs_err.iter().map(|a| Value::F64(a[q])));
+                }
                 self.steps.push(&row)?;
             }
             let mut means = Vec::with_capacity(self.states.len());

@@ -8,6 +8,12 @@
 //!   `nis_mean` the steps with a measurement update.
 
 pub mod divergence;
+pub mod quantile;
+
+use quantile::QuantileSketch;
+
+/// The quantiles of |e_k| across runs in `steps.parquet` (`abs_err_p05_<state>` …).
+pub const ABS_ERR_QUANTILES: [f64; 3] = [0.05, 0.50, 0.95];
 
 /// How a run ended.
 #[derive(Clone, Debug, PartialEq)]
@@ -174,6 +180,8 @@ pub struct StepAccumulator {
     nees_n: Vec<u32>,
     nis_sum: Vec<f64>,
     nis_n: Vec<u32>,
+    /// Per (step, state): quantiles of |e| across runs, [`ABS_ERR_QUANTILES`].
+    abs_err: Vec<QuantileSketch>,
 }
 
 /// One row of the per-step table after folding.
@@ -187,6 +195,8 @@ pub struct StepRow {
     pub anis: Option<f64>,
     /// Mean squared error per state.
     pub mse: Vec<f64>,
+    /// Per state, the [`ABS_ERR_QUANTILES`] of |e| across runs (`None` without runs).
+    pub abs_err: Vec<[Option<f64>; 3]>,
 }
 
 impl StepAccumulator {
@@ -200,6 +210,7 @@ impl StepAccumulator {
             nees_n: vec![0; steps + 1],
             nis_sum: vec![0.0; steps + 1],
             nis_n: vec![0; steps + 1],
+            abs_err: vec![QuantileSketch::new(&ABS_ERR_QUANTILES); (steps + 1) * nx],
         }
     }
 
@@ -210,6 +221,7 @@ impl StepAccumulator {
             self.runs[k] += 1;
             for i in 0..nx {
                 self.sum_sq[k * nx + i] += v.sq_err[k * nx + i];
+                self.abs_err[k * nx + i].push(v.sq_err[k * nx + i].sqrt());
             }
             if !v.nees[k].is_nan() {
                 self.nees_sum[k] += v.nees[k];
@@ -248,6 +260,10 @@ impl StepAccumulator {
                         f64::NAN
                     }
                 })
+                .collect(),
+            abs_err: self.abs_err[k * self.nx..(k + 1) * self.nx]
+                .iter()
+                .map(|q| [q.estimate(0), q.estimate(1), q.estimate(2)])
                 .collect(),
         }
     }
