@@ -34,12 +34,15 @@ pub enum FigureKind {
     /// |e| over time: median and p5–p95 band across runs (steps.parquet).
     Errors,
     /// RMSE per noise scale as bars with p5–p95 whiskers (summary.parquet).
+    #[value(name = "rmse_cases")]
     RmseCases,
     /// RMSE against the noise multiplier, with divergence thresholds (summary, divergence).
+    #[value(name = "rmse_growth")]
     RmseGrowth,
     /// ANEES and ANIS over time with their χ² band (steps.parquet).
     Consistency,
     /// Per-run divergence multipliers (divergence_runs.parquet).
+    #[value(name = "divergence_hist")]
     DivergenceHist,
     /// ANEES/ANIS and RMSE against the filter's Q scale (tuning.parquet).
     Tuning,
