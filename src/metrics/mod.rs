@@ -263,7 +263,10 @@ impl StepAccumulator {
                 .collect(),
             abs_err: self.abs_err[k * self.nx..(k + 1) * self.nx]
                 .iter()
-                .map(|q| [q.estimate(0), q.estimate(1), q.estimate(2)])
+                .map(|q| {
+                    let e = q.estimates();
+                    [e[0], e[1], e[2]]
+                })
                 .collect(),
         }
     }

@@ -118,7 +118,10 @@ impl P2Quantile {
 /// Several quantiles of one stream: exact up to [`EXACT_CAP`] values, P² beyond.
 #[derive(Clone, Debug, PartialEq)]
 pub struct QuantileSketch {
-    exact: Vec<f64>,
+    /// The first values, inline: a cell holds one sketch per (step, state), and a heap buffer
+    /// each would cost thousands of allocations per cell.
+    exact: [f64; EXACT_CAP],
+    len: usize,
     p2: Vec<P2Quantile>,
 }
 
@@ -126,7 +129,8 @@ impl QuantileSketch {
     /// A sketch of the quantiles `probs` (each in (0, 1)).
     pub fn new(probs: &[f64]) -> Self {
         QuantileSketch {
-            exact: Vec::new(),
+            exact: [0.0; EXACT_CAP],
+            len: 0,
             p2: probs.iter().map(|&p| P2Quantile::new(p)).collect(),
         }
     }
@@ -136,8 +140,9 @@ impl QuantileSketch {
         if !x.is_finite() {
             return;
         }
-        if self.exact.len() < EXACT_CAP {
-            self.exact.push(x);
+        if self.len < EXACT_CAP {
+            self.exact[self.len] = x;
+            self.len += 1;
             return;
         }
         if self.p2.iter().all(|e| e.count() == 0) {
@@ -155,13 +160,17 @@ impl QuantileSketch {
 
     /// The `i`-th quantile (in the order given to [`QuantileSketch::new`]).
     pub fn estimate(&self, i: usize) -> Option<f64> {
-        let e = self.p2.get(i)?;
-        if e.count() == 0 {
-            let mut v = self.exact.clone();
+        self.estimates().get(i).copied().flatten()
+    }
+
+    /// Every quantile, in the order given to [`QuantileSketch::new`] (one sort for all).
+    pub fn estimates(&self) -> Vec<Option<f64>> {
+        if self.p2.iter().all(|e| e.count() == 0) {
+            let mut v = self.exact[..self.len].to_vec();
             v.sort_by(f64::total_cmp);
-            quantile_sorted(&v, e.p)
+            self.p2.iter().map(|e| quantile_sorted(&v, e.p)).collect()
         } else {
-            e.estimate()
+            self.p2.iter().map(P2Quantile::estimate).collect()
         }
     }
 }
