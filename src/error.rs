@@ -85,6 +85,49 @@ pub enum OutputError {
     },
 }
 
+/// Drawing figures or writing the report failed.
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    /// A table a figure needs is not in the result folder.
+    #[error("{path} is missing ({why})")]
+    MissingTable {
+        /// The expected table.
+        path: PathBuf,
+        /// What needs it.
+        why: String,
+    },
+    /// A table has not the columns kfmc writes.
+    #[error("{path}: {message}")]
+    Columns {
+        /// The table.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// Reading a table (or the manifest) failed.
+    #[error(transparent)]
+    Output(#[from] OutputError),
+    /// The plotting backend failed.
+    #[error("cannot draw {path}: {message}")]
+    Draw {
+        /// The figure file.
+        path: PathBuf,
+        /// The backend's message.
+        message: String,
+    },
+    /// File-system trouble at a path.
+    #[error("{action} {path}")]
+    Io {
+        /// What was attempted.
+        action: &'static str,
+        /// Where.
+        path: PathBuf,
+        /// The cause.
+        #[source]
+        source: std::io::Error,
+    },
+}
+
 /// Any kfmc error.
 #[derive(Debug, thiserror::Error)]
 pub enum KfmcError {
@@ -94,6 +137,9 @@ pub enum KfmcError {
     /// Results could not be written or read.
     #[error(transparent)]
     Output(#[from] OutputError),
+    /// Figures or the report could not be made.
+    #[error(transparent)]
+    Plot(#[from] PlotError),
     /// The thread pool could not be built.
     #[error("cannot build a thread pool of {threads} threads")]
     ThreadPool {

@@ -17,7 +17,8 @@
 //! (configuration only; beliefs are values), [`sim`] (truth, measurements, seeding),
 //! [`metrics`] (errors, NEES, NIS, accumulators, divergence), [`experiment`] (spec →
 //! plan), [`runner`] (executor), [`trial`] (one run), [`study`] (a whole study),
-//! [`output`] (schema, Parquet, manifest), [`cli`].
+//! [`output`] (schema, Parquet, manifest), [`plot`] (figures and the HTML report, from the
+//! written tables only), [`cli`].
 //!
 //! ## Notation
 //! | symbol | meaning |
@@ -42,6 +43,7 @@ pub mod linalg;
 pub mod metrics;
 pub mod model;
 pub mod output;
+pub mod plot;
 pub mod runner;
 pub mod scenario;
 pub mod sim;

@@ -212,6 +212,9 @@ impl Aggregator<'_> {
                     Value::Bool(nis_inside),
                 ]);
                 row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
+                for q in 0..3 {
+                    row.extend(s.abs_err.iter().map(|a| Value::F64(a[q])));
+                }
                 self.steps.push(&row)?;
             }
             if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency) {

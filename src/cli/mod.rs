@@ -16,6 +16,7 @@ use clap::{Parser, Subcommand};
 
 use crate::error::KfmcError;
 use crate::experiment::{self, FilterKind, Overrides, Plan};
+use crate::plot::{FigureKind, Format, PlotOptions};
 use crate::scenario::planar::{BUILTIN_PLANAR, builtin};
 use progress::ProgressObserver;
 
@@ -70,6 +71,9 @@ pub enum Command {
         /// No progress bar and no report.
         #[arg(long, short)]
         quiet: bool,
+        /// Draw the figures (PNG) into `<out>/figures` when the run is done.
+        #[arg(long)]
+        plot: bool,
     },
     /// Run a study and evaluate its `[check]` assertions (consistency verdicts, RMSE bounds,
     /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 2 for an invalid spec.
@@ -137,6 +141,28 @@ pub enum Command {
         /// Only this truth-noise multiplier.
         #[arg(long)]
         noise_scale: Option<f64>,
+    },
+    /// Draw every figure the tables of a result folder support (read from the Parquet files).
+    Plot {
+        /// A folder written by `kfmc run`.
+        dir: PathBuf,
+        /// Figure folder (default: DIR/figures).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Image format.
+        #[arg(long, value_enum, default_value_t = Format::Png)]
+        format: Format,
+        /// Only these figure kinds (repeatable); default: all the data supports.
+        #[arg(long, value_enum, num_args = 1..)]
+        only: Vec<FigureKind>,
+    },
+    /// Write one self-contained HTML report (spec, provenance, tables, figures).
+    Report {
+        /// A folder written by `kfmc run`.
+        dir: PathBuf,
+        /// The HTML file (default: DIR/report.html).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// List models, sensors, scenarios and filters.
     List,
@@ -235,6 +261,12 @@ pub fn main_with(cli: Cli) -> ExitCode {
     }
 }
 
+fn plot_dir(dir: &std::path::Path, opts: &PlotOptions) -> anyhow::Result<Vec<PathBuf>> {
+    crate::plot::plot_all(dir, opts)
+        .map_err(KfmcError::from)
+        .map_err(|e| anyhow::Error::from(e).context(format!("plotting {}", dir.display())))
+}
+
 fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Run {
@@ -245,6 +277,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             seed,
             trace_runs,
             quiet,
+            plot,
         } => {
             let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
             plan.apply(&Overrides {
@@ -271,6 +304,38 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
                     println!("  {name}.parquet  {rows} rows");
                 }
             }
+            if plot {
+                let files = plot_dir(&report.output, &PlotOptions::default())?;
+                if !quiet {
+                    println!(
+                        "  {} figures in {}",
+                        files.len(),
+                        report.output.join("figures").display()
+                    );
+                }
+            }
+            Ok(())
+        }
+        Command::Plot {
+            dir,
+            out,
+            format,
+            only,
+        } => {
+            let files = plot_dir(&dir, &PlotOptions { out, format, only })?;
+            for f in &files {
+                println!("{}", f.display());
+            }
+            Ok(())
+        }
+        Command::Report { dir, out } => {
+            let path = crate::plot::report::write_report(&dir, out.as_deref())
+                .map_err(KfmcError::from)
+                .map_err(|e| {
+                    anyhow::Error::from(e)
+                        .context(format!("writing the report of {}", dir.display()))
+                })?;
+            println!("{}", path.display());
             Ok(())
         }
         Command::Check {

@@ -111,6 +111,14 @@ pub fn steps(states: &[&str]) -> Vec<ColumnDef> {
         col("anis_inside", Dtype::Bool),
     ]);
     c.extend(per("mse_", states, Dtype::F64));
+    // Quantiles of |e| across runs, grouped by quantile then state (metrics::ABS_ERR_QUANTILES).
+    for q in ["p05", "p50", "p95"] {
+        c.extend(
+            states
+                .iter()
+                .map(|s| col(format!("abs_err_{q}_{s}"), Dtype::F64)),
+        );
+    }
     c
 }
 

@@ -29,40 +29,68 @@ const WINDOW: usize = 256;
 /// Runs `work(i)` for every unit index `i` in `0..units` on `threads` threads (0 = all
 /// cores) and feeds each result to `sink` in index order. Units are indices, not a list, so
 /// nothing here grows with the number of runs.
+///
+/// The sink runs on its own thread, one window behind the workers: folding and Parquet
+/// encoding overlap the next window's runs instead of leaving the pool idle, and the order
+/// the sink sees never changes.
 pub fn execute<R, E>(
     units: usize,
     threads: usize,
     work: impl Fn(usize) -> R + Sync,
     observer: &dyn RunObserver,
-    mut sink: impl FnMut(R) -> Result<(), E>,
+    mut sink: impl FnMut(R) -> Result<(), E> + Send,
 ) -> Result<(), E>
 where
     R: Send,
-    E: From<KfmcError>,
+    E: From<KfmcError> + Send,
 {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
         .map_err(|source| KfmcError::ThreadPool { threads, source })?;
     observer.on_start(units as u64);
-    for start in (0..units).step_by(WINDOW) {
-        let window = start..(start + WINDOW).min(units);
-        let results: Vec<R> = pool.install(|| {
-            window
-                .into_par_iter()
-                .map(|u| {
-                    let r = work(u);
-                    observer.on_units_done(1);
-                    r
-                })
-                .collect()
+    let failed = std::sync::atomic::AtomicBool::new(false);
+    let result = std::thread::scope(|scope| {
+        // One window in flight towards the sink bounds memory at two windows.
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<R>>(1);
+        let failed = &failed;
+        let consumer = scope.spawn(move || {
+            for window in rx {
+                for r in window {
+                    if let Err(e) = sink(r) {
+                        failed.store(true, std::sync::atomic::Ordering::Relaxed);
+                        return Err(e);
+                    }
+                }
+            }
+            Ok(())
         });
-        for r in results {
-            sink(r)?;
+        for start in (0..units).step_by(WINDOW) {
+            if failed.load(std::sync::atomic::Ordering::Relaxed) {
+                break;
+            }
+            let window = start..(start + WINDOW).min(units);
+            let results: Vec<R> = pool.install(|| {
+                window
+                    .into_par_iter()
+                    .map(|u| {
+                        let r = work(u);
+                        observer.on_units_done(1);
+                        r
+                    })
+                    .collect()
+            });
+            if tx.send(results).is_err() {
+                break; // the sink stopped on an error; it reports it below
+            }
         }
-    }
+        drop(tx);
+        consumer
+            .join()
+            .unwrap_or_else(|p| std::panic::resume_unwind(p))
+    });
     observer.on_finish();
-    Ok(())
+    result
 }
 
 /// The number of worker threads `threads = 0` resolves to.

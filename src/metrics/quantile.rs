@@ -1,0 +1,262 @@
+//! Streaming quantiles with constant memory: the P² algorithm of Jain & Chlamtac (1985),
+//! preceded by an exact phase for small samples.
+//!
+//! The per-step error quantiles of a cell (`abs_err_p05_<state>` …) fold one value per run,
+//! and the runs of a cell can number in the millions, so the values cannot be kept. P² keeps
+//! five markers per quantile and moves them with a piecewise-parabolic update. Its result
+//! depends on the order of the observations, which is why the caller folds runs in run order:
+//! the tables stay bit-identical for any thread count.
+//!
+//! P² is a poor estimator of tail quantiles on a handful of values, and a study of 20 runs is
+//! common, so [`QuantileSketch`] keeps the first [`EXACT_CAP`] values and answers exactly
+//! (type 7, as the other quantile columns) until it has seen more than that; only then does
+//! the P² estimate — fed with every value from the first, in order — take over.
+
+use super::quantile_sorted;
+
+/// Values kept for the exact phase of a [`QuantileSketch`].
+pub const EXACT_CAP: usize = 32;
+
+/// One P² estimator of the `p`-quantile.
+#[derive(Clone, Debug, PartialEq)]
+pub struct P2Quantile {
+    p: f64,
+    /// Observations seen.
+    count: usize,
+    /// Marker heights q_0..q_4 (the first observations while `count < 5`).
+    q: [f64; 5],
+    /// Actual marker positions n_0..n_4 (1-based, as in the paper).
+    n: [f64; 5],
+    /// Desired marker positions n'_0..n'_4.
+    desired: [f64; 5],
+    /// Increments of the desired positions per observation.
+    inc: [f64; 5],
+}
+
+impl P2Quantile {
+    /// An estimator of the `p`-quantile, 0 < p < 1.
+    pub fn new(p: f64) -> Self {
+        P2Quantile {
+            p,
+            count: 0,
+            q: [0.0; 5],
+            n: [1.0, 2.0, 3.0, 4.0, 5.0],
+            desired: [1.0, 1.0 + 2.0 * p, 1.0 + 4.0 * p, 3.0 + 2.0 * p, 5.0],
+            inc: [0.0, p / 2.0, p, (1.0 + p) / 2.0, 1.0],
+        }
+    }
+
+    /// Observations seen.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// Adds one observation (callers drop non-finite values: the marker arithmetic would turn
+    /// an infinity into NaN).
+    pub fn push(&mut self, x: f64) {
+        if self.count < 5 {
+            self.q[self.count] = x;
+            self.count += 1;
+            if self.count == 5 {
+                self.q.sort_by(f64::total_cmp);
+            }
+            return;
+        }
+        self.count += 1;
+        let q = &mut self.q;
+        // The cell k with q_k ≤ x < q_{k+1}, stretching the extreme markers if needed.
+        let k = if x < q[0] {
+            q[0] = x;
+            0
+        } else if x >= q[4] {
+            q[4] = x;
+            3
+        } else {
+            (0..4).rev().find(|&i| x >= q[i]).unwrap_or(0)
+        };
+        for n in &mut self.n[k + 1..] {
+            *n += 1.0;
+        }
+        for (d, inc) in self.desired.iter_mut().zip(self.inc) {
+            *d += inc;
+        }
+        let n = &mut self.n;
+        for i in 1..4 {
+            let d = self.desired[i] - n[i];
+            if (d >= 1.0 && n[i + 1] - n[i] > 1.0) || (d <= -1.0 && n[i - 1] - n[i] < -1.0) {
+                let d = d.signum();
+                let parabolic = q[i]
+                    + d / (n[i + 1] - n[i - 1])
+                        * ((n[i] - n[i - 1] + d) * (q[i + 1] - q[i]) / (n[i + 1] - n[i])
+                            + (n[i + 1] - n[i] - d) * (q[i] - q[i - 1]) / (n[i] - n[i - 1]));
+                q[i] = if q[i - 1] < parabolic && parabolic < q[i + 1] {
+                    parabolic
+                } else {
+                    // The parabola would break the markers' order: fall back to linear.
+                    let j = if d > 0.0 { i + 1 } else { i - 1 };
+                    q[i] + d * (q[j] - q[i]) / (n[j] - n[i])
+                };
+                n[i] += d;
+            }
+        }
+    }
+
+    /// The current estimate; exact (type 7) below five observations, `None` with none.
+    pub fn estimate(&self) -> Option<f64> {
+        match self.count {
+            0 => None,
+            c if c < 5 => {
+                let mut v = self.q[..c].to_vec();
+                v.sort_by(f64::total_cmp);
+                quantile_sorted(&v, self.p)
+            }
+            _ => Some(self.q[2]),
+        }
+    }
+}
+
+/// Several quantiles of one stream: exact up to [`EXACT_CAP`] values, P² beyond.
+#[derive(Clone, Debug, PartialEq)]
+pub struct QuantileSketch {
+    /// The first values, inline: a cell holds one sketch per (step, state), and a heap buffer
+    /// each would cost thousands of allocations per cell.
+    exact: [f64; EXACT_CAP],
+    len: usize,
+    p2: Vec<P2Quantile>,
+}
+
+impl QuantileSketch {
+    /// A sketch of the quantiles `probs` (each in (0, 1)).
+    pub fn new(probs: &[f64]) -> Self {
+        QuantileSketch {
+            exact: [0.0; EXACT_CAP],
+            len: 0,
+            p2: probs.iter().map(|&p| P2Quantile::new(p)).collect(),
+        }
+    }
+
+    /// Adds one observation; non-finite values are not counted.
+    pub fn push(&mut self, x: f64) {
+        if !x.is_finite() {
+            return;
+        }
+        if self.len < EXACT_CAP {
+            self.exact[self.len] = x;
+            self.len += 1;
+            return;
+        }
+        if self.p2.iter().all(|e| e.count() == 0) {
+            // Leaving the exact phase: P² starts from the very first value, in arrival order,
+            // so the result is the same as if it had run from the start (and small studies
+            // never pay for it).
+            for e in &mut self.p2 {
+                self.exact.iter().for_each(|&v| e.push(v));
+            }
+        }
+        for e in &mut self.p2 {
+            e.push(x);
+        }
+    }
+
+    /// The `i`-th quantile (in the order given to [`QuantileSketch::new`]).
+    pub fn estimate(&self, i: usize) -> Option<f64> {
+        self.estimates().get(i).copied().flatten()
+    }
+
+    /// Every quantile, in the order given to [`QuantileSketch::new`] (one sort for all).
+    pub fn estimates(&self) -> Vec<Option<f64>> {
+        if self.p2.iter().all(|e| e.count() == 0) {
+            let mut v = self.exact[..self.len].to_vec();
+            v.sort_by(f64::total_cmp);
+            self.p2.iter().map(|e| quantile_sorted(&v, e.p)).collect()
+        } else {
+            self.p2.iter().map(P2Quantile::estimate).collect()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A deterministic permutation of 0..n (n prime): well mixed, no RNG needed.
+    fn mixed(n: usize) -> Vec<f64> {
+        (0..n).map(|i| ((i * 7919) % n) as f64).collect()
+    }
+
+    fn exact(v: &[f64], p: f64) -> f64 {
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        quantile_sorted(&s, p).unwrap()
+    }
+
+    #[test]
+    fn small_samples_are_exact() {
+        let data = [3.0, 1.0, 4.0, 1.0, 5.0, 9.0, 2.0, 6.0, 5.0, 3.0, 5.0];
+        let probs = [0.05, 0.5, 0.95];
+        for n in 1..=data.len() {
+            let mut s = QuantileSketch::new(&probs);
+            data[..n].iter().for_each(|&x| s.push(x));
+            for (i, &p) in probs.iter().enumerate() {
+                assert_eq!(
+                    s.estimate(i),
+                    Some(exact(&data[..n], p)),
+                    "n = {n}, p = {p}"
+                );
+            }
+        }
+        assert_eq!(QuantileSketch::new(&probs).estimate(0), None);
+    }
+
+    #[test]
+    fn p2_alone_is_exact_below_five_values() {
+        let mut e = P2Quantile::new(0.5);
+        for x in [4.0, 2.0, 8.0] {
+            e.push(x);
+        }
+        assert_eq!(e.estimate(), Some(4.0));
+    }
+
+    #[test]
+    fn p2_tracks_the_exact_quantiles_of_a_uniform_stream() {
+        // 0..10006 shuffled: exact p-quantile = p·10006. P² is within 0.5 % of the range.
+        let v = mixed(10_007);
+        for p in [0.05, 0.5, 0.95] {
+            let mut s = QuantileSketch::new(&[p]);
+            v.iter().for_each(|&x| s.push(x));
+            let (got, want) = (s.estimate(0).unwrap(), exact(&v, p));
+            assert!(
+                (got - want).abs() < 0.005 * 10_006.0,
+                "p = {p}: {got} vs {want}"
+            );
+        }
+    }
+
+    #[test]
+    fn p2_tracks_a_skewed_stream() {
+        // |e| of errors is skewed: squares of a uniform stream, like sqrt(sq_err) inverted.
+        let v: Vec<f64> = mixed(4_001).iter().map(|x| (x / 4_000.0).powi(2)).collect();
+        for p in [0.05, 0.5, 0.95] {
+            let mut s = QuantileSketch::new(&[p]);
+            v.iter().for_each(|&x| s.push(x));
+            let (got, want) = (s.estimate(0).unwrap(), exact(&v, p));
+            assert!((got - want).abs() < 0.01, "p = {p}: {got} vs {want}");
+        }
+    }
+
+    #[test]
+    fn non_finite_values_are_skipped_and_order_is_deterministic() {
+        let mut a = QuantileSketch::new(&[0.5]);
+        let mut b = QuantileSketch::new(&[0.5]);
+        for x in mixed(101) {
+            a.push(x);
+            b.push(x);
+        }
+        b.push(f64::NAN);
+        b.push(f64::INFINITY);
+        assert_eq!(
+            a.estimate(0).unwrap().to_bits(),
+            b.estimate(0).unwrap().to_bits()
+        );
+    }
+}

@@ -1,0 +1,546 @@
+//! The plot role: figures drawn from the written Parquet tables, never from in-memory run
+//! state, so a study run on a cluster can be plotted (and reported) on a laptop.
+//!
+//! Every figure kind has a pure function `*_series(&Tables) -> Vec<Figure>` that turns table
+//! rows into a [`Figure`]: panels of lines, bands, bars and reference marks, with every number
+//! taken from a table column. [`render`] only draws such a description, so the tests can check
+//! what a figure shows against the Parquet values without looking at pixels.
+//!
+//! Colours follow the filter label, in order of first appearance in `summary.parquet`, so a
+//! filter has the same colour in every figure of a folder.
+
+pub mod divergence;
+pub mod errors;
+pub mod render;
+pub mod report;
+pub mod rmse;
+pub mod trajectory;
+
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+use polars::prelude::*;
+
+use crate::error::PlotError;
+use crate::output::manifest::Manifest;
+
+/// A figure family; each draws the figures the folder's tables support.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, clap::ValueEnum)]
+pub enum FigureKind {
+    /// x against y of the first traced run (traces.parquet).
+    Trajectory,
+    /// Each state over time with the estimate's ±3σ band (traces.parquet).
+    States,
+    /// |e| over time: median and p5–p95 band across runs (steps.parquet).
+    Errors,
+    /// RMSE per noise scale as bars with p5–p95 whiskers (summary.parquet).
+    #[value(name = "rmse_cases")]
+    RmseCases,
+    /// RMSE against the noise multiplier, with divergence thresholds (summary, divergence).
+    #[value(name = "rmse_growth")]
+    RmseGrowth,
+    /// ANEES and ANIS over time with their χ² band (steps.parquet).
+    Consistency,
+    /// Per-run divergence multipliers (divergence_runs.parquet).
+    #[value(name = "divergence_hist")]
+    DivergenceHist,
+    /// ANEES/ANIS and RMSE against the filter's Q scale (tuning.parquet).
+    Tuning,
+}
+
+impl FigureKind {
+    /// Every kind, in drawing order.
+    pub const ALL: [FigureKind; 8] = [
+        FigureKind::Trajectory,
+        FigureKind::States,
+        FigureKind::Errors,
+        FigureKind::RmseCases,
+        FigureKind::RmseGrowth,
+        FigureKind::Consistency,
+        FigureKind::DivergenceHist,
+        FigureKind::Tuning,
+    ];
+
+    /// The file-name prefix and CLI name.
+    pub fn name(self) -> &'static str {
+        match self {
+            FigureKind::Trajectory => "trajectory",
+            FigureKind::States => "states",
+            FigureKind::Errors => "errors",
+            FigureKind::RmseCases => "rmse_cases",
+            FigureKind::RmseGrowth => "rmse_growth",
+            FigureKind::Consistency => "consistency",
+            FigureKind::DivergenceHist => "divergence_hist",
+            FigureKind::Tuning => "tuning",
+        }
+    }
+
+    /// The figures of this kind the tables support (none when a table is absent).
+    pub fn series(self, t: &Tables) -> Result<Vec<Figure>, PlotError> {
+        match self {
+            FigureKind::Trajectory => trajectory::trajectory_series(t),
+            FigureKind::States => trajectory::states_series(t),
+            FigureKind::Errors => errors::errors_series(t),
+            FigureKind::RmseCases => rmse::rmse_cases_series(t),
+            FigureKind::RmseGrowth => rmse::rmse_growth_series(t),
+            FigureKind::Consistency => errors::consistency_series(t),
+            FigureKind::DivergenceHist => divergence::divergence_hist_series(t),
+            FigureKind::Tuning => rmse::tuning_series(t),
+        }
+    }
+}
+
+/// Image format of the figure files.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum Format {
+    /// PNG bitmap.
+    #[default]
+    Png,
+    /// SVG vector graphics.
+    Svg,
+}
+
+impl Format {
+    /// The file extension.
+    pub fn ext(self) -> &'static str {
+        match self {
+            Format::Png => "png",
+            Format::Svg => "svg",
+        }
+    }
+}
+
+/// What a mark is coloured after.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Ink {
+    /// The filter with this index in [`Tables::filters`].
+    Filter(usize),
+    /// The true state.
+    Truth,
+    /// Reference values (thresholds, χ² means).
+    Reference,
+    /// The i-th colour of the palette, for series that are not filters (noise scales).
+    Palette(usize),
+}
+
+/// One bar of a bar chart: `[x0, x1]` wide, `y` high, optional whisker.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Bar {
+    /// Left edge.
+    pub x0: f64,
+    /// Right edge.
+    pub x1: f64,
+    /// Height.
+    pub y: f64,
+    /// Whisker (low, high), e.g. p5–p95.
+    pub whisker: Option<(f64, f64)>,
+}
+
+/// One drawn element of a panel.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Mark {
+    /// A polyline.
+    Line {
+        /// Legend entry.
+        label: Option<String>,
+        /// Colour.
+        ink: Ink,
+        /// Dashed (reference curves).
+        dashed: bool,
+        /// (x, y) in drawing order.
+        points: Vec<(f64, f64)>,
+    },
+    /// A shaded band between two curves.
+    Band {
+        /// Legend entry.
+        label: Option<String>,
+        /// Colour (drawn translucent).
+        ink: Ink,
+        /// (x, low, high).
+        points: Vec<(f64, f64, f64)>,
+    },
+    /// A horizontal line across the panel.
+    HLine {
+        /// Legend entry.
+        label: Option<String>,
+        /// Colour.
+        ink: Ink,
+        /// Height.
+        y: f64,
+    },
+    /// A marked point.
+    Point {
+        /// Legend entry.
+        label: Option<String>,
+        /// Colour.
+        ink: Ink,
+        /// Position.
+        x: f64,
+        /// Position.
+        y: f64,
+    },
+    /// Bars.
+    Bars {
+        /// Legend entry.
+        label: Option<String>,
+        /// Colour.
+        ink: Ink,
+        /// The bars.
+        bars: Vec<Bar>,
+    },
+}
+
+/// One chart of a figure.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Panel {
+    /// Caption.
+    pub title: String,
+    /// x-axis label with its unit.
+    pub x_label: String,
+    /// y-axis label with its unit.
+    pub y_label: String,
+    /// Logarithmic y axis.
+    pub log_y: bool,
+    /// Logarithmic x axis.
+    pub log_x: bool,
+    /// Category names at x = 0, 1, … (bar charts); `None` for a numeric axis.
+    pub x_categories: Option<Vec<String>>,
+    /// What is drawn, in order.
+    pub marks: Vec<Mark>,
+}
+
+/// One figure file: a title and a grid of panels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Figure {
+    /// Its kind.
+    pub kind: FigureKind,
+    /// File stem, e.g. `states_roll`.
+    pub name: String,
+    /// Title above the panels.
+    pub title: String,
+    /// The panels, row-major.
+    pub panels: Vec<Panel>,
+}
+
+/// The unit of a state or measurement name (`x` → `m`).
+pub fn unit(name: &str) -> &'static str {
+    match name {
+        "x" | "y" => "m",
+        "xdot" | "ydot" => "m/s",
+        "theta" => "rad",
+        "thetadot" => "rad/s",
+        "xddot" | "yddot" => "m/s²",
+        _ => "",
+    }
+}
+
+/// `name [unit]`, or the bare name without a unit.
+pub fn with_unit(name: &str) -> String {
+    match unit(name) {
+        "" => name.to_string(),
+        u => format!("{name} [{u}]"),
+    }
+}
+
+/// A name safe in a file name (scenario and filter labels are free text in the spec).
+pub fn file_part(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '.' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// A number for titles and file names: `1`, `0.2`, `12.5`.
+pub fn short(x: f64) -> String {
+    let s = format!("{x}");
+    if s.len() > 8 { format!("{x:.4}") } else { s }
+}
+
+/// A table of the result folder, with typed column access that names the file on error.
+#[derive(Clone, Debug)]
+pub struct Table {
+    /// Where it was read from.
+    pub path: PathBuf,
+    /// Its rows (possibly a subset, see [`Table::read_where`]).
+    pub df: DataFrame,
+}
+
+impl Table {
+    /// Reads the whole table, or `None` when the file does not exist.
+    pub fn read_optional(path: PathBuf) -> Result<Option<Table>, PlotError> {
+        if !path.exists() {
+            return Ok(None);
+        }
+        let df = crate::output::table::read(&path)?;
+        Ok(Some(Table { path, df }))
+    }
+
+    /// Reads only the rows whose `noise_scale` passes `keep`, one column at a time, so a
+    /// per-step table of a 250-scale sweep never sits in memory whole.
+    pub fn read_where(
+        path: PathBuf,
+        keep: &dyn Fn(f64) -> bool,
+    ) -> Result<Option<Table>, PlotError> {
+        if !path.exists() {
+            return Ok(None);
+        }
+        let polars_err = |source| crate::error::OutputError::Polars {
+            action: "cannot read",
+            path: path.clone(),
+            source,
+        };
+        let open = || {
+            File::open(&path).map_err(|source| crate::error::OutputError::Io {
+                action: "cannot open",
+                path: path.clone(),
+                source,
+            })
+        };
+        let names: Vec<String> = ParquetReader::new(open()?)
+            .schema()
+            .map_err(polars_err)?
+            .iter_names()
+            .map(|n| n.to_string())
+            .collect();
+        let read_col = |name: &str| {
+            ParquetReader::new(open()?)
+                .with_columns(Some(vec![name.to_string()]))
+                .finish()
+                .map_err(polars_err)
+        };
+        let key = Table {
+            path: path.clone(),
+            df: read_col("noise_scale")?,
+        };
+        let keep_rows: Vec<bool> = key
+            .f64s("noise_scale")?
+            .into_iter()
+            .map(|v| v.is_some_and(keep))
+            .collect();
+        let height = keep_rows.iter().filter(|b| **b).count();
+        let mask = BooleanChunked::from_slice("keep".into(), &keep_rows);
+        let mut cols = Vec::with_capacity(names.len());
+        for n in &names {
+            let df = read_col(n)?.filter(&mask).map_err(polars_err)?;
+            cols.extend(df.columns().iter().cloned());
+        }
+        let df = DataFrame::new(height, cols).map_err(polars_err)?;
+        Ok(Some(Table { path, df }))
+    }
+
+    fn column(&self, name: &str) -> Result<&Column, PlotError> {
+        self.df.column(name).map_err(|_| PlotError::Columns {
+            path: self.path.clone(),
+            message: format!("no column `{name}`"),
+        })
+    }
+
+    /// Whether the table has a column.
+    pub fn has(&self, name: &str) -> bool {
+        self.df.column(name).is_ok()
+    }
+
+    /// A numeric column as floats (integers are converted), nulls as `None`.
+    pub fn f64s(&self, name: &str) -> Result<Vec<Option<f64>>, PlotError> {
+        let c = self
+            .column(name)?
+            .cast(&DataType::Float64)
+            .map_err(|e| PlotError::Columns {
+                path: self.path.clone(),
+                message: format!("column `{name}` is not numeric: {e}"),
+            })?;
+        Ok(c.f64()
+            .map_err(|e| PlotError::Columns {
+                path: self.path.clone(),
+                message: format!("column `{name}`: {e}"),
+            })?
+            .iter()
+            .collect())
+    }
+
+    /// A string column, nulls as "".
+    pub fn strs(&self, name: &str) -> Result<Vec<String>, PlotError> {
+        let c = self.column(name)?;
+        Ok(c.str()
+            .map_err(|e| PlotError::Columns {
+                path: self.path.clone(),
+                message: format!("column `{name}` is not text: {e}"),
+            })?
+            .iter()
+            .map(|s| s.unwrap_or("").to_string())
+            .collect())
+    }
+
+    /// Column names.
+    pub fn names(&self) -> Vec<String> {
+        self.df
+            .get_column_names()
+            .iter()
+            .map(|n| n.to_string())
+            .collect()
+    }
+
+    /// Rows.
+    pub fn height(&self) -> usize {
+        self.df.height()
+    }
+}
+
+/// Distinct values in order of first appearance.
+pub fn first_appearance(v: &[String]) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for s in v {
+        if !out.contains(s) {
+            out.push(s.clone());
+        }
+    }
+    out
+}
+
+/// The noise scales whose per-step figures are drawn: all of them up to four, otherwise the
+/// smallest, 1 (the nominal noise) when present, and the largest — a 250-point sweep would
+/// otherwise produce a thousand near-identical files.
+pub fn plotted_scales(all: &[f64]) -> Vec<f64> {
+    if all.len() <= 4 {
+        return all.to_vec();
+    }
+    let mut v = vec![all[0]];
+    if all.contains(&1.0) && all[0] != 1.0 {
+        v.push(1.0);
+    }
+    v.push(all[all.len() - 1]);
+    v.dedup();
+    v
+}
+
+/// The tables of one result folder, loaded once for every figure kind.
+#[derive(Clone, Debug)]
+pub struct Tables {
+    /// The folder.
+    pub dir: PathBuf,
+    /// `summary.parquet` (required).
+    pub summary: Table,
+    /// `steps.parquet`, restricted to [`plotted_scales`].
+    pub steps: Option<Table>,
+    /// `traces.parquet`, restricted to the smallest noise scale.
+    pub traces: Option<Table>,
+    /// `divergence.parquet`.
+    pub divergence: Option<Table>,
+    /// `divergence_runs.parquet`.
+    pub divergence_runs: Option<Table>,
+    /// `tuning.parquet`.
+    pub tuning: Option<Table>,
+    /// `consistency.parquet`.
+    pub consistency: Option<Table>,
+    /// `manifest.toml`, when readable.
+    pub manifest: Option<Manifest>,
+    /// Filter labels in order of first appearance in the summary: the colour order.
+    pub filters: Vec<String>,
+    /// Scenarios in order of first appearance in the summary.
+    pub scenarios: Vec<String>,
+    /// State names in order of first appearance in the summary.
+    pub states: Vec<String>,
+    /// Distinct noise scales, ascending.
+    pub noise_scales: Vec<f64>,
+    /// Measurement components (the ANIS reference), when the folder says.
+    pub n_meas: Option<usize>,
+}
+
+impl Tables {
+    /// Loads the tables of `dir`. `summary.parquet` must exist; the others are optional.
+    pub fn load(dir: &Path) -> Result<Tables, PlotError> {
+        let spath = dir.join("summary.parquet");
+        let summary = Table::read_optional(spath.clone())?.ok_or(PlotError::MissingTable {
+            path: spath,
+            why: "every figure and the report need it; is this a folder written by `kfmc run`?"
+                .into(),
+        })?;
+        let filters = first_appearance(&summary.strs("filter")?);
+        let scenarios = first_appearance(&summary.strs("scenario")?);
+        let states = first_appearance(&summary.strs("state")?);
+        let mut noise_scales: Vec<f64> =
+            summary.f64s("noise_scale")?.into_iter().flatten().collect();
+        noise_scales.sort_by(f64::total_cmp);
+        noise_scales.dedup();
+        let plotted = plotted_scales(&noise_scales);
+        let smallest = noise_scales.first().copied();
+        let steps = Table::read_where(dir.join("steps.parquet"), &|s| plotted.contains(&s))?;
+        let traces = Table::read_where(dir.join("traces.parquet"), &|s| Some(s) == smallest)?;
+        let manifest = Manifest::read(dir).ok();
+        let n_meas = traces
+            .as_ref()
+            .map(|t| t.names().iter().filter(|n| n.starts_with("z_")).count())
+            .filter(|&n| n > 0)
+            .or_else(|| {
+                // No traces: the spec in the manifest names the sensor set.
+                let m = manifest.as_ref()?;
+                let plan = crate::experiment::parse(&m.spec, Path::new("manifest.toml")).ok()?;
+                Some(plan.model.kind.nz())
+            });
+        Ok(Tables {
+            dir: dir.to_path_buf(),
+            summary,
+            steps,
+            traces,
+            divergence: Table::read_optional(dir.join("divergence.parquet"))?,
+            divergence_runs: Table::read_optional(dir.join("divergence_runs.parquet"))?,
+            tuning: Table::read_optional(dir.join("tuning.parquet"))?,
+            consistency: Table::read_optional(dir.join("consistency.parquet"))?,
+            manifest,
+            filters,
+            scenarios,
+            states,
+            noise_scales,
+            n_meas,
+        })
+    }
+
+    /// The colour index of a filter label.
+    pub fn ink(&self, filter: &str) -> Ink {
+        Ink::Filter(
+            self.filters
+                .iter()
+                .position(|f| f == filter)
+                .unwrap_or(self.filters.len()),
+        )
+    }
+}
+
+/// Options of [`plot_all`].
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PlotOptions {
+    /// Output folder; default `<dir>/figures`.
+    pub out: Option<PathBuf>,
+    /// Image format.
+    pub format: Format,
+    /// Only these kinds; empty = all.
+    pub only: Vec<FigureKind>,
+}
+
+/// Draws every figure the tables of `dir` support; returns the files written.
+pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotError> {
+    let tables = Tables::load(dir)?;
+    let out = opts.out.clone().unwrap_or_else(|| dir.join("figures"));
+    std::fs::create_dir_all(&out).map_err(|source| PlotError::Io {
+        action: "cannot create the figure folder",
+        path: out.clone(),
+        source,
+    })?;
+    let mut written = Vec::new();
+    for kind in FigureKind::ALL {
+        if !opts.only.is_empty() && !opts.only.contains(&kind) {
+            continue;
+        }
+        for fig in kind.series(&tables)? {
+            let path = out.join(format!("{}.{}", fig.name, opts.format.ext()));
+            render::to_file(&fig, &path, opts.format)?;
+            written.push(path);
+        }
+    }
+    Ok(written)
+}
