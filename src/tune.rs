@@ -385,6 +385,17 @@ pub fn tune(
         w.push(&row)?;
     }
     let (table, _) = w.commit()?;
+    // The coarse stage's summary and manifest beside tuning.parquet make the folder
+    // plottable as it is (`kfmc plot DIR` draws the tuning curves and the coarse grid's RMSE).
+    for f in ["summary.parquet", "manifest.toml"] {
+        let from = plan.output.join("tune_coarse").join(f);
+        let to = plan.output.join(f);
+        std::fs::copy(&from, &to).map_err(|source| OutputError::Io {
+            action: "cannot copy the coarse stage's table to",
+            path: to.clone(),
+            source,
+        })?;
+    }
     Ok(TuneReport {
         filter: base.label.clone(),
         points,

@@ -316,4 +316,17 @@ fn tune_finds_q_scale_near_1_for_a_matched_ekf_and_writes_tuning_parquet() {
     assert_eq!(df.height(), 2 * (13 + 11));
     // The stages' own studies are kept beside it.
     assert!(out.join("tune_coarse/consistency.parquet").exists());
+    // The folder plots as it is: tuning curves per scenario.
+    let (code, _, err) = output(&["plot", out.to_str().unwrap(), "--only", "tuning"]);
+    assert_eq!(code, 0, "{err}");
+    for s in ["basic", "roll"] {
+        let f = out.join(format!("figures/tuning_{s}.png"));
+        assert!(
+            std::fs::metadata(&f)
+                .map(|m| m.len() > 10_000)
+                .unwrap_or(false),
+            "{}",
+            f.display()
+        );
+    }
 }
