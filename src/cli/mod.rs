@@ -46,31 +46,53 @@ pub struct Cli {
     pub command: Command,
 }
 
+/// The spec and the overrides shared by every command that runs a study.
+#[derive(Debug, clap::Args)]
+pub struct StudyArgs {
+    /// The experiment spec (TOML).
+    pub spec: PathBuf,
+    /// Output folder (overrides the spec's `output`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Runs per cell (overrides `runs`).
+    #[arg(long)]
+    pub runs: Option<usize>,
+    /// Worker threads; 0 = all cores. Results do not depend on it.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// Master seed (overrides `master_seed`).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// No progress bar and no report.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+impl StudyArgs {
+    /// Loads and validates the spec and applies the overrides.
+    fn plan(&self, trace_runs: Option<usize>) -> Result<Plan, KfmcError> {
+        let mut plan = experiment::load(&self.spec)?;
+        plan.apply(&Overrides {
+            runs: self.runs,
+            master_seed: self.seed,
+            output: self.out.clone(),
+            trace_runs,
+        })?;
+        Ok(plan)
+    }
+}
+
 /// kfmc's commands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Run a Monte Carlo study and write its Parquet tables.
     Run {
-        /// The experiment spec (TOML).
-        spec: PathBuf,
-        /// Output folder (overrides the spec's `output`).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Runs per cell (overrides `runs`).
-        #[arg(long)]
-        runs: Option<usize>,
-        /// Worker threads; 0 = all cores. Results do not depend on it.
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Master seed (overrides `master_seed`).
-        #[arg(long)]
-        seed: Option<u64>,
+        /// The spec and the overrides every study command shares.
+        #[command(flatten)]
+        study: StudyArgs,
         /// Runs per (scenario, noise scale) whose full trajectories go to traces.parquet.
         #[arg(long)]
         trace_runs: Option<usize>,
-        /// No progress bar and no report.
-        #[arg(long, short)]
-        quiet: bool,
         /// Draw the figures (PNG) into `<out>/figures` when the run is done.
         #[arg(long)]
         plot: bool,
@@ -78,32 +100,19 @@ pub enum Command {
     /// Run a study and evaluate its `[check]` assertions (consistency verdicts, RMSE bounds,
     /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 2 for an invalid spec.
     Check {
-        /// The experiment spec (TOML) with a `[check]` section.
-        spec: PathBuf,
-        /// Output folder (overrides the spec's `output`).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Runs per cell (overrides `runs`).
-        #[arg(long)]
-        runs: Option<usize>,
-        /// Worker threads; 0 = all cores.
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Master seed (overrides `master_seed`).
-        #[arg(long)]
-        seed: Option<u64>,
+        /// The spec (with a `[check]` section) and the shared overrides.
+        #[command(flatten)]
+        study: StudyArgs,
         /// Also write the results as JUnit XML to this file.
         #[arg(long)]
         junit: Option<PathBuf>,
-        /// No progress bar.
-        #[arg(long, short)]
-        quiet: bool,
     },
     /// Search a filter's Q scale (and R scale with --tune-r) for consistency or minimum RMSE:
     /// a coarse log grid, then a refinement; writes tuning.parquet.
     Tune {
-        /// The experiment spec (TOML).
-        spec: PathBuf,
+        /// The spec and the shared overrides.
+        #[command(flatten)]
+        study: StudyArgs,
         /// What to optimise.
         #[arg(long, value_enum, default_value_t = crate::tune::Objective::Consistency)]
         objective: crate::tune::Objective,
@@ -113,21 +122,6 @@ pub enum Command {
         /// The filter label to tune (default: the first EKF).
         #[arg(long)]
         filter: Option<String>,
-        /// Output folder (overrides the spec's `output`).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Runs per cell (overrides `runs`).
-        #[arg(long)]
-        runs: Option<usize>,
-        /// Worker threads; 0 = all cores.
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Master seed (overrides `master_seed`).
-        #[arg(long)]
-        seed: Option<u64>,
-        /// No progress bar.
-        #[arg(long, short)]
-        quiet: bool,
     },
     /// Check a spec and print the plan size, without running it.
     Validate {
@@ -270,23 +264,17 @@ fn plot_dir(dir: &std::path::Path, opts: &PlotOptions) -> anyhow::Result<Vec<Pat
 fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Run {
-            spec,
-            out,
-            runs,
-            threads,
-            seed,
+            study,
             trace_runs,
-            quiet,
             plot,
         } => {
-            let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
-            plan.apply(&Overrides {
-                runs,
-                master_seed: seed,
-                output: out,
-                trace_runs,
-            })
-            .map_err(KfmcError::from)?;
+            let plan = study.plan(trace_runs)?;
+            let StudyArgs {
+                spec,
+                threads,
+                quiet,
+                ..
+            } = study;
             let observer = ProgressObserver::new(!quiet);
             let report =
                 crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
@@ -338,23 +326,14 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             println!("{}", path.display());
             Ok(())
         }
-        Command::Check {
-            spec,
-            out,
-            runs,
-            threads,
-            seed,
-            junit,
-            quiet,
-        } => {
-            let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
-            plan.apply(&Overrides {
-                runs,
-                master_seed: seed,
-                output: out,
-                trace_runs: None,
-            })
-            .map_err(KfmcError::from)?;
+        Command::Check { study, junit } => {
+            let mut plan = study.plan(None)?;
+            let StudyArgs {
+                spec,
+                threads,
+                quiet,
+                ..
+            } = study;
             if plan.assertions.is_empty() {
                 return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
                     crate::error::SpecError {
@@ -400,24 +379,18 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Tune {
-            spec,
+            study,
             objective,
             tune_r,
             filter,
-            out,
-            runs,
-            threads,
-            seed,
-            quiet,
         } => {
-            let mut plan = experiment::load(&spec).map_err(KfmcError::from)?;
-            plan.apply(&Overrides {
-                runs,
-                master_seed: seed,
-                output: out,
-                trace_runs: None,
-            })
-            .map_err(KfmcError::from)?;
+            let plan = study.plan(None)?;
+            let StudyArgs {
+                spec,
+                threads,
+                quiet,
+                ..
+            } = study;
             let observer = ProgressObserver::new(!quiet);
             let opts = crate::tune::TuneOptions {
                 objective,
