@@ -316,6 +316,13 @@ fn tune_finds_q_scale_near_1_for_a_matched_ekf_and_writes_tuning_parquet() {
     assert_eq!(df.height(), 2 * (13 + 11));
     // The stages' own studies are kept beside it.
     assert!(out.join("tune_coarse/consistency.parquet").exists());
+    // Filter variants stay apart in the summary.
+    let (code, summary, _) = output(&["summary", out.join("tune_coarse").to_str().unwrap()]);
+    assert_eq!(code, 0);
+    assert!(
+        summary.contains("ekf q×0.001 r×1") && summary.contains("ekf q×1000 r×1"),
+        "{summary}"
+    );
     // The folder plots as it is: tuning curves per scenario.
     let (code, _, err) = output(&["plot", out.to_str().unwrap(), "--only", "tuning"]);
     assert_eq!(code, 0, "{err}");

@@ -49,6 +49,17 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
     let filt = strs(&df, "filter", &path)?;
     let state = strs(&df, "state", &path)?;
     let noise = f64s(&df, "noise_scale", &path)?;
+    // Filter variants of one label differ in their Q/R multipliers: show them in the label.
+    let q = f64s(&df, "q_scale", &path)?;
+    let r = f64s(&df, "r_scale", &path)?;
+    let filt: Vec<String> = filt
+        .iter()
+        .enumerate()
+        .map(|(i, f)| match (q[i], r[i]) {
+            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{f} q×{q} r×{r}"),
+            _ => f.clone(),
+        })
+        .collect();
     let mean = f64s(&df, "rmse_mean", &path)?;
     let std = f64s(&df, "rmse_std", &path)?;
 
