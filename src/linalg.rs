@@ -180,6 +180,19 @@ pub fn triangularize(a: &nalgebra::DMatrix<f64>) -> nalgebra::DMatrix<f64> {
     l
 }
 
+/// Eigenvalues (re, im) of a small fixed-size matrix by faer's eigendecomposition, sorted by
+/// real then imaginary part; `None` when the decomposition fails to converge.
+pub fn eigenvalues<const N: usize>(a: &Matrix<N, N>) -> Option<Vec<(f64, f64)>> {
+    let mut ev: Vec<(f64, f64)> = to_faer(a)
+        .eigenvalues()
+        .ok()?
+        .into_iter()
+        .map(|c| (c.re, c.im))
+        .collect();
+    ev.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)));
+    Some(ev)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -246,5 +259,13 @@ mod tests {
         assert!((&l * l.transpose() - &aat).amax() < 1e-13);
         let chol = nalgebra::Cholesky::new(aat).unwrap();
         assert!((l - chol.l()).amax() < 1e-12);
+    }
+
+    #[test]
+    fn eigenvalues_of_a_rotation_are_cos_plus_minus_i_sin() {
+        let w = 0.7f64;
+        let ev = eigenvalues(&Matrix::<2, 2>::new(w.cos(), -w.sin(), w.sin(), w.cos())).unwrap();
+        assert!((ev[0].0 - w.cos()).abs() < 1e-14 && (ev[0].1 + w.sin()).abs() < 1e-14);
+        assert!((ev[1].0 - w.cos()).abs() < 1e-14 && (ev[1].1 - w.sin()).abs() < 1e-14);
     }
 }
