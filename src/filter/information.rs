@@ -87,8 +87,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         u: &Vector<NU>,
     ) -> Result<(), FilterError> {
         check_finite(&b.y, &b.info)?;
-        let x = chol_y(&b.info)?.solve(&b.y.into());
-        let x: Vector<NX> = x.column(0).into_owned();
+        let x = chol_y(&b.info)?.solve(&b.y);
+
         let f = model.transition_jacobian(&x, u);
         let f_inv = f.try_inverse().ok_or(FilterError::Singular {
             which: "transition matrix F",
@@ -146,7 +146,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 
     fn mean(&self, b: &InformationBelief<NX>) -> Vector<NX> {
         match SmallCholesky::new(&b.info) {
-            Some(c) => c.solve(&b.y.into()).column(0).into_owned(),
+            Some(c) => c.solve(&b.y),
             None => Vector::<NX>::from_element(f64::NAN),
         }
     }
