@@ -28,7 +28,7 @@ fn model() -> Linear<3> {
 
 /// Step k reports nothing on every 10th step and for k in 150..=165.
 fn gap(k: usize) -> bool {
-    k % 10 == 0 || (150..=165).contains(&k)
+    k.is_multiple_of(10) || (150..=165).contains(&k)
 }
 
 fn matrix_row<const R: usize, const C: usize>(name: &str, m: &Matrix<R, C>) -> String {
