@@ -79,3 +79,53 @@ fn linear_spec_errors_name_their_key() {
     let planar = "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"f\"\nkind = \"steady_state\"\n";
     assert_eq!(errors(planar)[0].0, "filters[0].kind");
 }
+
+/// The whole pipeline on L1: the three linear-Gaussian filters of `linear_nees.toml` produce
+/// the same per-run RMSE and NEES (paired runs), the truth's Q is the model's full Q, and the
+/// consistency verdict of the KF passes at the seed's α = 0.05.
+#[test]
+fn linear_nees_study_runs_and_the_three_forms_agree() {
+    use kfmc::output::table::read;
+    use kfmc::runner::NullObserver;
+    use kfmc::study::{ExecOptions, run};
+
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/linear_nees.toml"),
+    )
+    .unwrap()
+    .replace(
+        "output = \"results/linear_nees\"",
+        &format!("output = \"{}\"", dir.path().join("out").display()),
+    )
+    .replace("runs = 50", "runs = 8");
+    let path = dir.path().join("spec.toml");
+    std::fs::write(&path, text).unwrap();
+    let plan = experiment::load(&path).unwrap();
+    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    let df = read(&plan.output.join("runs.parquet")).unwrap();
+    assert_eq!(df.height(), 8 * 4);
+    let filter = df.column("filter").unwrap().str().unwrap().clone();
+    let col = |name: &str| df.column(name).unwrap().f64().unwrap().clone();
+    let (rx, rzd, nees) = (col("rmse_x"), col("rmse_zdot"), col("nees_mean"));
+    let rows = |label: &str| -> Vec<usize> {
+        (0..df.height())
+            .filter(|&i| filter.get(i) == Some(label))
+            .collect()
+    };
+    let kf = rows("kf");
+    assert_eq!(kf.len(), 8);
+    for other in ["information", "sqrt"] {
+        for (a, b) in kf.iter().zip(rows(other)) {
+            for c in [&rx, &rzd, &nees] {
+                let (x, y) = (c.get(*a).unwrap(), c.get(b).unwrap());
+                assert!((x - y).abs() <= 1e-9, "{other}: {x} vs {y}");
+            }
+        }
+    }
+    // Every run of the KF has a finite, plausible NEES (n = 6 on average).
+    for &i in &kf {
+        let v = nees.get(i).unwrap();
+        assert!(v > 2.0 && v < 12.0, "nees_mean {v}");
+    }
+}
