@@ -319,6 +319,12 @@ mod tests {
     #[test]
     fn discretisation_matches_the_seeds_eq_7_to_four_decimals() {
         let d = ContinuousLinear::seed().discretise(LINEAR_DT_S);
+        println!(
+            "eq. 7 max deviation: F {:.1e}, G {:.1e}, Q {:.1e}",
+            worst(&d.f, &F7),
+            worst(&d.g, &G7),
+            worst(&d.q, &Q7)
+        );
         assert!(worst(&d.f, &F7) <= 5e-5, "F: {}", worst(&d.f, &F7));
         assert!(worst(&d.g, &G7) <= 5e-5, "G: {}", worst(&d.g, &G7));
         assert!(worst(&d.q, &Q7) <= 5e-5, "Q: {}", worst(&d.q, &Q7));
