@@ -134,6 +134,65 @@ pub fn numerical_rank(a: faer::MatRef<'_, f64>, rel_tol: f64) -> usize {
     s.iter().filter(|&&v| v > rel_tol * max).count()
 }
 
+/// The matrix exponential e^A by scaling and squaring with a Taylor approximant.
+///
+/// A is scaled by 2^−s until ‖A‖₁/2^s ≤ 1/2; there the degree-18 Taylor remainder is below
+/// 0.5¹⁹/19! ≈ 2·10⁻²³, far under f64 round-off, and s squarings undo the scaling. Used for
+/// the small, fixed-size discretisation problems (zero-order hold, Van Loan), once per model.
+pub fn expm<const N: usize>(a: &Matrix<N, N>) -> Matrix<N, N> {
+    let norm = (0..N)
+        .map(|j| a.column(j).iter().map(|v| v.abs()).sum::<f64>())
+        .fold(0.0_f64, f64::max);
+    let mut s = 0u32;
+    while norm / 2f64.powi(s as i32) > 0.5 && s < 64 {
+        s += 1;
+    }
+    let scaled = a / 2f64.powi(s as i32);
+    let mut term = Matrix::<N, N>::identity();
+    let mut sum = Matrix::<N, N>::identity();
+    for k in 1..=18 {
+        term = term * scaled / k as f64;
+        sum += term;
+    }
+    for _ in 0..s {
+        sum = sum * sum;
+    }
+    sum
+}
+
+/// A lower-triangular L with L Lᵀ = A Aᵀ and a non-negative diagonal, from the QR
+/// factorisation of Aᵀ (A = Rᵀ Qᵀ, so A Aᵀ = Rᵀ R): the square-root filter's way of combining
+/// stacked factors without ever forming the product A Aᵀ. `a` has at least as many columns as
+/// rows.
+pub fn triangularize(a: &nalgebra::DMatrix<f64>) -> nalgebra::DMatrix<f64> {
+    let r = a.transpose().qr().r();
+    let n = a.nrows();
+    let mut l = r.transpose().view((0, 0), (n, n)).into_owned();
+    // Householder QR leaves arbitrary signs on the diagonal; flipping a column of L is an
+    // orthogonal change that keeps L Lᵀ and makes L the (unique) Cholesky factor.
+    for j in 0..n {
+        if l[(j, j)] < 0.0 {
+            for i in 0..n {
+                l[(i, j)] = -l[(i, j)];
+            }
+        }
+    }
+    l
+}
+
+/// Eigenvalues (re, im) of a small fixed-size matrix by faer's eigendecomposition, sorted by
+/// real then imaginary part; `None` when the decomposition fails to converge.
+pub fn eigenvalues<const N: usize>(a: &Matrix<N, N>) -> Option<Vec<(f64, f64)>> {
+    let mut ev: Vec<(f64, f64)> = to_faer(a)
+        .eigenvalues()
+        .ok()?
+        .into_iter()
+        .map(|c| (c.re, c.im))
+        .collect();
+    ev.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)));
+    Some(ev)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -168,5 +227,45 @@ mod tests {
         let f = to_faer(&a);
         assert_eq!(from_faer::<3, 3>(f.as_ref()), a);
         assert_eq!(numerical_rank(f.as_ref(), 1e-12), 2);
+    }
+
+    #[test]
+    fn expm_matches_closed_forms() {
+        // Rotation generator: e^{[[0, −w], [w, 0]]} = [[cos w, −sin w], [sin w, cos w]]; a large
+        // w exercises the squaring.
+        for w in [0.3, 2.0, 25.0] {
+            let e = expm(&Matrix::<2, 2>::new(0.0, -w, w, 0.0));
+            let c = Matrix::<2, 2>::new(w.cos(), -w.sin(), w.sin(), w.cos());
+            assert!((e - c).amax() < 1e-12, "w = {w}: {e}");
+        }
+        // Nilpotent: e^N = I + N + N²/2 exactly for a strictly upper-triangular 3×3 N.
+        let n = Matrix::<3, 3>::new(0.0, 2.0, -1.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0);
+        let exact = Matrix::<3, 3>::identity() + n + n * n / 2.0;
+        assert!((expm(&n) - exact).amax() < 1e-14);
+        // Diagonal: e^{diag(d)} = diag(e^d).
+        let d = Matrix::<2, 2>::new(-3.0, 0.0, 0.0, 1.5);
+        let e = expm(&d);
+        assert!((e[(0, 0)] - (-3.0f64).exp()).abs() < 1e-15);
+        assert!((e[(1, 1)] - 1.5f64.exp()).abs() < 1e-13);
+    }
+
+    #[test]
+    fn triangularize_gives_the_cholesky_factor_of_a_at() {
+        let a = nalgebra::DMatrix::<f64>::from_fn(3, 5, |i, j| {
+            ((i * i * 3 + j * j + 1) as f64).sqrt().sin()
+        });
+        let l = triangularize(&a);
+        let aat = &a * a.transpose();
+        assert!((&l * l.transpose() - &aat).amax() < 1e-13);
+        let chol = nalgebra::Cholesky::new(aat).unwrap();
+        assert!((l - chol.l()).amax() < 1e-12);
+    }
+
+    #[test]
+    fn eigenvalues_of_a_rotation_are_cos_plus_minus_i_sin() {
+        let w = 0.7f64;
+        let ev = eigenvalues(&Matrix::<2, 2>::new(w.cos(), -w.sin(), w.sin(), w.cos())).unwrap();
+        assert!((ev[0].0 - w.cos()).abs() < 1e-14 && (ev[0].1 + w.sin()).abs() < 1e-14);
+        assert!((ev[1].0 - w.cos()).abs() < 1e-14 && (ev[1].1 - w.sin()).abs() < 1e-14);
     }
 }

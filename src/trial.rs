@@ -6,9 +6,12 @@
 //! object-safe [`Trial`] trait.
 
 use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
-use crate::filter::{Ekf, Filter, FilterError, Innovation, RunningMean};
+use crate::filter::{
+    Ekf, Filter, FilterError, Information, Innovation, RunningMean, SquareRoot, SteadyState,
+};
 use crate::linalg::{Matrix, SmallCholesky, Vector, diag_from_std};
 use crate::metrics::{FilterRun, RunConsistency, StepValues};
+use crate::model::linear::{Linear, LinearSensor};
 use crate::model::planar::{Planar, PlanarImu, PlanarP1};
 use crate::model::{Model, Names};
 use crate::scenario::Scenario;
@@ -338,6 +341,9 @@ pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
                 },
                 ctx,
             ),
+            FilterKind::Information => run_filter(self, &Information { q, r }, ctx),
+            FilterKind::Sqrt => run_filter(self, &SquareRoot { q, r }, ctx),
+            FilterKind::SteadyState => run_filter(self, &SteadyState::new(self, &q, &r), ctx),
             other => self.run_model_specific(other, ctx).unwrap_or_else(|| {
                 unreachable!("plan validation rejects {} for this model", other.tag())
             }),
@@ -370,6 +376,16 @@ impl FilterSet<6, 2, 4> for PlanarImu {
     }
 }
 
+impl<const NZ: usize> FilterSet<6, 4, NZ> for Linear<NZ> {
+    fn run_model_specific(
+        &self,
+        _kind: &FilterKind,
+        _ctx: &RunContext<'_, 6, 4, NZ>,
+    ) -> Option<FilterOutput> {
+        None
+    }
+}
+
 /// A plan bound to a concrete model type.
 pub struct Study<const NX: usize, const NU: usize, const NZ: usize, M> {
     model: M,
@@ -377,6 +393,8 @@ pub struct Study<const NX: usize, const NU: usize, const NZ: usize, M> {
     noise: TruthNoise<NX, NZ>,
     p0: Matrix<NX, NX>,
     p0_factor: Option<Matrix<NX, NX>>,
+    /// The model's full discrete Q, which filters assume (times q_scale) when it exists.
+    model_q: Option<Matrix<NX, NX>>,
     plan: Plan,
     state_names: Vec<&'static str>,
 }
@@ -395,6 +413,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
                 process_std: Vector::<NX>::from_column_slice(&plan.model.process_noise_std),
                 measurement_std: Vector::<NZ>::from_column_slice(&plan.model.measurement_noise_std),
             },
+            model_q: model.process_noise_covariance(),
             model,
             scenarios,
             p0,
@@ -443,8 +462,13 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
         let mut est = Vec::new();
         let mut var = Vec::new();
         for f in &plan.filters {
-            let q = diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale))
-                * f.q_scale;
+            let q = match &self.model_q {
+                Some(q) => q * (filter_scale * filter_scale * f.q_scale),
+                None => {
+                    diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale))
+                        * f.q_scale
+                }
+            };
             let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale))
                 * f.r_scale;
             let out = self.model.run_kind(&f.kind, q, r, &ctx);
@@ -495,16 +519,44 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
 /// Binds a plan to its model type.
 pub fn build(plan: &Plan) -> Box<dyn Trial> {
     let dt = plan.model.params.dt_s;
-    let scenarios: Vec<Scenario<6, 2>> = plan.scenarios.iter().map(|s| s.expand(dt)).collect();
+    let planar =
+        || -> Vec<Scenario<6, 2>> { plan.scenarios.iter().map(|s| s.expand(dt)).collect() };
+    // L1 runs with zero input (see `model::linear`): a scenario is x0 and a duration.
+    let linear = || -> Vec<Scenario<6, 4>> {
+        plan.scenarios
+            .iter()
+            .map(|s| Scenario {
+                name: s.name.clone(),
+                x0: Vector::<6>::from_column_slice(&s.x0),
+                controls: vec![Vector::<4>::zeros(); s.steps(dt) + 1],
+            })
+            .collect()
+    };
+    const SIZES: &str = "ModelKind::nz matches the sensor set's size";
     match plan.model.kind {
         ModelKind::PlanarP1 => Box::new(Study::<6, 2, 3, _>::new(
             Planar::<3>::new(plan.model.params),
-            scenarios,
+            planar(),
             plan,
         )),
         ModelKind::PlanarImu => Box::new(Study::<6, 2, 4, _>::new(
             Planar::<4>::new(plan.model.params),
-            scenarios,
+            planar(),
+            plan,
+        )),
+        ModelKind::LinearPositions => Box::new(Study::<6, 4, 3, _>::new(
+            Linear::<3>::new(LinearSensor::Positions, dt).expect(SIZES),
+            linear(),
+            plan,
+        )),
+        ModelKind::LinearVelocities => Box::new(Study::<6, 4, 3, _>::new(
+            Linear::<3>::new(LinearSensor::Velocities, dt).expect(SIZES),
+            linear(),
+            plan,
+        )),
+        ModelKind::LinearXy => Box::new(Study::<6, 4, 2, _>::new(
+            Linear::<2>::new(LinearSensor::Xy, dt).expect(SIZES),
+            linear(),
             plan,
         )),
     }

@@ -195,8 +195,10 @@ fn describe(plan: &Plan) -> String {
 
 fn list() -> String {
     let mut s = String::from(
-        "models:\n  planar_quadrotor  state [x, xdot, y, ydot, theta, thetadot], input [u1, u2] (seeds 000/001/003)\n\
-         sensors (model.sensor):\n  p1   [y, theta, thetadot]  (seeds 000/001)\n  imu  [y, thetadot, xddot, yddot]  (seed 003)\n\
+        "models:\n  planar_quadrotor  state [x, xdot, y, ydot, theta, thetadot], input [u1, u2] (seeds 000/001/003)\n  \
+         linear_quadrotor  state [x, xdot, y, ydot, z, zdot], input [t1..t4] = 0, dt 0.1 s (seed 002)\n\
+         sensors (model.sensor):\n  p1   [y, theta, thetadot]  (seeds 000/001)\n  imu  [y, thetadot, xddot, yddot]  (seed 003)\n  \
+         positions   [x, y, z]  (linear_quadrotor, default)\n  velocities  [xdot, ydot, zdot]  (linear_quadrotor)\n  xy   [x, y]  (linear_quadrotor)\n\
          scenarios (built-in, planar_quadrotor):\n",
     );
     for name in BUILTIN_PLANAR {
@@ -229,6 +231,18 @@ fn list() -> String {
         (
             FilterKind::RunningMean { window: 11 },
             "running-mean baseline of seed 000 (sensor p1 only); window (samples, default 11)",
+        ),
+        (
+            FilterKind::Information,
+            "information filter (Y = P⁻¹, y = P⁻¹x̂); needs F invertible and Q positive definite",
+        ),
+        (
+            FilterKind::Sqrt,
+            "square-root filter (P = S Sᵀ by QR of stacked pre-arrays)",
+        ),
+        (
+            FilterKind::SteadyState,
+            "fixed-gain KF from the discrete Riccati equation (linear_quadrotor, sensor positions)",
         ),
     ] {
         s.push_str(&format!("  {:<13} {d}\n", k.tag()));

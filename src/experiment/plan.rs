@@ -7,6 +7,7 @@ use super::spec::{OneOrMany, Scales, Spec};
 
 use crate::error::{SpecError, SpecErrors};
 use crate::filter::CovarianceUpdate;
+use crate::model::linear::{ContinuousLinear, LINEAR_DT_S, LINEAR_R_DIAG, LINEAR_STATES};
 use crate::model::planar::{PLANAR_STATES, PlanarParams};
 use crate::scenario::planar::{
     BUILTIN_PLANAR, PlanarScenarioDef, ThrustProfile, ThrustStage, builtin,
@@ -20,6 +21,12 @@ pub enum ModelKind {
     PlanarP1,
     /// Planar quadrotor measuring `[y, θ̇, ẍ, ÿ]`.
     PlanarImu,
+    /// Linear 3-axis quadrotor (seed 002) measuring `[x, y, z]` (C).
+    LinearPositions,
+    /// Linear 3-axis quadrotor measuring `[ẋ, ẏ, ż]` (C1).
+    LinearVelocities,
+    /// Linear 3-axis quadrotor measuring `[x, y]` (C2).
+    LinearXy,
 }
 
 impl ModelKind {
@@ -32,11 +39,24 @@ impl ModelKind {
         match self {
             ModelKind::PlanarP1 => 3,
             ModelKind::PlanarImu => 4,
+            ModelKind::LinearPositions | ModelKind::LinearVelocities => 3,
+            ModelKind::LinearXy => 2,
         }
     }
     /// State names.
     pub fn state_names(self) -> &'static [&'static str] {
-        &PLANAR_STATES
+        if self.is_linear() {
+            &LINEAR_STATES
+        } else {
+            &PLANAR_STATES
+        }
+    }
+    /// Whether this is the linear quadrotor (no thrust stages, model-provided Q).
+    pub fn is_linear(self) -> bool {
+        matches!(
+            self,
+            ModelKind::LinearPositions | ModelKind::LinearVelocities | ModelKind::LinearXy
+        )
     }
 }
 
@@ -66,6 +86,12 @@ pub enum FilterKind {
         /// Samples averaged.
         window: usize,
     },
+    /// Information filter (propagates Y = P⁻¹ and y = P⁻¹x̂).
+    Information,
+    /// Square-root covariance filter (propagates a triangular S with P = S Sᵀ).
+    Sqrt,
+    /// Fixed-gain Kalman filter from the discrete algebraic Riccati equation (linear models).
+    SteadyState,
 }
 
 impl FilterKind {
@@ -74,6 +100,9 @@ impl FilterKind {
         match self {
             FilterKind::Ekf { .. } => "ekf",
             FilterKind::RunningMean { .. } => "running_mean",
+            FilterKind::Information => "information",
+            FilterKind::Sqrt => "sqrt",
+            FilterKind::SteadyState => "steady_state",
         }
     }
 }
@@ -422,22 +451,53 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
 
     // Model.
     let m = &spec.model;
-    if m.kind != "planar_quadrotor" {
+    let linear = m.kind == "linear_quadrotor";
+    if m.kind != "planar_quadrotor" && !linear {
         c.err(
             "model.kind",
             format!(
-                "unknown model `{}`; expected one of: planar_quadrotor",
+                "unknown model `{}`; expected one of: planar_quadrotor, linear_quadrotor",
                 m.kind
             ),
         );
     }
-    let sensor = c.choice("model.sensor", m.sensor.as_deref(), "p1", &["p1", "imu"]);
-    let kind = if sensor == "imu" {
+    let kind = if linear {
+        match c.choice(
+            "model.sensor",
+            m.sensor.as_deref(),
+            "positions",
+            &["positions", "velocities", "xy"],
+        ) {
+            "velocities" => ModelKind::LinearVelocities,
+            "xy" => ModelKind::LinearXy,
+            _ => ModelKind::LinearPositions,
+        }
+    } else if c.choice("model.sensor", m.sensor.as_deref(), "p1", &["p1", "imu"]) == "imu" {
         ModelKind::PlanarImu
     } else {
         ModelKind::PlanarP1
     };
-    let d = PlanarParams::default();
+    if linear {
+        // The linear model's physics are the seed's A and B; only Δt is a parameter.
+        for (key, present) in [
+            ("mass_kg", m.mass_kg.is_some()),
+            ("arm_m", m.arm_m.is_some()),
+            ("inertia_kg_m2", m.inertia_kg_m2.is_some()),
+            ("gravity_m_s2", m.gravity_m_s2.is_some()),
+            ("process_noise_std", m.process_noise_std.is_some()),
+        ] {
+            if present {
+                c.err(
+                    format!("model.{key}"),
+                    "not used by linear_quadrotor (its process noise is the discretised Q of the seed's Q̃)",
+                );
+            }
+        }
+    }
+    let d = PlanarParams {
+        dt_s: if linear { LINEAR_DT_S } else { 0.01 },
+        ..PlanarParams::default()
+    };
     let mut param = |key: &str, v: Option<f64>, def: f64| {
         let x = v.unwrap_or(def);
         if !positive(x) {
@@ -456,11 +516,25 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         dt_s: param("dt_s", m.dt_s, d.dt_s),
     };
     let (nx, nz) = (kind.nx(), kind.nz());
+    // For the linear model these are informational (√diag Q): truth and filters use the full Q.
+    let default_process_std = if linear && positive(params.dt_s) {
+        let q = ContinuousLinear::seed().discretise(params.dt_s).q;
+        (0..nx).map(|i| q[(i, i)].sqrt()).collect()
+    } else {
+        vec![0.003; nx]
+    };
+    // The seed gives one R (for its position sensor); the velocity sensor reuses it and xy
+    // takes its first two entries.
+    let default_measurement_std = if linear {
+        LINEAR_R_DIAG[..nz].iter().map(|v| v.sqrt()).collect()
+    } else {
+        vec![0.01; nz]
+    };
     let process_noise_std = c.vector(
         "model.process_noise_std",
         m.process_noise_std.as_ref(),
         nx,
-        &vec![0.003; nx],
+        &default_process_std,
         non_negative,
         "a non-negative number",
     );
@@ -468,7 +542,7 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         "model.measurement_noise_std",
         m.measurement_noise_std.as_ref(),
         nz,
-        &vec![0.01; nz],
+        &default_measurement_std,
         non_negative,
         "a non-negative number",
     );
@@ -486,6 +560,52 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                 format!("{key}.name"),
                 format!("duplicate scenario name `{}`", s.name),
             );
+        }
+        if linear {
+            // L1 scenarios are an initial state and a duration; the input is zero (see
+            // `model::linear`), so there are no thrust stages.
+            for (k, present) in [
+                ("base", s.base.is_some()),
+                ("stages", s.stages.is_some()),
+                ("ripple", s.ripple.is_some()),
+                ("ripple_rad_s", s.ripple_rad_s.is_some()),
+            ] {
+                if present {
+                    c.err(
+                        format!("{key}.{k}"),
+                        "not used by linear_quadrotor (zero input)",
+                    );
+                }
+            }
+            let mut def = PlanarScenarioDef {
+                name: s.name.clone(),
+                x0: [1.0, 0.0, 1.0, 0.0, 1.0, 0.0],
+                duration_s: 40.0,
+                profile: ThrustProfile {
+                    stages: vec![],
+                    ripple: 0.0,
+                    ripple_rad_s: 0.0,
+                },
+            };
+            match &s.x0 {
+                Some(x0) if x0.len() != 6 || !x0.iter().all(|v| v.is_finite()) => c.err(
+                    format!("{key}.x0"),
+                    format!("expected 6 finite numbers, got {x0:?}"),
+                ),
+                Some(x0) => def.x0.copy_from_slice(x0),
+                None => {}
+            }
+            if let Some(dur) = s.duration_s {
+                if !positive(dur) || dur < params.dt_s {
+                    c.err(
+                        format!("{key}.duration_s"),
+                        format!("{dur} is shorter than one sample"),
+                    );
+                }
+                def.duration_s = dur;
+            }
+            scenarios.push(def);
+            continue;
         }
         let base_name = s.base.as_deref().unwrap_or(&s.name);
         let base = builtin(base_name);
@@ -588,8 +708,14 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             &format!("{key}.kind"),
             Some(&f.kind),
             "ekf",
-            &["ekf", "running_mean"],
+            &["ekf", "running_mean", "information", "sqrt", "steady_state"],
         );
+        if linear && f.q_std.is_some() {
+            c.err(
+                format!("{key}.q_std"),
+                "linear_quadrotor filters assume the model's full Q; scale it with q_scale",
+            );
+        }
         let fk = match kind_tag {
             "running_mean" => {
                 if kind != ModelKind::PlanarP1 {
@@ -612,6 +738,34 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                     c.err(format!("{key}.window"), "must be at least 1");
                 }
                 FilterKind::RunningMean { window: w as usize }
+            }
+            "information" | "sqrt" | "steady_state" => {
+                for (k, present) in [
+                    ("window", f.window.is_some()),
+                    ("covariance_update", f.covariance_update.is_some()),
+                ] {
+                    if present {
+                        c.err(
+                            format!("{key}.{k}"),
+                            format!("not used by a {kind_tag} filter"),
+                        );
+                    }
+                }
+                match kind_tag {
+                    "information" => FilterKind::Information,
+                    "sqrt" => FilterKind::Sqrt,
+                    _ => {
+                        // The DARE has a stabilising solution only for a detectable pair: the
+                        // velocity and xy sensors leave an integrator unobserved.
+                        if kind != ModelKind::LinearPositions {
+                            c.err(
+                                format!("{key}.kind"),
+                                "steady_state needs model.kind = \"linear_quadrotor\" with sensor = \"positions\" (the only detectable sensor set)",
+                            );
+                        }
+                        FilterKind::SteadyState
+                    }
+                }
             }
             _ => {
                 if f.window.is_some() {

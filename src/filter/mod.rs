@@ -7,13 +7,62 @@
 //! without a covariance (the running mean) returns `None` and NEES/NIS are reported as null.
 
 pub mod ekf;
+pub mod information;
 pub mod running_mean;
+pub mod sqrt;
+pub mod steady_state;
 
 use crate::linalg::{Matrix, Vector};
 use crate::model::{Availability, Measurement, Model};
 
 pub use ekf::{CovarianceUpdate, Ekf};
+pub use information::Information;
 pub use running_mean::RunningMean;
+pub use sqrt::SquareRoot;
+pub use steady_state::SteadyState;
+
+/// Removes the components that did not report from H, ν and R, exactly as the EKF does: their
+/// rows of H and ν are zeroed and their block of R replaced by the identity, so every
+/// linear-Gaussian update equals one over the reporting rows alone.
+pub(crate) fn mask_rows<const NX: usize, const NZ: usize>(
+    r: &Matrix<NZ, NZ>,
+    available: Availability,
+    h: &mut Matrix<NZ, NX>,
+    nu: &mut Vector<NZ>,
+) -> Matrix<NZ, NZ> {
+    let mut r = *r;
+    if available == Availability::all(NZ) {
+        return r;
+    }
+    for i in 0..NZ {
+        if !available.has(i) {
+            h.row_mut(i).fill(0.0);
+            nu[i] = 0.0;
+            r.row_mut(i).fill(0.0);
+            r.column_mut(i).fill(0.0);
+            r[(i, i)] = 1.0;
+        }
+    }
+    r
+}
+
+/// The same non-finite check as the EKF's, for a mean and a matrix.
+pub(crate) fn check_finite<const NX: usize>(
+    x: &Vector<NX>,
+    m: &Matrix<NX, NX>,
+) -> Result<(), FilterError> {
+    if !x.sum().is_finite() {
+        return Err(FilterError::NonFinite {
+            what: "state estimate",
+        });
+    }
+    if !m.trace().is_finite() {
+        return Err(FilterError::NonFinite {
+            what: "state covariance",
+        });
+    }
+    Ok(())
+}
 
 /// What a measurement update tells the metrics about the innovation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -40,6 +89,15 @@ pub enum FilterError {
         /// Which matrix: "innovation covariance S", "state covariance P", …
         which: &'static str,
     },
+    /// A matrix that must be invertible is singular (the information filter needs F⁻¹).
+    #[error("{which} is singular")]
+    Singular {
+        /// Which matrix.
+        which: &'static str,
+    },
+    /// The Riccati recursion did not converge: the model is not detectable with this sensor.
+    #[error("the discrete algebraic Riccati equation has no steady state (not detectable)")]
+    NoSteadyState,
     /// The estimate or covariance contains NaN or ±∞.
     #[error("non-finite {what}")]
     NonFinite {

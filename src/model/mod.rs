@@ -7,6 +7,7 @@
 //! Dimensions are compile-time constants (`NX` states, `NU` inputs, `NZ` measurement
 //! components) so the per-step algebra is stack-allocated and monomorphised.
 
+pub mod linear;
 pub mod planar;
 
 use crate::linalg::{Matrix, Vector};
@@ -80,5 +81,12 @@ pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync 
     /// multi-rate).
     fn availability(&self, _step: usize) -> Availability {
         Availability::all(NZ)
+    }
+    /// The model's own discrete process-noise covariance Q, when it has one (a linear model
+    /// discretised from a continuous noise intensity, whose Q is full, not diagonal). The truth
+    /// then samples w_k = L ξ_k with Q = L Lᵀ, and filters assume Q unless told otherwise.
+    /// `None` (the default) keeps the spec's per-state standard deviations.
+    fn process_noise_covariance(&self) -> Option<Matrix<NX, NX>> {
+        None
     }
 }

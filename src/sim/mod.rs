@@ -10,7 +10,7 @@ pub mod seed;
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::linalg::{Matrix, Vector};
+use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::model::{Measurement, Model};
 use crate::scenario::Scenario;
 use seed::{StreamKind, stream};
@@ -95,10 +95,20 @@ pub fn simulate<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, 
         z: model.measure(&x0, &scenario.controls[0]),
         available: model.availability(0),
     });
+    // A full model Q is sampled through its Cholesky factor; the planar models have none and
+    // keep the per-state std path unchanged (bit-identical tables).
+    let w_factor = model
+        .process_noise_covariance()
+        .and_then(|q| SmallCholesky::new(&q))
+        .map(|c| *c.l() * noise_scale);
     let mut x = x0;
     for k in 1..=steps {
         let u = &scenario.controls[k];
-        x = model.propagate(&x, u) + w_std.component_mul(&draws.process[k]);
+        let w = match &w_factor {
+            Some(l) => l * draws.process[k],
+            None => w_std.component_mul(&draws.process[k]),
+        };
+        x = model.propagate(&x, u) + w;
         let available = model.availability(k);
         let mut z = model.measure(&x, u) + v_std.component_mul(&draws.measurement[k]);
         for i in 0..NZ {
