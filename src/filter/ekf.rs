@@ -16,7 +16,7 @@
 
 use super::{Filter, FilterError, Innovation};
 use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
-use crate::model::{Availability, Measurement, Model};
+use crate::model::{Measurement, Model};
 
 /// How the covariance is updated after a measurement.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -79,32 +79,6 @@ fn check_finite<const NX: usize>(b: &Gaussian<NX>) -> Result<(), FilterError> {
     Ok(())
 }
 
-impl<const NX: usize, const NZ: usize> Ekf<NX, NZ> {
-    /// Applies the availability mask to H, ν and R (see the module docs).
-    #[inline]
-    fn mask(
-        &self,
-        available: Availability,
-        h: &mut Matrix<NZ, NX>,
-        nu: &mut Vector<NZ>,
-    ) -> Matrix<NZ, NZ> {
-        let mut r = self.r;
-        if available == Availability::all(NZ) {
-            return r;
-        }
-        for i in 0..NZ {
-            if !available.has(i) {
-                h.row_mut(i).fill(0.0);
-                nu[i] = 0.0;
-                r.row_mut(i).fill(0.0);
-                r.column_mut(i).fill(0.0);
-                r[(i, i)] = 1.0;
-            }
-        }
-        r
-    }
-}
-
 impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Filter<NX, NU, NZ, M>
     for Ekf<NX, NZ>
 {
@@ -143,7 +117,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         }
         let mut h = model.measurement_jacobian(&b.x, u);
         let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
-        let r = self.mask(z.available, &mut h, &mut nu);
+        let r = super::mask_rows(&self.r, z.available, &mut h, &mut nu);
         let hp = h * b.p;
         let s = hp * h.transpose() + r;
         let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
@@ -202,6 +176,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::Availability;
     use crate::model::planar::{PlanarP1, PlanarParams};
 
     fn setup() -> (PlanarP1, Ekf<6, 3>, Gaussian<6>) {
