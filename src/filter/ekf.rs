@@ -126,7 +126,6 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         // Kᵀ = S⁻¹ H P⁻ because S and P⁻ are symmetric.
         let k = chol.solve(&hp).transpose();
         let whitened = chol.solve_lower(&nu);
-        let nis = whitened.norm_squared();
         b.x += k * nu;
         let i_kh = Matrix::<NX, NX>::identity() - k * h;
         b.p = match self.update_form {
@@ -135,13 +134,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         };
         b.i_kh = i_kh;
         check_finite(b)?;
-        Ok(Some(Innovation {
-            residual: nu,
-            nis,
-            dof: z.available.count(),
-            whitened,
-            available: z.available,
-        }))
+        Ok(Some(Innovation::new(nu, whitened, z.available)))
     }
 
     fn mean(&self, b: &Gaussian<NX>) -> Vector<NX> {

@@ -135,13 +135,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let p = chol_y(&b.info)?.solve(&Matrix::<NX, NX>::identity());
         b.i_kh = Matrix::<NX, NX>::identity() - p * ht_rinv * h;
         check_finite(&b.y, &b.info)?;
-        Ok(Some(Innovation {
-            residual: nu,
-            nis: whitened.norm_squared(),
-            dof: z.available.count(),
-            whitened,
-            available: z.available,
-        }))
+        Ok(Some(Innovation::new(nu, whitened, z.available)))
     }
 
     fn mean(&self, b: &InformationBelief<NX>) -> Vector<NX> {

@@ -80,6 +80,20 @@ pub struct Innovation<const NZ: usize> {
     pub available: Availability,
 }
 
+impl<const NZ: usize> Innovation<NZ> {
+    /// The innovation of an update over the `available` components from its residual ν and
+    /// its whitened form L⁻¹ν (S = L Lᵀ); the NIS is ‖L⁻¹ν‖².
+    pub fn new(residual: Vector<NZ>, whitened: Vector<NZ>, available: Availability) -> Self {
+        Innovation {
+            residual,
+            nis: whitened.norm_squared(),
+            dof: available.count(),
+            whitened,
+            available,
+        }
+    }
+}
+
 /// Numerical trouble inside one run. It becomes that run's status, never a batch abort.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum FilterError {

@@ -144,13 +144,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             b.i_kh = Matrix::<NX, NX>::identity() - kt.transpose() * h;
         }
         check_finite(&b.x, &b.s)?;
-        Ok(Some(Innovation {
-            residual: nu,
-            nis: whitened.norm_squared(),
-            dof: z.available.count(),
-            whitened,
-            available: z.available,
-        }))
+        Ok(Some(Innovation::new(nu, whitened, z.available)))
     }
 
     fn mean(&self, b: &SqrtBelief<NX>) -> Vector<NX> {

@@ -180,13 +180,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
                 what: "state estimate",
             });
         }
-        Ok(Some(Innovation {
-            residual: nu,
-            nis: whitened.norm_squared(),
-            dof: z.available.count(),
-            whitened,
-            available: z.available,
-        }))
+        Ok(Some(Innovation::new(nu, whitened, z.available)))
     }
 
     fn mean(&self, b: &FixedGainBelief<NX>) -> Vector<NX> {
