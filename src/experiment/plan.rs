@@ -327,6 +327,16 @@ impl Checker {
         });
     }
 
+    /// Reports every key of `keys` (name, present) that is set although `prefix`'s kind does
+    /// not use it: a silently ignored key would be a silent mistake in the study.
+    fn reject_present(&mut self, prefix: &str, keys: &[(&str, bool)], message: &str) {
+        for (k, present) in keys {
+            if *present {
+                self.err(format!("{prefix}.{k}"), message);
+            }
+        }
+    }
+
     /// Expands a scalar-or-list to `n` components, checking each with `ok`.
     fn vector(
         &mut self,
@@ -479,20 +489,17 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     };
     if linear {
         // The linear model's physics are the seed's A and B; only Δt is a parameter.
-        for (key, present) in [
-            ("mass_kg", m.mass_kg.is_some()),
-            ("arm_m", m.arm_m.is_some()),
-            ("inertia_kg_m2", m.inertia_kg_m2.is_some()),
-            ("gravity_m_s2", m.gravity_m_s2.is_some()),
-            ("process_noise_std", m.process_noise_std.is_some()),
-        ] {
-            if present {
-                c.err(
-                    format!("model.{key}"),
-                    "not used by linear_quadrotor (its process noise is the discretised Q of the seed's Q̃)",
-                );
-            }
-        }
+        c.reject_present(
+            "model",
+            &[
+                ("mass_kg", m.mass_kg.is_some()),
+                ("arm_m", m.arm_m.is_some()),
+                ("inertia_kg_m2", m.inertia_kg_m2.is_some()),
+                ("gravity_m_s2", m.gravity_m_s2.is_some()),
+                ("process_noise_std", m.process_noise_std.is_some()),
+            ],
+            "not used by linear_quadrotor (its process noise is the discretised Q of the seed's Q̃)",
+        );
     }
     let d = PlanarParams {
         dt_s: if linear { LINEAR_DT_S } else { 0.01 },
@@ -564,19 +571,16 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         if linear {
             // L1 scenarios are an initial state and a duration; the input is zero (see
             // `model::linear`), so there are no thrust stages.
-            for (k, present) in [
-                ("base", s.base.is_some()),
-                ("stages", s.stages.is_some()),
-                ("ripple", s.ripple.is_some()),
-                ("ripple_rad_s", s.ripple_rad_s.is_some()),
-            ] {
-                if present {
-                    c.err(
-                        format!("{key}.{k}"),
-                        "not used by linear_quadrotor (zero input)",
-                    );
-                }
-            }
+            c.reject_present(
+                &key,
+                &[
+                    ("base", s.base.is_some()),
+                    ("stages", s.stages.is_some()),
+                    ("ripple", s.ripple.is_some()),
+                    ("ripple_rad_s", s.ripple_rad_s.is_some()),
+                ],
+                "not used by linear_quadrotor (zero input)",
+            );
             let mut def = PlanarScenarioDef {
                 name: s.name.clone(),
                 x0: [1.0, 0.0, 1.0, 0.0, 1.0, 0.0],
@@ -724,15 +728,15 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                         "running_mean reads y, θ, θ̇ directly and needs model.sensor = \"p1\"",
                     );
                 }
-                for (k, present) in [
-                    ("q_std", f.q_std.is_some()),
-                    ("r_std", f.r_std.is_some()),
-                    ("covariance_update", f.covariance_update.is_some()),
-                ] {
-                    if present {
-                        c.err(format!("{key}.{k}"), "not used by a running_mean filter");
-                    }
-                }
+                c.reject_present(
+                    &key,
+                    &[
+                        ("q_std", f.q_std.is_some()),
+                        ("r_std", f.r_std.is_some()),
+                        ("covariance_update", f.covariance_update.is_some()),
+                    ],
+                    "not used by a running_mean filter",
+                );
                 let w = f.window.unwrap_or(11);
                 if w == 0 {
                     c.err(format!("{key}.window"), "must be at least 1");
@@ -740,17 +744,14 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                 FilterKind::RunningMean { window: w as usize }
             }
             "information" | "sqrt" | "steady_state" => {
-                for (k, present) in [
-                    ("window", f.window.is_some()),
-                    ("covariance_update", f.covariance_update.is_some()),
-                ] {
-                    if present {
-                        c.err(
-                            format!("{key}.{k}"),
-                            format!("not used by a {kind_tag} filter"),
-                        );
-                    }
-                }
+                c.reject_present(
+                    &key,
+                    &[
+                        ("window", f.window.is_some()),
+                        ("covariance_update", f.covariance_update.is_some()),
+                    ],
+                    &format!("not used by a {kind_tag} filter"),
+                );
                 match kind_tag {
                     "information" => FilterKind::Information,
                     "sqrt" => FilterKind::Sqrt,
@@ -806,14 +807,14 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             "a positive number (R must be positive definite)",
         );
         if matches!(fk, FilterKind::RunningMean { .. }) {
-            for (k, present) in [
-                ("q_scale", f.q_scale.is_some()),
-                ("r_scale", f.r_scale.is_some()),
-            ] {
-                if present {
-                    c.err(format!("{key}.{k}"), "not used by a running_mean filter");
-                }
-            }
+            c.reject_present(
+                &key,
+                &[
+                    ("q_scale", f.q_scale.is_some()),
+                    ("r_scale", f.r_scale.is_some()),
+                ],
+                "not used by a running_mean filter",
+            );
         }
         let q_scales = scale_list(
             &mut c,
@@ -945,16 +946,9 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                 format!("unknown state `{st}`; states: {}", states.join(", ")),
             );
         }
-        let unused = |c: &mut Checker, keys: &[(&str, bool)]| {
-            for (k, present) in keys {
-                if *present {
-                    c.err(
-                        format!("{key}.{k}"),
-                        format!("not used by kind = \"{}\"", a.kind),
-                    );
-                }
-            }
-        };
+        let unused_msg = format!("not used by kind = \"{}\"", a.kind);
+        let unused =
+            |c: &mut Checker, keys: &[(&str, bool)]| c.reject_present(&key, keys, &unused_msg);
         let tests = |names: Vec<String>| Assertion::TestPasses {
             kind: a.kind.clone(),
             tests: names,
