@@ -1,6 +1,7 @@
-//! Speed of the P1 EKF step and of a whole Monte Carlo run, as ratios against a minimal
-//! hand-written fixed-size EKF step measured in the same process (the machines are shared
-//! and noisy, so absolute times mean little; ratios are what to compare).
+//! Speed of the P1 EKF step, of the L1 linear filters' steps and of a whole Monte Carlo run, as
+//! ratios against minimal hand-written fixed-size filter steps measured in the same process
+//! (the machines are shared and noisy, so absolute times mean little; ratios are what to
+//! compare).
 //!
 //! ```text
 //! cargo run --release --example bench_step
@@ -8,19 +9,28 @@
 //!
 //! Method: the same 1,000-step trajectory is filtered repeatedly; the baseline and kfmc are
 //! interleaved in rounds and the median round is reported.
+//!
+//! The L1 section also times the square-root filter as it was before its pre-arrays were
+//! triangularised on fixed-size blocks ([`OldSqrt`], a private copy that still uses nalgebra's
+//! heap-allocated dynamic QR), for the before/after ratio.
 
 use std::hint::black_box;
 use std::path::Path;
 use std::time::Instant;
 
 use kfmc::experiment;
-use kfmc::filter::{CovarianceUpdate, Ekf, Filter};
-use kfmc::linalg::{Matrix, Vector};
-use kfmc::model::Measurement;
+use kfmc::filter::{
+    CovarianceUpdate, Ekf, Filter, FilterError, Information, Innovation, SquareRoot,
+};
+use kfmc::linalg::{Matrix, SmallCholesky, Vector};
+use kfmc::model::linear::{Linear, LinearSensor};
 use kfmc::model::planar::{PlanarP1, PlanarParams};
+use kfmc::model::{Availability, Measurement, Model};
+use kfmc::scenario::Scenario;
 use kfmc::scenario::planar::builtin;
 use kfmc::sim::{NoiseDraws, TruthNoise, seed::run_seed, simulate};
 use kfmc::trial::{Unit, build};
+use nalgebra::DMatrix;
 
 /// The baseline: the seed's EKF step written out by hand for exactly this model, with
 /// nalgebra fixed-size matrices, an explicit 3×3 inverse and nothing else.
@@ -78,6 +88,343 @@ fn hand_pass(
         hand_step(&mut x, &mut p, &controls[k], &zs[k].z, q, r);
     }
     x
+}
+
+/// The L1 baseline: a textbook KF step for F, G, H, Q, R given as fixed-size matrices, with an
+/// explicit 3×3 inverse and nothing else (no masking, no innovation statistics).
+#[inline(never)]
+fn hand_kf_step(
+    x: &mut Vector<6>,
+    p: &mut Matrix<6, 6>,
+    u: &Vector<4>,
+    z: &Vector<3>,
+    (f, g, h): (&Matrix<6, 6>, &Matrix<6, 4>, &Matrix<3, 6>),
+    q: &Matrix<6, 6>,
+    r: &Matrix<3, 3>,
+) {
+    *x = f * *x + g * u;
+    let pp = f * *p * f.transpose() + q;
+    let s = h * pp * h.transpose() + r;
+    let k = pp * h.transpose() * s.try_inverse().expect("S invertible");
+    *x += k * (z - h * *x);
+    *p = (Matrix::<6, 6>::identity() - k * h) * pp;
+}
+
+/// One bare hand-written KF pass over an L1 trajectory; returns the final x̂.
+fn hand_kf_pass(
+    model: &Linear<3>,
+    x0: &Vector<6>,
+    controls: &[Vector<4>],
+    zs: &[Measurement<3>],
+    q: &Matrix<6, 6>,
+    r: &Matrix<3, 3>,
+) -> Vector<6> {
+    let d = model.discrete();
+    let mut x = *x0;
+    let mut p = Matrix::<6, 6>::identity();
+    for k in 1..controls.len() {
+        hand_kf_step(
+            &mut x,
+            &mut p,
+            &controls[k],
+            &zs[k].z,
+            (&d.f, &d.g, model.h()),
+            q,
+            r,
+        );
+    }
+    x
+}
+
+/// One pass of a kfmc filter through the `Filter` trait, as a Monte Carlo run drives it.
+fn filter_pass<F: Filter<6, 4, 3, Linear<3>>>(
+    filter: &F,
+    model: &Linear<3>,
+    x0: &Vector<6>,
+    controls: &[Vector<4>],
+    zs: &[Measurement<3>],
+) -> Vector<6> {
+    let mut b = filter.init(model, x0, &Matrix::<6, 6>::identity(), &zs[0]);
+    for k in 1..controls.len() {
+        filter.predict(model, &mut b, &controls[k]).unwrap();
+        black_box(filter.update(model, &mut b, &controls[k], &zs[k]).unwrap());
+    }
+    filter.mean(&b)
+}
+
+/// The library's former triangularisation, kept here only for the before/after ratio: L with
+/// L Lᵀ = A Aᵀ from nalgebra's dynamic QR of Aᵀ, which allocates on every call.
+fn triangularize_dynamic(a: &DMatrix<f64>) -> DMatrix<f64> {
+    let r = a.transpose().qr().r();
+    let n = a.nrows();
+    let mut l = r.transpose().view((0, 0), (n, n)).into_owned();
+    for j in 0..n {
+        if l[(j, j)] < 0.0 {
+            for i in 0..n {
+                l[(i, j)] = -l[(i, j)];
+            }
+        }
+    }
+    l
+}
+
+/// The square-root filter exactly as it was before the fixed-size triangularisation (the same
+/// algebra, masking and checks), so that only the triangularisation differs.
+struct OldSqrt<const NX: usize, const NZ: usize> {
+    q: Matrix<NX, NX>,
+    r: Matrix<NZ, NZ>,
+}
+
+#[derive(Clone)]
+struct OldSqrtBelief<const NX: usize> {
+    x: Vector<NX>,
+    s: Matrix<NX, NX>,
+    f: Matrix<NX, NX>,
+    i_kh: Matrix<NX, NX>,
+}
+
+fn old_factor<const N: usize>(
+    a: &Matrix<N, N>,
+    which: &'static str,
+) -> Result<Matrix<N, N>, FilterError> {
+    SmallCholesky::new(a)
+        .map(|c| *c.l())
+        .ok_or(FilterError::NotPositiveDefinite { which })
+}
+
+fn old_check_finite<const NX: usize>(
+    x: &Vector<NX>,
+    m: &Matrix<NX, NX>,
+) -> Result<(), FilterError> {
+    if !x.sum().is_finite() || !m.trace().is_finite() {
+        return Err(FilterError::NonFinite { what: "state" });
+    }
+    Ok(())
+}
+
+fn old_mask_rows<const NX: usize, const NZ: usize>(
+    r: &Matrix<NZ, NZ>,
+    available: Availability,
+    h: &mut Matrix<NZ, NX>,
+    nu: &mut Vector<NZ>,
+) -> Matrix<NZ, NZ> {
+    let mut r = *r;
+    if available == Availability::all(NZ) {
+        return r;
+    }
+    for i in 0..NZ {
+        if !available.has(i) {
+            h.row_mut(i).fill(0.0);
+            nu[i] = 0.0;
+            r.row_mut(i).fill(0.0);
+            r.column_mut(i).fill(0.0);
+            r[(i, i)] = 1.0;
+        }
+    }
+    r
+}
+
+impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Filter<NX, NU, NZ, M>
+    for OldSqrt<NX, NZ>
+{
+    type Belief = OldSqrtBelief<NX>;
+
+    fn init(
+        &self,
+        _model: &M,
+        x0_hat: &Vector<NX>,
+        p0: &Matrix<NX, NX>,
+        _z0: &Measurement<NZ>,
+    ) -> OldSqrtBelief<NX> {
+        OldSqrtBelief {
+            x: *x0_hat,
+            s: old_factor(p0, "P0").unwrap(),
+            f: Matrix::<NX, NX>::identity(),
+            i_kh: Matrix::<NX, NX>::identity(),
+        }
+    }
+
+    fn predict(
+        &self,
+        model: &M,
+        b: &mut OldSqrtBelief<NX>,
+        u: &Vector<NU>,
+    ) -> Result<(), FilterError> {
+        let f = model.transition_jacobian(&b.x, u);
+        let l_q = old_factor(&self.q, "process noise Q")?;
+        let fs = f * b.s;
+        let pre = DMatrix::<f64>::from_fn(NX, 2 * NX, |i, j| {
+            if j < NX { fs[(i, j)] } else { l_q[(i, j - NX)] }
+        });
+        let post = triangularize_dynamic(&pre);
+        b.s = Matrix::<NX, NX>::from_fn(|i, j| post[(i, j)]);
+        b.x = model.propagate(&b.x, u);
+        b.f = f;
+        b.i_kh = Matrix::<NX, NX>::identity();
+        old_check_finite(&b.x, &b.s)
+    }
+
+    fn update(
+        &self,
+        model: &M,
+        b: &mut OldSqrtBelief<NX>,
+        u: &Vector<NU>,
+        z: &Measurement<NZ>,
+    ) -> Result<Option<Innovation<NZ>>, FilterError> {
+        if z.available.count() == 0 {
+            return Ok(None);
+        }
+        let mut h = model.measurement_jacobian(&b.x, u);
+        let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
+        let r = old_mask_rows(&self.r, z.available, &mut h, &mut nu);
+        let l_r = old_factor(&r, "measurement noise R")?;
+        let hs = h * b.s;
+        let n = NZ + NX;
+        let mut pre = DMatrix::<f64>::zeros(n, n);
+        for i in 0..NZ {
+            for j in 0..NZ {
+                pre[(i, j)] = l_r[(i, j)];
+            }
+            for j in 0..NX {
+                pre[(i, NZ + j)] = hs[(i, j)];
+            }
+        }
+        for i in 0..NX {
+            for j in 0..NX {
+                pre[(NZ + i, NZ + j)] = b.s[(i, j)];
+            }
+        }
+        let post = triangularize_dynamic(&pre);
+        let l_s = Matrix::<NZ, NZ>::from_fn(|i, j| post[(i, j)]);
+        let k_bar = Matrix::<NX, NZ>::from_fn(|i, j| post[(NZ + i, j)]);
+        if (0..NZ).any(|i| l_s[(i, i)].partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)) {
+            return Err(FilterError::NotPositiveDefinite {
+                which: "innovation covariance S",
+            });
+        }
+        let whitened = l_s
+            .solve_lower_triangular(&nu)
+            .ok_or(FilterError::NotPositiveDefinite {
+                which: "innovation covariance S",
+            })?;
+        b.x += k_bar * whitened;
+        b.s = Matrix::<NX, NX>::from_fn(|i, j| post[(NZ + i, NZ + j)]);
+        if let Some(kt) = l_s.transpose().solve_upper_triangular(&k_bar.transpose()) {
+            b.i_kh = Matrix::<NX, NX>::identity() - kt.transpose() * h;
+        }
+        old_check_finite(&b.x, &b.s)?;
+        Ok(Some(Innovation::new(nu, whitened, z.available)))
+    }
+
+    fn mean(&self, b: &OldSqrtBelief<NX>) -> Vector<NX> {
+        b.x
+    }
+
+    fn covariance(&self, b: &OldSqrtBelief<NX>) -> Option<Matrix<NX, NX>> {
+        Some(b.s * b.s.transpose())
+    }
+
+    fn error_transition(&self, b: &OldSqrtBelief<NX>) -> Option<Matrix<NX, NX>> {
+        Some(b.i_kh * b.f)
+    }
+}
+
+/// The L1 linear filters (positions sensor, Δt = 0.1 s) against the hand-written KF step.
+fn bench_l1() {
+    let model = Linear::<3>::new(LinearSensor::Positions, 0.1).unwrap();
+    let q = model.process_noise_covariance().unwrap();
+    let r = model.r();
+    let steps = 1000;
+    let draws = NoiseDraws::<6, 3>::draw(run_seed(1, "hover", 0), steps);
+    let x_hat0 = Vector::<6>::new(1.0, 0.0, 1.0, 0.0, 1.0, 0.0);
+    let sc = Scenario {
+        name: "hover".into(),
+        x0: x_hat0 + draws.initial,
+        controls: vec![Vector::<4>::zeros(); steps + 1],
+    };
+    let noise = TruthNoise {
+        process_std: Vector::<6>::zeros(),
+        measurement_std: Vector::<3>::from_fn(|i, _| r[(i, i)].sqrt()),
+    };
+    let traj = simulate(&model, &sc, &noise, 1.0, None, &draws);
+    let (controls, zs) = (&sc.controls, &traj.measurements);
+    let kf = Ekf {
+        q,
+        r,
+        update_form: CovarianceUpdate::Standard,
+    };
+    let info = Information { q, r };
+    let sqrt_old = OldSqrt { q, r };
+    let sqrt_new = SquareRoot { q, r };
+
+    // All five compute the same estimate; a wrong "fast" filter would show here.
+    let reference = hand_kf_pass(&model, &x_hat0, controls, zs, &q, &r);
+    let finals = [
+        filter_pass(&kf, &model, &x_hat0, controls, zs),
+        filter_pass(&info, &model, &x_hat0, controls, zs),
+        filter_pass(&sqrt_old, &model, &x_hat0, controls, zs),
+        filter_pass(&sqrt_new, &model, &x_hat0, controls, zs),
+    ];
+    let agree = finals
+        .iter()
+        .map(|x| (x - reference).amax())
+        .fold(0.0, f64::max);
+    assert!(agree < 1e-9, "the L1 filters disagree by {agree:e}");
+
+    let reps = 40;
+    let rounds = 15;
+    let names = [
+        "hand-written fixed-size KF baseline",
+        "kfmc Ekf (covariance-form KF)",
+        "kfmc Information",
+        "kfmc SquareRoot, old dynamic QR",
+        "kfmc SquareRoot, fixed-size Householder",
+    ];
+    let mut times = vec![Vec::new(); names.len()];
+    let per_step = |t: Instant| t.elapsed().as_secs_f64() / (reps * steps) as f64;
+    for _round in 0..rounds {
+        let t = Instant::now();
+        for _ in 0..reps {
+            black_box(hand_kf_pass(&model, &x_hat0, controls, zs, &q, &r));
+        }
+        times[0].push(per_step(t));
+        let t = Instant::now();
+        for _ in 0..reps {
+            black_box(filter_pass(&kf, &model, &x_hat0, controls, zs));
+        }
+        times[1].push(per_step(t));
+        let t = Instant::now();
+        for _ in 0..reps {
+            black_box(filter_pass(&info, &model, &x_hat0, controls, zs));
+        }
+        times[2].push(per_step(t));
+        let t = Instant::now();
+        for _ in 0..reps {
+            black_box(filter_pass(&sqrt_old, &model, &x_hat0, controls, zs));
+        }
+        times[3].push(per_step(t));
+        let t = Instant::now();
+        for _ in 0..reps {
+            black_box(filter_pass(&sqrt_new, &model, &x_hat0, controls, zs));
+        }
+        times[4].push(per_step(t));
+    }
+    let med: Vec<f64> = times.into_iter().map(median).collect();
+    println!(
+        "L1 linear step (predict + update; 6 states, 3 positions), median of {rounds} rounds × {reps} runs × {steps} steps:"
+    );
+    println!("  {:<42}{:8.1} ns/step", names[0], med[0] * 1e9);
+    for (name, t) in names.iter().zip(&med).skip(1) {
+        println!(
+            "  {name:<42}{:8.1} ns/step   ratio {:.2}×",
+            t * 1e9,
+            t / med[0]
+        );
+    }
+    println!(
+        "  square-root filter old / new: {:.2}×   (final x̂ of all five agree to {agree:.1e})",
+        med[3] / med[4]
+    );
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -149,6 +496,8 @@ fn main() {
         "  (checksum {:.3e}: both compute the same estimates)",
         checksum
     );
+
+    bench_l1();
 
     // Whole Monte Carlo run: simulate + EKF + running mean + per-step metrics, one thread.
     let spec = Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/planar_robustness.toml");

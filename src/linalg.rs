@@ -160,24 +160,223 @@ pub fn expm<const N: usize>(a: &Matrix<N, N>) -> Matrix<N, N> {
     sum
 }
 
-/// A lower-triangular L with L Lᵀ = A Aᵀ and a non-negative diagonal, from the QR
-/// factorisation of Aᵀ (A = Rᵀ Qᵀ, so A Aᵀ = Rᵀ R): the square-root filter's way of combining
-/// stacked factors without ever forming the product A Aᵀ. `a` has at least as many columns as
-/// rows.
-pub fn triangularize(a: &nalgebra::DMatrix<f64>) -> nalgebra::DMatrix<f64> {
-    let r = a.transpose().qr().r();
-    let n = a.nrows();
-    let mut l = r.transpose().view((0, 0), (n, n)).into_owned();
-    // Householder QR leaves arbitrary signs on the diagonal; flipping a column of L is an
-    // orthogonal change that keeps L Lᵀ and makes L the (unique) Cholesky factor.
-    for j in 0..n {
-        if l[(j, j)] < 0.0 {
-            for i in 0..n {
-                l[(i, j)] = -l[(i, j)];
+/// A pre-array `[[A₁₁, A₁₂], [A₂₁, A₂₂]]` of `R1 + R2` rows and `C1 + C2 ≥ R1 + R2` columns,
+/// kept as four fixed-size blocks (any of which may have zero rows or columns).
+///
+/// Stable Rust cannot name `Matrix<{R1 + R2}, {C1 + C2}>` in generic code, so the array is never
+/// assembled: each Householder reflection spans a whole row across both column blocks and is
+/// applied to both row blocks. The square-root filter's two pre-arrays fit this shape directly:
+/// the time update's `[F S, L_Q]` has no second row block, and the measurement update's
+/// `[[L_R, H S⁻], [0, S⁻]]` is the 2 × 2 block layout itself, whose post-array blocks
+/// `[[L_S, 0], [K̄, S]]` are then read off in place.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PreArray<const R1: usize, const R2: usize, const C1: usize, const C2: usize> {
+    /// Top-left block, `R1 × C1`.
+    pub a11: Matrix<R1, C1>,
+    /// Top-right block, `R1 × C2`.
+    pub a12: Matrix<R1, C2>,
+    /// Bottom-left block, `R2 × C1`.
+    pub a21: Matrix<R2, C1>,
+    /// Bottom-right block, `R2 × C2`.
+    pub a22: Matrix<R2, C2>,
+}
+
+impl<const R1: usize, const R2: usize, const C1: usize, const C2: usize> PreArray<R1, R2, C1, C2> {
+    /// Replaces the array A by its post-array `[L, 0] = A Θ` (Θ orthogonal): L is the
+    /// `(R1 + R2)`-square lower-triangular matrix in the leading columns, with L Lᵀ = A Aᵀ and a
+    /// non-negative diagonal, so where A has full row rank L is the Cholesky factor of A Aᵀ,
+    /// obtained without forming A Aᵀ. All columns after the first `R1 + R2` become zero.
+    ///
+    /// Row-wise Householder (an LQ factorisation of A, i.e. QR of Aᵀ) on the stack; no
+    /// allocation. Entries must be small enough for their squares to be finite (|a| ≲ 10¹⁵⁰):
+    /// unlike LAPACK the row norms are not rescaled, which covariance factors never need.
+    pub fn triangularize(&mut self) {
+        const {
+            assert!(
+                R1 + R2 <= C1 + C2,
+                "a pre-array needs at least as many columns as rows"
+            )
+        };
+        for k in 0..R1 + R2 {
+            let reflector = if k < R1 {
+                Reflector::of_row(&self.a11, &self.a12, k, k)
+            } else {
+                Reflector::of_row(&self.a21, &self.a22, k - R1, k)
+            };
+            let Some(h) = reflector else { continue };
+            // Only rows below the pivot change (see `Reflector::apply`): once the pivot has
+            // left the top block that block is done, and the last pivot has no rows below.
+            if k + 1 < R1 {
+                h.apply(&mut self.a11, &mut self.a12);
+            }
+            if k + 1 < R1 + R2 {
+                h.apply(&mut self.a21, &mut self.a22);
+            }
+            // The pivot row's image is known exactly; writing it makes the zeros exact.
+            if k < R1 {
+                h.write_image(&mut self.a11, &mut self.a12, k);
+            } else {
+                h.write_image(&mut self.a21, &mut self.a22, k - R1);
             }
         }
     }
-    l
+}
+
+/// The Householder reflection I − τ v vᵀ acting on the combined columns `k..C1 + C2` of rows
+/// split across a left (`C1`) and a right (`C2`) block. v = (v₁ at column k, then the pivot
+/// row's own entries right of it); those entries are stored split like the rows, zero up to
+/// and including column k.
+struct Reflector<const C1: usize, const C2: usize> {
+    xl: [f64; C1],
+    xr: [f64; C2],
+    v1: f64,
+    tau: f64,
+    k: usize,
+    mu: f64,
+}
+
+impl<const C1: usize, const C2: usize> Reflector<C1, C2> {
+    /// The reflection that maps row `i` of `[left, right]` (from column k on) to μ e_k with
+    /// μ = its norm ≥ 0. `None` when the row already has that form (nothing right of the pivot
+    /// and a non-negative pivot), including a zero row.
+    #[inline(always)]
+    fn of_row<const RR: usize>(
+        left: &Matrix<RR, C1>,
+        right: &Matrix<RR, C2>,
+        i: usize,
+        k: usize,
+    ) -> Option<Self> {
+        let (mut xl, mut xr) = ([0.0; C1], [0.0; C2]);
+        // σ = Σ x_j² over j > k, from the entries themselves rather than as ‖x‖² − x₁², which
+        // would cancel away exactly the small part that matters when x₁ dominates.
+        let mut sigma = 0.0;
+        for j in (k + 1).min(C1)..C1 {
+            xl[j] = left[(i, j)];
+            sigma += xl[j] * xl[j];
+        }
+        for j in (k + 1).saturating_sub(C1)..C2 {
+            xr[j] = right[(i, j)];
+            sigma += xr[j] * xr[j];
+        }
+        let x1 = if k < C1 {
+            left[(i, k)]
+        } else {
+            right[(i, k - C1)]
+        };
+        if sigma == 0.0 && x1 >= 0.0 {
+            return None;
+        }
+        let mu = (x1 * x1 + sigma).sqrt();
+        // v₁ = x₁ − μ makes the image +μ e_k (a non-negative diagonal with no sign fix-up
+        // afterwards); for x₁ > 0 it is rewritten as −σ/(x₁ + μ) to avoid the cancellation
+        // (Parlett 1971; Golub & Van Loan, Algorithm 5.1.1).
+        let v1 = if x1 > 0.0 {
+            -sigma / (x1 + mu)
+        } else {
+            x1 - mu
+        };
+        Some(Reflector {
+            xl,
+            xr,
+            v1,
+            tau: 2.0 / (v1 * v1 + sigma),
+            k,
+            mu,
+        })
+    }
+
+    /// [left, right] ← [left, right] (I − τ v vᵀ), over every row of the blocks.
+    ///
+    /// Column by column, which is contiguous in nalgebra's column-major storage and
+    /// vectorises. The rows above the pivot are included because that keeps the column loops
+    /// at the fixed length `RR`, and it leaves them exactly unchanged: they are zero from
+    /// column k on and v is zero before it, so their product with v is an exact 0. The pivot
+    /// column comes last so that the bulk of the products does not wait for the square root
+    /// and divisions behind v₁ and τ.
+    #[inline(always)]
+    fn apply<const RR: usize>(&self, left: &mut Matrix<RR, C1>, right: &mut Matrix<RR, C2>) {
+        if RR == 0 {
+            return;
+        }
+        let (jl, jr) = ((self.k + 1).min(C1), (self.k + 1).saturating_sub(C1));
+        let mut y = [0.0; RR];
+        let left_cols = left.as_slice().chunks_exact(RR).zip(&self.xl).skip(jl);
+        let right_cols = right.as_slice().chunks_exact(RR).zip(&self.xr).skip(jr);
+        for (col, &x) in left_cols.chain(right_cols) {
+            for (y, a) in y.iter_mut().zip(col) {
+                *y += a * x;
+            }
+        }
+        let pivot = if self.k < C1 {
+            &mut left.as_mut_slice()[self.k * RR..][..RR]
+        } else {
+            &mut right.as_mut_slice()[(self.k - C1) * RR..][..RR]
+        };
+        for (y, a) in y.iter_mut().zip(pivot) {
+            *y = (*y + *a * self.v1) * self.tau;
+            *a -= *y * self.v1;
+        }
+        let left_cols = left
+            .as_mut_slice()
+            .chunks_exact_mut(RR)
+            .zip(&self.xl)
+            .skip(jl);
+        let right_cols = right
+            .as_mut_slice()
+            .chunks_exact_mut(RR)
+            .zip(&self.xr)
+            .skip(jr);
+        for (col, &x) in left_cols.chain(right_cols) {
+            for (a, y) in col.iter_mut().zip(&y) {
+                *a -= y * x;
+            }
+        }
+    }
+
+    /// Writes the pivot row's image μ e_k into row `i`.
+    #[inline(always)]
+    fn write_image<const RR: usize>(
+        &self,
+        left: &mut Matrix<RR, C1>,
+        right: &mut Matrix<RR, C2>,
+        i: usize,
+    ) {
+        for j in self.k..C1 {
+            left[(i, j)] = 0.0;
+        }
+        for j in self.k.saturating_sub(C1)..C2 {
+            right[(i, j)] = 0.0;
+        }
+        if self.k < C1 {
+            left[(i, self.k)] = self.mu;
+        } else {
+            right[(i, self.k - C1)] = self.mu;
+        }
+    }
+}
+
+/// The lower-triangular L (`R × R`, non-negative diagonal) with L Lᵀ = A Aᵀ for the wide array
+/// A = `[left, right]` (`C1 + C2 ≥ R`): the Cholesky factor of `left leftᵀ + right rightᵀ`
+/// where that is nonsingular, without forming it. The square-root filter's time update is
+/// `triangularize(&(F S), &L_Q)`. See [`PreArray::triangularize`].
+pub fn triangularize<const R: usize, const C1: usize, const C2: usize>(
+    left: &Matrix<R, C1>,
+    right: &Matrix<R, C2>,
+) -> Matrix<R, R> {
+    let mut pre = PreArray {
+        a11: *left,
+        a12: *right,
+        a21: Matrix::<0, C1>::zeros(),
+        a22: Matrix::<0, C2>::zeros(),
+    };
+    pre.triangularize();
+    Matrix::<R, R>::from_fn(|i, j| {
+        if j < C1 {
+            pre.a11[(i, j)]
+        } else {
+            pre.a12[(i, j - C1)]
+        }
+    })
 }
 
 /// Eigenvalues (re, im) of a small fixed-size matrix by faer's eigendecomposition, sorted by
@@ -249,16 +448,189 @@ mod tests {
         assert!((e[(1, 1)] - 1.5f64.exp()).abs() < 1e-13);
     }
 
+    /// A deterministic pseudo-random entry in [−1, 1) (SplitMix64 of the position), plus 3 on
+    /// the combined array's diagonal so that the arrays stay well conditioned: the comparison
+    /// with the Cholesky factor of A Aᵀ should measure our error, not that route's.
+    fn entry(seed: usize, i: usize, j: usize) -> f64 {
+        let mut z = (seed as u64) << 40 ^ (i as u64) << 20 ^ j as u64;
+        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+        let u = (z >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0;
+        if i == j { u + 3.0 } else { u }
+    }
+
+    /// The pre-array assembled densely, for the reference computations only.
+    fn dense<const R1: usize, const R2: usize, const C1: usize, const C2: usize>(
+        p: &PreArray<R1, R2, C1, C2>,
+    ) -> nalgebra::DMatrix<f64> {
+        nalgebra::DMatrix::from_fn(R1 + R2, C1 + C2, |i, j| match (i < R1, j < C1) {
+            (true, true) => p.a11[(i, j)],
+            (true, false) => p.a12[(i, j - C1)],
+            (false, true) => p.a21[(i - R1, j)],
+            (false, false) => p.a22[(i - R1, j - C1)],
+        })
+    }
+
+    fn pre_array<const R1: usize, const R2: usize, const C1: usize, const C2: usize>(
+        seed: usize,
+    ) -> PreArray<R1, R2, C1, C2> {
+        PreArray {
+            a11: Matrix::from_fn(|i, j| entry(seed, i, j)),
+            a12: Matrix::from_fn(|i, j| entry(seed, i, j + C1)),
+            a21: Matrix::from_fn(|i, j| entry(seed, i + R1, j)),
+            a22: Matrix::from_fn(|i, j| entry(seed, i + R1, j + C1)),
+        }
+    }
+
+    /// Triangularises `pre` and checks the post-array against the definition: [L, 0] with L
+    /// lower triangular, diag(L) ≥ 0 and L Lᵀ = A Aᵀ; where A Aᵀ is nonsingular, also that L is
+    /// nalgebra's Cholesky factor of A Aᵀ. Returns L.
+    fn check<const R1: usize, const R2: usize, const C1: usize, const C2: usize>(
+        mut pre: PreArray<R1, R2, C1, C2>,
+        full_rank: bool,
+    ) -> nalgebra::DMatrix<f64> {
+        let a = dense(&pre);
+        pre.triangularize();
+        let post = dense(&pre);
+        let n = R1 + R2;
+        let l = post.columns(0, n).into_owned();
+        for i in 0..n {
+            assert!(l[(i, i)] >= 0.0, "diagonal {i}: {}", l[(i, i)]);
+            for j in i + 1..post.ncols() {
+                assert_eq!(post[(i, j)], 0.0, "post-array ({i}, {j}) not zero");
+            }
+        }
+        let aat = &a * a.transpose();
+        // Backward stability: every entry is within a few ulps of the array's scale.
+        let tol = 1e-14 * a.amax().powi(2).max(1.0);
+        assert!((&l * l.transpose() - &aat).amax() < tol, "L Lᵀ ≠ A Aᵀ");
+        if full_rank {
+            let chol = nalgebra::Cholesky::new(aat).expect("A Aᵀ SPD");
+            assert!(
+                (&l - chol.l()).amax() < 1e-12,
+                "L ≠ chol(A Aᵀ):\n{l}\n{}",
+                chol.l()
+            );
+        }
+        l
+    }
+
     #[test]
     fn triangularize_gives_the_cholesky_factor_of_a_at() {
-        let a = nalgebra::DMatrix::<f64>::from_fn(3, 5, |i, j| {
-            ((i * i * 3 + j * j + 1) as f64).sqrt().sin()
-        });
-        let l = triangularize(&a);
-        let aat = &a * a.transpose();
-        assert!((&l * l.transpose() - &aat).amax() < 1e-13);
-        let chol = nalgebra::Cholesky::new(aat).unwrap();
-        assert!((l - chol.l()).amax() < 1e-12);
+        // The filter's two shapes (predict NX × 2NX, update (NZ+NX)-square), then rectangular
+        // blocks: a pivot column that leaves the left block early (C1 < R), a left block wider
+        // than the rows, an empty left block, more rows below than above.
+        for seed in 0..4 {
+            check(pre_array::<6, 0, 6, 6>(seed), true);
+            check(pre_array::<3, 6, 3, 6>(seed), true);
+            check(pre_array::<2, 6, 2, 6>(seed), true);
+            check(pre_array::<4, 0, 1, 5>(seed), true);
+            check(pre_array::<3, 0, 7, 2>(seed), true);
+            check(pre_array::<3, 0, 0, 4>(seed), true);
+            check(pre_array::<2, 3, 4, 2>(seed), true);
+            check(pre_array::<1, 4, 2, 5>(seed), true);
+            check(pre_array::<0, 3, 2, 1>(seed), true);
+        }
+        // The two-block function is the R2 = 0 case, with L read off across both blocks.
+        let left = Matrix::<4, 1>::from_fn(|i, j| entry(9, i, j));
+        let right = Matrix::<4, 5>::from_fn(|i, j| entry(9, i, j + 1));
+        let l = triangularize(&left, &right);
+        let aat = left * left.transpose() + right * right.transpose();
+        assert!((l - *SmallCholesky::new(&aat).unwrap().l()).amax() < 1e-12);
+    }
+
+    #[test]
+    fn triangularize_handles_rank_deficient_arrays() {
+        // Zero columns: rank 2 in 4 rows; L L^T still reproduces A Aᵀ, with zero pivots.
+        let mut pre = pre_array::<4, 0, 2, 3>(1);
+        pre.a12.fill(0.0);
+        let l = check(pre, false);
+        assert_eq!((l[(2, 2)], l[(3, 3)]), (0.0, 0.0));
+        // A zero block, as in an update whose H S⁻ is zero: the blocks decouple.
+        let mut pre = pre_array::<2, 3, 2, 3>(2);
+        pre.a12.fill(0.0);
+        pre.a21.fill(0.0);
+        let (top, bottom) = (pre.a11, pre.a22);
+        pre.triangularize();
+        assert!((pre.a11 - triangularize(&top, &Matrix::<2, 0>::zeros())).amax() < 1e-15);
+        assert!((pre.a22 - triangularize(&bottom, &Matrix::<3, 0>::zeros())).amax() < 1e-15);
+        assert_eq!(pre.a21, Matrix::<3, 2>::zeros());
+        // A zero row gives a zero row of L, and the all-zero array gives L = 0.
+        let mut pre = pre_array::<3, 0, 3, 3>(3);
+        pre.a11.row_mut(1).fill(0.0);
+        pre.a12.row_mut(1).fill(0.0);
+        let l = check(pre, false);
+        assert!(l.row(1).iter().all(|&v| v == 0.0));
+        assert!(l[(2, 2)] > 0.0);
+        let zero = triangularize(&Matrix::<3, 3>::zeros(), &Matrix::<3, 2>::zeros());
+        assert_eq!(zero, Matrix::<3, 3>::zeros());
+        // Two equal rows: rank 1, the second pivot is zero up to round-off.
+        let row = Matrix::<1, 4>::from_fn(|_, j| entry(4, 0, j));
+        let a = Matrix::<2, 4>::from_fn(|_, j| row[(0, j)]);
+        let l = triangularize(&a, &Matrix::<2, 0>::zeros());
+        assert!(l[(1, 1)] >= 0.0 && l[(1, 1)] < 1e-15);
+        assert!((l * l.transpose() - a * a.transpose()).amax() < 1e-14);
+    }
+
+    #[test]
+    fn triangularize_diagonal_is_non_negative() {
+        // −I and diagonals of mixed sign: the reflection must map each row onto +‖row‖ e_k,
+        // including rows with nothing right of a negative pivot (a pure sign flip).
+        let minus_i = triangularize(&(-Matrix::<3, 3>::identity()), &Matrix::<3, 1>::zeros());
+        assert_eq!(minus_i, Matrix::<3, 3>::identity());
+        let d = Matrix::<3, 3>::from_diagonal(&Vector::<3>::new(-2.0, 3.0, -0.5));
+        let l = triangularize(&Matrix::<3, 0>::zeros(), &d);
+        assert_eq!(
+            l,
+            Matrix::<3, 3>::from_diagonal(&Vector::<3>::new(2.0, 3.0, 0.5))
+        );
+        // Negative pivots with mass to their right, for every seed's signs.
+        for seed in 0..8 {
+            let mut pre = pre_array::<5, 0, 5, 5>(seed);
+            pre.a11 = -pre.a11.abs();
+            check(pre, true);
+        }
+    }
+
+    #[test]
+    fn triangularize_keeps_accuracy_where_forming_a_at_loses_it() {
+        // A very precise sensor: P⁻ = I₂, H = [1, 0], R = ε². The update pre-array
+        // [[ε, 1, 0], [0, 1, 0], [0, 0, 1]] has A Aᵀ = [[1 + ε², 1, 0], [1, 1, 0], [0, 0, 1]],
+        // whose exact factor has the posterior standard deviation ε/√(1 + ε²) as its (1, 1)
+        // pivot. Forming A Aᵀ rounds 1 + ε² with an absolute error up to 2⁻⁵³ ≈ 1.1·10⁻¹⁶, i.e.
+        // an error of order 10⁻¹⁶/ε in that pivot: the product squares the condition number.
+        // Householder works on A itself and is backward stable, so the error stays at a few
+        // ulps of ‖A‖ = 1 whatever ε is.
+        for eps in [1e-4, 1e-6, 1e-7, 1e-9] {
+            let pre = PreArray {
+                a11: Matrix::<1, 1>::new(eps),
+                a12: Matrix::<1, 2>::new(1.0, 0.0),
+                a21: Matrix::<2, 1>::zeros(),
+                a22: Matrix::<2, 2>::identity(),
+            };
+            let exact_sd = eps / (1.0 + eps * eps).sqrt();
+            let mut qr = pre;
+            qr.triangularize();
+            let qr_err = (qr.a22[(0, 0)] - exact_sd).abs();
+            let a = dense(&pre);
+            let naive =
+                SmallCholesky::new(&Matrix::<3, 3>::from_fn(|i, j| a.row(i).dot(&a.row(j))));
+            let naive_err = naive.map_or(f64::INFINITY, |c| (c.l()[(1, 1)] - exact_sd).abs());
+            println!("ε = {eps:e}: |error| QR {qr_err:.1e}, naive {naive_err:.1e}");
+            // A few ulps of ‖A‖: 4·2⁻⁵³ ≈ 4.4·10⁻¹⁶.
+            assert!(qr_err <= 4.5e-16, "ε = {eps}: QR error {qr_err:e}");
+            assert!((qr.a21[(0, 0)] - 1.0 / (1.0 + eps * eps).sqrt()).abs() <= 4.5e-16);
+            if eps <= 1e-6 {
+                // Forming A Aᵀ costs at least three orders of magnitude here (at ε = 10⁻⁹,
+                // 1 + ε² rounds to 1: A Aᵀ is singular and the factorisation fails).
+                assert!(
+                    naive_err > 1e3 * qr_err.max(f64::EPSILON * eps),
+                    "ε = {eps}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -1,7 +1,8 @@
 //! Square-root covariance filter: propagates a lower-triangular S with P = S Sᵀ and never forms
 //! P to re-factorise it.
 //!
-//! Both steps triangularise a stacked pre-array by QR ([`crate::linalg::triangularize`]):
+//! Both steps triangularise a stacked pre-array by Householder reflections on fixed-size
+//! blocks ([`crate::linalg::triangularize`], [`crate::linalg::PreArray`]), on the stack:
 //! * predict: [F S, L_Q] → [S⁻, 0], since F S Sᵀ Fᵀ + L_Q L_Qᵀ = F P Fᵀ + Q;
 //! * update:  [[L_R, H S⁻], [0, S⁻]] → [[L_S, 0], [K̄, S]], where L_S L_Sᵀ = S (the innovation
 //!   covariance), K = K̄ L_S⁻¹ and S Sᵀ = (I − K H) P⁻; then x̂ = x̂⁻ + K̄ (L_S⁻¹ ν).
@@ -14,10 +15,8 @@
 //! Kaminski, Bryson & Schmidt, "Discrete square root filtering: a survey of current
 //! techniques", IEEE TAC 16(6), 1971; Verhaegen & Van Dooren (1986), the seed's [8].
 
-use nalgebra::DMatrix;
-
 use super::{Filter, FilterError, Innovation, check_finite, mask_rows};
-use crate::linalg::{Matrix, SmallCholesky, Vector, triangularize};
+use crate::linalg::{Matrix, PreArray, SmallCholesky, Vector, triangularize};
 use crate::model::{Measurement, Model};
 
 /// Square-root filter configuration: the assumed Q and R (both positive definite).
@@ -80,12 +79,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     ) -> Result<(), FilterError> {
         let f = model.transition_jacobian(&b.x, u);
         let l_q = factor(&self.q, "process noise Q")?;
-        let fs = f * b.s;
-        let pre = DMatrix::<f64>::from_fn(NX, 2 * NX, |i, j| {
-            if j < NX { fs[(i, j)] } else { l_q[(i, j - NX)] }
-        });
-        let post = triangularize(&pre);
-        b.s = Matrix::<NX, NX>::from_fn(|i, j| post[(i, j)]);
+        b.s = triangularize(&(f * b.s), &l_q);
         b.x = model.propagate(&b.x, u);
         b.f = f;
         b.i_kh = Matrix::<NX, NX>::identity();
@@ -106,27 +100,16 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
         let r = mask_rows(&self.r, z.available, &mut h, &mut nu);
         let l_r = factor(&r, "measurement noise R")?;
-        let hs = h * b.s;
-        let n = NZ + NX;
-        let mut pre = DMatrix::<f64>::zeros(n, n);
-        for i in 0..NZ {
-            for j in 0..NZ {
-                pre[(i, j)] = l_r[(i, j)];
-            }
-            for j in 0..NX {
-                pre[(i, NZ + j)] = hs[(i, j)];
-            }
-        }
-        for i in 0..NX {
-            for j in 0..NX {
-                pre[(NZ + i, NZ + j)] = b.s[(i, j)];
-            }
-        }
-        let post = triangularize(&pre);
-        let l_s = Matrix::<NZ, NZ>::from_fn(|i, j| post[(i, j)]);
-        let k_bar = Matrix::<NX, NZ>::from_fn(|i, j| post[(NZ + i, j)]);
-        // L_S has a positive diagonal, so it is S's Cholesky factor; a zero pivot means S is
-        // singular.
+        let mut pre = PreArray {
+            a11: l_r,
+            a12: h * b.s,
+            a21: Matrix::<NX, NZ>::zeros(),
+            a22: b.s,
+        };
+        pre.triangularize();
+        let (l_s, k_bar) = (pre.a11, pre.a21);
+        // L_S's diagonal is non-negative, so with no zero pivot L_S is S's Cholesky factor; a
+        // zero pivot means S is singular.
         if (0..NZ).any(|i| l_s[(i, i)].partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater)) {
             return Err(FilterError::NotPositiveDefinite {
                 which: "innovation covariance S",
@@ -138,7 +121,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
                 which: "innovation covariance S",
             })?;
         b.x += k_bar * whitened;
-        b.s = Matrix::<NX, NX>::from_fn(|i, j| post[(NZ + i, NZ + j)]);
+        b.s = pre.a22;
         // K = K̄ L_S⁻¹, i.e. Kᵀ = L_S⁻ᵀ K̄ᵀ; only the error transition needs it.
         if let Some(kt) = l_s.transpose().solve_upper_triangular(&k_bar.transpose()) {
             b.i_kh = Matrix::<NX, NX>::identity() - kt.transpose() * h;
