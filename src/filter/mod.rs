@@ -8,6 +8,7 @@
 
 pub mod ekf;
 pub mod information;
+pub mod luenberger;
 pub mod running_mean;
 pub mod sqrt;
 pub mod steady_state;
@@ -17,6 +18,9 @@ use crate::model::{Availability, Measurement, Model};
 
 pub use ekf::{CovarianceUpdate, Ekf};
 pub use information::Information;
+pub use luenberger::{
+    Luenberger, PlacementError, SeedPoleReading, place_observer_poles, seed_poles,
+};
 pub use running_mean::RunningMean;
 pub use sqrt::SquareRoot;
 pub use steady_state::SteadyState;
