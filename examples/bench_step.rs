@@ -353,9 +353,9 @@ fn bench_l1() {
         r,
         update_form: CovarianceUpdate::Standard,
     };
-    let info = Information { q, r };
+    let info = Information::new(q, r);
     let sqrt_old = OldSqrt { q, r };
-    let sqrt_new = SquareRoot { q, r };
+    let sqrt_new = SquareRoot::new(q, r);
 
     // All five compute the same estimate; a wrong "fast" filter would show here.
     let reference = hand_kf_pass(&model, &x_hat0, controls, zs, &q, &r);

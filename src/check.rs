@@ -63,6 +63,10 @@ impl Table {
         let col = self.df.column(c).map_err(|e| self.err(e))?;
         Ok(col.f64().map_err(|e| self.err(e))?.iter().collect())
     }
+    fn i64(&self, c: &str) -> Result<Vec<Option<i64>>, OutputError> {
+        let col = self.df.column(c).map_err(|e| self.err(e))?;
+        Ok(col.i64().map_err(|e| self.err(e))?.iter().collect())
+    }
     fn bool(&self, c: &str) -> Result<Vec<Option<bool>>, OutputError> {
         let col = self.df.column(c).map_err(|e| self.err(e))?;
         Ok(col.bool().map_err(|e| self.err(e))?.iter().collect())
@@ -93,6 +97,10 @@ impl Table {
             filter: f,
         })
     }
+}
+
+fn fmt_g(v: Option<f64>) -> String {
+    v.map_or("—".into(), |x| format!("{x}"))
 }
 
 fn fmt(v: Option<f64>) -> String {
@@ -134,6 +142,12 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                     filter: f,
                 } = t.cells()?;
                 let test = t.str("test")?;
+                // With subsets, one cell holds the same test at several (runs, α): name them.
+                let subsets = plan
+                    .consistency
+                    .as_ref()
+                    .is_some_and(|c| !c.subsets.is_empty());
+                let (alpha, n_runs) = (t.f64("alpha")?, t.i64("runs")?);
                 let (stat, lo, hi, p, pass, dir) = (
                     t.f64("statistic")?,
                     t.f64("lower")?,
@@ -146,10 +160,14 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                     if !matches(&sc[i], &f[i]) || !tests.contains(&test[i]) {
                         continue;
                     }
+                    let mut cell = names[i].clone();
+                    if subsets {
+                        cell += &format!(" N={} α={}", n_runs[i].unwrap_or(0), fmt_g(alpha[i]));
+                    }
                     let label = if tests.len() > 1 || kind == "test_passes" {
-                        format!("{kind}[{} {}]", names[i], test[i])
+                        format!("{kind}[{cell} {}]", test[i])
                     } else {
-                        format!("{kind}[{}]", names[i])
+                        format!("{kind}[{cell}]")
                     };
                     let bounds = match (lo[i], hi[i]) {
                         (Some(l), Some(h)) => format!("in [{}, {}]", fmt(Some(l)), fmt(Some(h))),

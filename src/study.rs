@@ -49,6 +49,8 @@ struct CellState {
     acc: Vec<StepAccumulator>,
     /// Per filter: the runs' consistency sums (when the study asks for the tests).
     consistency: Vec<Vec<RunConsistency>>,
+    /// Per filter: the run index of each entry of `consistency` (for the subset tests).
+    consistency_runs: Vec<Vec<usize>>,
     /// Per filter: RMSE rows of the runs that completed (failures excluded).
     rmse: Vec<Vec<Vec<f64>>>,
     failed: Vec<u64>,
@@ -92,6 +94,7 @@ impl Aggregator<'_> {
                     acc: vec![StepAccumulator::new(nx, steps); nf],
                     rmse: vec![Vec::with_capacity(plan.runs); nf],
                     consistency: vec![Vec::new(); nf],
+                    consistency_runs: vec![Vec::new(); nf],
                     failed: vec![0; nf],
                 },
             ));
@@ -119,6 +122,7 @@ impl Aggregator<'_> {
             cell.acc[fi].fold(&fr.steps);
             if let Some(c) = &fr.consistency {
                 cell.consistency[fi].push(c.clone());
+                cell.consistency_runs[fi].push(run);
             }
             if failed {
                 cell.failed[fi] += 1;
@@ -217,35 +221,42 @@ impl Aggregator<'_> {
                 }
                 self.steps.push(&row)?;
             }
-            if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency) {
+            if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency.as_ref()) {
                 let frac = |i: u64, n: u64| (n > 0).then(|| i as f64 / n as f64);
-                let runs = &cell.consistency[fi];
-                let burn_in = runs
-                    .iter()
-                    .map(|r| r.first_step)
-                    .try_fold(0usize, |m, s| s.map(|s| m.max(s)));
-                for t in cell_tests(
-                    runs,
-                    self.states.len(),
-                    &self.states,
+                let all = &cell.consistency[fi];
+                // The whole cell at the study's α, then each subset: its first N runs at its α
+                // (the per-step fractions are descriptive and kept for the whole cell only).
+                let mut evaluations = vec![(
+                    all.as_slice(),
                     cp.alpha,
                     (frac(nees_in, nees_steps), frac(nis_in, nis_steps)),
-                ) {
-                    let mut row = cell_key(sname, noise, f).to_vec();
-                    row.extend([
-                        Value::Str(&t.test),
-                        Value::F64(Some(t.statistic)),
-                        Value::F64(t.lower),
-                        Value::F64(t.upper),
-                        Value::F64(t.dof),
-                        Value::F64(t.p_value),
-                        Value::Bool(Some(t.pass)),
-                        Value::Str(t.direction.map_or("", |d| d.label())),
-                        Value::F64(Some(cp.alpha)),
-                        Value::I64(Some(runs.len() as i64)),
-                        Value::I64(burn_in.map(|b| b as i64)),
-                    ]);
-                    w.push(&row)?;
+                )];
+                for &(n_runs, alpha) in &cp.subsets {
+                    let upto = cell.consistency_runs[fi].partition_point(|&r| r < n_runs);
+                    evaluations.push((&all[..upto], alpha, (None, None)));
+                }
+                for (runs, alpha, inside) in evaluations {
+                    let burn_in = runs
+                        .iter()
+                        .map(|r| r.first_step)
+                        .try_fold(0usize, |m, s| s.map(|s| m.max(s)));
+                    for t in cell_tests(runs, self.states.len(), &self.states, alpha, inside) {
+                        let mut row = cell_key(sname, noise, f).to_vec();
+                        row.extend([
+                            Value::Str(&t.test),
+                            Value::F64(Some(t.statistic)),
+                            Value::F64(t.lower),
+                            Value::F64(t.upper),
+                            Value::F64(t.dof),
+                            Value::F64(t.p_value),
+                            Value::Bool(Some(t.pass)),
+                            Value::Str(t.direction.map_or("", |d| d.label())),
+                            Value::F64(Some(alpha)),
+                            Value::I64(Some(runs.len() as i64)),
+                            Value::I64(burn_in.map(|b| b as i64)),
+                        ]);
+                        w.push(&row)?;
+                    }
                 }
             }
             let mut means = Vec::with_capacity(self.states.len());

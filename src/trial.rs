@@ -7,7 +7,8 @@
 
 use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
 use crate::filter::{
-    Ekf, Filter, FilterError, Information, Innovation, RunningMean, SquareRoot, SteadyState,
+    BatchInitial, Ekf, Filter, FilterError, Information, Innovation, Luenberger, OpenLoop,
+    RunningMean, SquareRoot, SteadyState,
 };
 use crate::linalg::{Matrix, SmallCholesky, Vector, diag_from_std};
 use crate::metrics::{FilterRun, RunConsistency, StepValues};
@@ -72,8 +73,11 @@ pub trait Trial: Sync {
 pub struct ConsistencyOptions {
     /// Innovation-whiteness lags 1..=L.
     pub lags: usize,
-    /// Whether x̂_0 equals the truth, so a burn-in is needed until the prior is forgotten.
+    /// Whether the prior is not an independent draw (x̂_0 = x_0, or a batch estimate from the
+    /// same measurements), so a burn-in is needed until it is forgotten.
     pub burn_in: bool,
+    /// Whether to record the NEES of x̂_0 (an estimate whose covariance is to be tested).
+    pub initial_nees: bool,
 }
 
 /// The initial-error term tr(P_k⁻¹ G_k) below which a step counts as free of the prior.
@@ -292,6 +296,7 @@ where
         values.nis[k] = nis;
         values.completed = k + 1;
     }
+    let nees0 = values.nees[0];
     let mut run = values.finish(failure, ctx.thresholds, ctx.state_names, repairs);
     run.consistency = match (after_burn_in, from_start) {
         (Some(w), _) => Some(w.sums),
@@ -303,6 +308,9 @@ where
         }
         _ => None,
     };
+    if let Some(c) = run.consistency.as_mut() {
+        c.initial_nees = opts.is_some_and(|o| o.initial_nees).then_some(nees0);
+    }
     FilterOutput {
         run,
         trace: est.zip(var),
@@ -323,7 +331,8 @@ pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
         ctx: &RunContext<'_, NX, NU, NZ>,
     ) -> Option<FilterOutput>;
 
-    /// Dispatches `kind` with assumed noise `q`, `r`.
+    /// Dispatches `kind` with assumed noise `q`, `r` (every kind except `steady_state` and
+    /// `pole_placement`, which a [`Study`] prepares once and runs itself).
     fn run_kind(
         &self,
         kind: &FilterKind,
@@ -341,9 +350,21 @@ pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
                 },
                 ctx,
             ),
-            FilterKind::Information => run_filter(self, &Information { q, r }, ctx),
-            FilterKind::Sqrt => run_filter(self, &SquareRoot { q, r }, ctx),
-            FilterKind::SteadyState => run_filter(self, &SteadyState::new(self, &q, &r), ctx),
+            FilterKind::Information => run_filter(self, &Information::new(q, r), ctx),
+            FilterKind::Sqrt => run_filter(self, &SquareRoot::new(q, r), ctx),
+            FilterKind::OpenLoop => run_filter(
+                self,
+                &OpenLoop {
+                    predictor: Ekf {
+                        q,
+                        r,
+                        update_form: crate::filter::CovarianceUpdate::Standard,
+                    },
+                },
+                ctx,
+            ),
+            // Filters prepared once per study (a DARE solution, a placed gain) are run by
+            // `Study`, which caches them; everything else is cheap to build per run.
             other => self.run_model_specific(other, ctx).unwrap_or_else(|| {
                 unreachable!("plan validation rejects {} for this model", other.tag())
             }),
@@ -397,6 +418,12 @@ pub struct Study<const NX: usize, const NU: usize, const NZ: usize, M> {
     model_q: Option<Matrix<NX, NX>>,
     plan: Plan,
     state_names: Vec<&'static str>,
+    /// Per scenario: the batch least-squares estimator of x_0 (initial mode `batch_ls`).
+    batch: Option<Vec<BatchInitial<NX>>>,
+    /// Per filter entry: the placed observer (pole_placement filters).
+    observers: Vec<Option<Luenberger<NX, NZ>>>,
+    /// Per (filter entry, noise scale): the DARE solution, solved on first use.
+    steady: Vec<std::sync::OnceLock<SteadyState<NX, NZ>>>,
 }
 
 impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>>
@@ -408,7 +435,43 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
         let p0_factor = (plan.initial == InitialMode::Sampled)
             .then(|| Matrix::<NX, NX>::from_diagonal(&p0_std));
         let state_names = model.names().states;
+        // The batch estimator assumes the truth's noise at scale 1; validation built the same
+        // estimator for every scenario already, so it cannot fail here.
+        let batch = (plan.initial == InitialMode::BatchLs).then(|| {
+            let q = model.process_noise_covariance().unwrap_or_else(|| {
+                diag_from_std(&Vector::<NX>::from_column_slice(
+                    &plan.model.process_noise_std,
+                ))
+            });
+            let r = diag_from_std(&Vector::<NZ>::from_column_slice(
+                &plan.model.measurement_noise_std,
+            ));
+            scenarios
+                .iter()
+                .map(|s| {
+                    BatchInitial::new(&model, &s.controls, &q, &r)
+                        .expect("plan validation builds the batch estimator of every scenario")
+                })
+                .collect()
+        });
+        let observers = plan
+            .filters
+            .iter()
+            .map(|f| match &f.kind {
+                FilterKind::PolePlacement { poles } => Some(
+                    Luenberger::from_poles(&model, poles)
+                        .expect("plan validation places every pole_placement filter"),
+                ),
+                _ => None,
+            })
+            .collect();
+        let steady = (0..plan.filters.len() * plan.noise_scales.len())
+            .map(|_| std::sync::OnceLock::new())
+            .collect();
         Study {
+            batch,
+            observers,
+            steady,
             noise: TruthNoise {
                 process_std: Vector::<NX>::from_column_slice(&plan.model.process_noise_std),
                 measurement_std: Vector::<NZ>::from_column_slice(&plan.model.measurement_noise_std),
@@ -433,7 +496,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
         let noise_scale = plan.noise_scales[unit.scale];
         let seed = run_seed(plan.master_seed, &scenario.name, unit.run as u64);
         let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
-        let trajectory = simulate(
+        let mut trajectory = simulate(
             &self.model,
             scenario,
             &self.noise,
@@ -442,26 +505,35 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
             &draws,
         );
         let traced = unit.run < plan.trace_runs;
-        let ctx = RunContext {
-            scenario,
-            trajectory: &trajectory,
-            p0: &self.p0,
-            thresholds: plan.rmse_thresholds.as_deref(),
-            state_names: &self.state_names,
-            trace: traced,
-            consistency: plan.consistency.map(|c| ConsistencyOptions {
-                lags: c.whiteness_lags,
-                burn_in: plan.initial == InitialMode::Truth,
-            }),
-        };
         let filter_scale = match plan.filter_noise {
             FilterNoiseMode::Nominal => 1.0,
             FilterNoiseMode::Matched => noise_scale,
         };
+        let p0 = match &self.batch {
+            Some(batch) => {
+                let b = &batch[unit.scenario];
+                trajectory.x0_hat = b.estimate(&trajectory.measurements);
+                b.covariance * (filter_scale * filter_scale)
+            }
+            None => self.p0,
+        };
+        let ctx = RunContext {
+            scenario,
+            trajectory: &trajectory,
+            p0: &p0,
+            thresholds: plan.rmse_thresholds.as_deref(),
+            state_names: &self.state_names,
+            trace: traced,
+            consistency: plan.consistency.as_ref().map(|c| ConsistencyOptions {
+                lags: c.whiteness_lags,
+                burn_in: plan.initial != InitialMode::Sampled,
+                initial_nees: plan.initial == InitialMode::BatchLs,
+            }),
+        };
         let mut filters = Vec::with_capacity(plan.filters.len());
         let mut est = Vec::new();
         let mut var = Vec::new();
-        for f in &plan.filters {
+        for (fi, f) in plan.filters.iter().enumerate() {
             let q = match &self.model_q {
                 Some(q) => q * (filter_scale * filter_scale * f.q_scale),
                 None => {
@@ -471,7 +543,18 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>
             };
             let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale))
                 * f.r_scale;
-            let out = self.model.run_kind(&f.kind, q, r, &ctx);
+            let out = match &f.kind {
+                FilterKind::SteadyState => {
+                    let slot = &self.steady[fi * plan.noise_scales.len() + unit.scale];
+                    let filter = slot.get_or_init(|| SteadyState::new(&self.model, &q, &r));
+                    run_filter(&self.model, filter, &ctx)
+                }
+                FilterKind::PolePlacement { .. } => {
+                    let observer = self.observers[fi].as_ref().expect("built for this entry");
+                    run_filter(&self.model, observer, &ctx)
+                }
+                kind => self.model.run_kind(kind, q, r, &ctx),
+            };
             if let Some((e, v)) = out.trace {
                 est.push(e);
                 var.push(v);

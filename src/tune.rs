@@ -123,6 +123,7 @@ fn stage(
     p.consistency = Some(ConsistencyPlan {
         alpha: plan.alpha,
         whiteness_lags: 0,
+        subsets: Vec::new(),
     });
     p.filters = grid
         .iter()

@@ -205,6 +205,9 @@ fn list_names_the_models_scenarios_and_filters() {
         "fall",
         "ekf",
         "running_mean",
+        "open_loop",
+        "pole_placement",
+        "batch_ls",
     ] {
         assert!(out.contains(n), "list lacks {n}");
     }
@@ -232,6 +235,14 @@ fn check_passes_on_the_tuned_spec_and_fails_with_exit_3_when_q_is_mistuned() {
         "{xml}"
     );
     assert_eq!(xml.matches("<testcase ").count(), 6);
+    // The summary prints the verdicts next to the RMSE table.
+    let (code, summary, _) = output(&["summary", out.to_str().unwrap()]);
+    assert_eq!(code, 0);
+    assert!(
+        summary.contains("Consistency (") && summary.contains("basic     1            ekf"),
+        "{summary}"
+    );
+    assert_eq!(summary.matches("  pass").count(), 2, "{summary}");
 
     let text = std::fs::read_to_string(&spec)
         .unwrap()

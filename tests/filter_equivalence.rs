@@ -14,8 +14,9 @@ use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
 use kfmc::sim::{NoiseDraws, Trajectory, TruthNoise, simulate};
 
-/// x̂_k and P_k after every step k = 0..=K.
-type History = Vec<(Vector<6>, Matrix<6, 6>)>;
+/// x̂_k, P_k and the error transition A_k = (I − K_k H_k) F_k after every step k = 0..=K
+/// (A_0 = I). A_k feeds the calibrated NEES test, so every form must expose the same one.
+type History = Vec<(Vector<6>, Matrix<6, 6>, Matrix<6, 6>)>;
 
 fn history<const NZ: usize, F: Filter<6, 4, NZ, Linear<NZ>>>(
     model: &Linear<NZ>,
@@ -29,11 +30,21 @@ fn history<const NZ: usize, F: Filter<6, 4, NZ, Linear<NZ>>>(
         &Matrix::identity(),
         &traj.measurements[0],
     );
-    let mut out = vec![(filter.mean(&b), filter.covariance(&b).unwrap())];
+    let mut out = vec![(
+        filter.mean(&b),
+        filter.covariance(&b).unwrap(),
+        Matrix::identity(),
+    )];
     for z in &traj.measurements[1..] {
         filter.predict(model, &mut b, &u).expect("predict");
         filter.update(model, &mut b, &u, z).expect("update");
-        out.push((filter.mean(&b), filter.covariance(&b).unwrap()));
+        out.push((
+            filter.mean(&b),
+            filter.covariance(&b).unwrap(),
+            filter
+                .error_transition(&b)
+                .expect("a linear-Gaussian filter has A_k"),
+        ));
     }
     out
 }
@@ -65,9 +76,9 @@ const FILTERS: &[(&str, Run3)] = &[
         )
     }),
     ("information", |m, q, r, t| {
-        history(m, &Information { q, r }, t)
+        history(m, &Information::new(q, r), t)
     }),
-    ("sqrt", |m, q, r, t| history(m, &SquareRoot { q, r }, t)),
+    ("sqrt", |m, q, r, t| history(m, &SquareRoot::new(q, r), t)),
 ];
 
 /// One seeded L1 run with the seed's x̂_0 = [1,0,1,0,1,0], P_0 = I, the truth drawn from
@@ -116,8 +127,8 @@ fn kf_information_and_sqrt_agree_to_1e_9() {
             assert_eq!(reference.len(), 401);
             for (i, (name, run)) in FILTERS.iter().enumerate() {
                 let h = run(&model, q, r, &t);
-                for (k, ((x, p), (xr, pr))) in h.iter().zip(&reference).enumerate() {
-                    let e = (x - xr).amax().max((p - pr).amax());
+                for (k, ((x, p, a), (xr, pr, ar))) in h.iter().zip(&reference).enumerate() {
+                    let e = (x - xr).amax().max((p - pr).amax()).max((a - ar).amax());
                     assert!(e <= 1e-9, "{name} ({sensor:?}) differs at k = {k} by {e:e}");
                     worst[i] = worst[i].max(e);
                 }

@@ -29,15 +29,17 @@ fn spec(sensor: &str, filter: &str) -> String {
 }
 
 #[test]
-fn shipped_linear_nees_spec_is_the_seeds_test_1() {
+fn shipped_linear_nees_spec_holds_the_seeds_three_tests() {
     let plan = experiment::load(
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/linear_nees.toml"),
     )
     .expect("valid spec");
     assert_eq!(plan.model.kind, ModelKind::LinearPositions);
-    assert_eq!(plan.runs, 50);
+    assert_eq!(plan.runs, 200);
     assert_eq!(plan.model.params.dt_s, 0.1);
-    assert_eq!(plan.consistency.unwrap().alpha, 0.05);
+    let c = plan.consistency.as_ref().unwrap();
+    assert_eq!(c.alpha, 0.003);
+    assert_eq!(c.subsets, [(50, 0.05), (100, 0.01)]);
     let labels: Vec<_> = plan.filters.iter().map(|f| f.label.as_str()).collect();
     assert_eq!(labels, ["kf", "information", "sqrt", "steady_state"]);
     assert_eq!(plan.filters[1].kind, FilterKind::Information);
@@ -80,6 +82,111 @@ fn linear_spec_errors_name_their_key() {
     assert_eq!(errors(planar)[0].0, "filters[0].kind");
 }
 
+#[test]
+fn new_linear_keys_report_errors_at_their_key_paths() {
+    let pos = |extra: &str| spec("positions", "ekf") + extra;
+    let first = |text: &str| {
+        let e = errors(text);
+        assert!(!e.is_empty(), "no error for:\n{text}");
+        e[0].0.clone()
+    };
+    // Batch least squares needs an observable sensor set and makes its own P0.
+    let batch = "[initial_estimate]\nmode = \"batch_ls\"\n";
+    assert!(errors(&pos(batch)).is_empty());
+    let e = errors(&(spec("xy", "ekf") + batch));
+    assert_eq!(e[0].0, "initial_estimate.mode");
+    assert!(e[0].1.contains("rank"), "{e:?}");
+    assert_eq!(
+        first(&pos(
+            "[initial_estimate]\nmode = \"batch_ls\"\np0_std = 2.0\n"
+        )),
+        "initial_estimate.p0_std"
+    );
+    // A one-sample run cannot determine six states from three measurements.
+    let short =
+        spec("positions", "ekf").replace("name = \"hover\"", "name = \"hover\"\nduration_s = 0.1");
+    let e = errors(&(short + batch));
+    assert_eq!(e[0].0, "initial_estimate.mode");
+    assert!(e[0].1.contains("rank 3 of 6"), "{e:?}");
+    // Subsets must fit inside the study.
+    // (BASE has the default 100 runs.)
+    assert_eq!(
+        first(&pos(
+            "[consistency]\n[[consistency.subsets]]\nruns = 200\nalpha = 0.05\n"
+        )),
+        "consistency.subsets[0].runs"
+    );
+    assert_eq!(
+        first(&pos(
+            "[consistency]\n[[consistency.subsets]]\nruns = 20\nalpha = 1.5\n"
+        )),
+        "consistency.subsets[0].alpha"
+    );
+    // open_loop never updates, so R settings would be silently ignored.
+    let ol = spec("positions", "open_loop");
+    assert!(errors(&ol).is_empty());
+    assert_eq!(
+        first(&ol.replace(
+            "kind = \"open_loop\"",
+            "kind = \"open_loop\"\nr_scale = 2.0"
+        )),
+        "filters[0].r_scale"
+    );
+    // Pole placement: poles or the seed's list, on the observable sensor set only.
+    let pp = spec("positions", "pole_placement");
+    assert_eq!(first(&pp), "filters[0]");
+    let with = |extra: &str| {
+        pp.replace(
+            "kind = \"pole_placement\"",
+            &format!("kind = \"pole_placement\"\n{extra}"),
+        )
+    };
+    assert!(errors(&with("pole_scale = 0.5")).is_empty());
+    assert_eq!(
+        first(&with("pole_scale = 0.5\npoles = [[0.1, 0.0]]")),
+        "filters[0].poles"
+    );
+    assert_eq!(first(&with("pole_scale = -0.5")), "filters[0].pole_scale");
+    assert_eq!(
+        first(&with("pole_scale = 0.5\npole_reading = \"sideways\"")),
+        "filters[0].pole_reading"
+    );
+    assert_eq!(
+        first(&with("poles = [[0.1, 0.0], [0.2, 0.0, 0.3]]")),
+        "filters[0].poles[1]"
+    );
+    // Five poles for six states, and a complex pole without its conjugate.
+    assert_eq!(
+        first(&with("poles = [[0.1], [0.2], [0.3], [0.4], [0.5]]")),
+        "filters[0].poles"
+    );
+    assert_eq!(
+        first(&with(
+            "poles = [[0.1, 0.2], [0.1, 0.2], [0.3], [0.4], [0.5], [0.6]]"
+        )),
+        "filters[0].poles"
+    );
+    assert!(
+        errors(&with(
+            "poles = [[0.1, 0.2], [0.1, -0.2], [0.3], [0.4], [0.5], [0.6]]"
+        ))
+        .is_empty()
+    );
+    assert_eq!(
+        first(&with("pole_scale = 0.5\nq_scale = 2.0")),
+        "filters[0].q_scale"
+    );
+    let e = errors(&spec("velocities", "pole_placement").replace(
+        "kind = \"pole_placement\"",
+        "kind = \"pole_placement\"\npole_scale = 0.5",
+    ));
+    assert_eq!(e[0].0, "filters[0].kind", "{e:?}");
+    assert_eq!(
+        first(&pos("").replace("kind = \"ekf\"", "kind = \"ekf\"\npole_scale = 0.5")),
+        "filters[0].pole_scale"
+    );
+}
+
 /// The whole pipeline on L1: the three linear-Gaussian filters of `linear_nees.toml` produce
 /// the same per-run RMSE and NEES (paired runs), the truth's Q is the model's full Q, and the
 /// consistency verdict of the KF passes at the seed's α = 0.05.
@@ -98,13 +205,13 @@ fn linear_nees_study_runs_and_the_three_forms_agree() {
         "output = \"results/linear_nees\"",
         &format!("output = \"{}\"", dir.path().join("out").display()),
     )
-    .replace("runs = 50", "runs = 8");
+    .replace("runs = 200", "runs = 100");
     let path = dir.path().join("spec.toml");
     std::fs::write(&path, text).unwrap();
     let plan = experiment::load(&path).unwrap();
     run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
     let df = read(&plan.output.join("runs.parquet")).unwrap();
-    assert_eq!(df.height(), 8 * 4);
+    assert_eq!(df.height(), 100 * 4);
     let filter = df.column("filter").unwrap().str().unwrap().clone();
     let col = |name: &str| df.column(name).unwrap().f64().unwrap().clone();
     let (rx, rzd, nees) = (col("rmse_x"), col("rmse_zdot"), col("nees_mean"));
@@ -114,7 +221,7 @@ fn linear_nees_study_runs_and_the_three_forms_agree() {
             .collect()
     };
     let kf = rows("kf");
-    assert_eq!(kf.len(), 8);
+    assert_eq!(kf.len(), 100);
     for other in ["information", "sqrt"] {
         for (a, b) in kf.iter().zip(rows(other)) {
             for c in [&rx, &rzd, &nees] {

@@ -244,9 +244,24 @@ fn list() -> String {
             FilterKind::SteadyState,
             "fixed-gain KF from the discrete Riccati equation (linear_quadrotor, sensor positions)",
         ),
+        (
+            FilterKind::OpenLoop,
+            "the time update alone (measurements ignored): propagated covariance vs Monte Carlo spread",
+        ),
+        (
+            FilterKind::PolePlacement { poles: Vec::new() },
+            "Luenberger observer, gain by MIMO pole placement; poles = [[re, im], …] or pole_scale = a \
+             (seed list a·{−0.707±0.707i, 1, −0.3536±0.3536i, 0.5}), pole_reading = printed | negated \
+             (linear_quadrotor, sensor positions); no covariance, so NEES/NIS are null",
+        ),
     ] {
-        s.push_str(&format!("  {:<13} {d}\n", k.tag()));
+        s.push_str(&format!("  {:<15} {d}\n", k.tag()));
     }
+    s.push_str(
+        "initial estimates (initial_estimate.mode):\n  truth     x̂0 = x0, P0 = diag(p0_std²) (the seeds)\n  \
+         sampled   x̂0 ~ N(x0, P0), one draw per run shared by all filters\n  \
+         batch_ls  x̂0, P0 by generalised least squares on z_1..z_K (linear_quadrotor, sensor positions)\n",
+    );
     s
 }
 
@@ -363,6 +378,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
                 .get_or_insert(crate::experiment::plan::ConsistencyPlan {
                     alpha: plan.alpha,
                     whiteness_lags: 5,
+                    subsets: Vec::new(),
                 });
             let observer = ProgressObserver::new(!quiet);
             let report =

@@ -127,6 +127,11 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
         out.push('\n');
     }
 
+    let cpath = dir.join("consistency.parquet");
+    if cpath.exists() {
+        out.push_str(&consistency_section(&cpath, noise_scale)?);
+    }
+
     let dpath = dir.join("divergence.parquet");
     if dpath.exists() {
         let d = read(&dpath)?;
@@ -153,6 +158,136 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
                 num(p50[i])
             );
         }
+    }
+    Ok(out)
+}
+
+/// One line per cell × filter × (runs, α): the time-averaged NEES and NIS with their bands,
+/// the initial-estimate NEES when there is one, and the verdict.
+fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
+    let df = read(path)?;
+    let scen = strs(&df, "scenario", path)?;
+    let filt = strs(&df, "filter", path)?;
+    let test = strs(&df, "test", path)?;
+    let dirn = strs(&df, "direction", path)?;
+    let noise = f64s(&df, "noise_scale", path)?;
+    let (q, r) = (f64s(&df, "q_scale", path)?, f64s(&df, "r_scale", path)?);
+    let (stat, lo, hi) = (
+        f64s(&df, "statistic", path)?,
+        f64s(&df, "lower", path)?,
+        f64s(&df, "upper", path)?,
+    );
+    let alpha = f64s(&df, "alpha", path)?;
+    let pass: Vec<Option<bool>> = df
+        .column("pass")
+        .and_then(|c| c.bool().cloned())
+        .map_err(|e| fmt_err(path, e))?
+        .iter()
+        .collect();
+    let runs: Vec<Option<i64>> = df
+        .column("runs")
+        .and_then(|c| c.i64().cloned())
+        .map_err(|e| fmt_err(path, e))?
+        .iter()
+        .collect();
+    let g = |v: Option<f64>| v.map_or("—".to_string(), |x| format!("{x}"));
+    // Row key (in table order) → [ANEES, ANIS, x0 NEES, verdict] texts.
+    let mut keys: Vec<[String; 5]> = Vec::new();
+    let mut cols: Vec<[String; 4]> = Vec::new();
+    for i in 0..df.height() {
+        let nz = noise[i].unwrap_or(f64::NAN);
+        if noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0)) {
+            continue;
+        }
+        let slot = match test[i].as_str() {
+            "nees_time_average" => 0,
+            "nis_time_average" => 1,
+            "initial_nees" => 2,
+            "verdict" => 3,
+            _ => continue,
+        };
+        let label = match (q[i], r[i]) {
+            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{} q×{q} r×{r}", filt[i]),
+            _ => filt[i].clone(),
+        };
+        let key = [
+            scen[i].clone(),
+            g(noise[i]),
+            label,
+            runs[i].map_or("—".into(), |n| n.to_string()),
+            g(alpha[i]),
+        ];
+        let idx = match keys.iter().position(|k| *k == key) {
+            Some(p) => p,
+            None => {
+                keys.push(key);
+                cols.push(Default::default());
+                keys.len() - 1
+            }
+        };
+        cols[idx][slot] = if slot == 3 {
+            match pass[i] {
+                Some(true) => "pass".into(),
+                _ if dirn[i].is_empty() => "FAIL".into(),
+                _ => format!("FAIL ({})", dirn[i]),
+            }
+        } else {
+            format!("{} [{}, {}]", num(stat[i]), num(lo[i]), num(hi[i]))
+        };
+    }
+    let mut out = String::new();
+    if keys.is_empty() {
+        return Ok(out);
+    }
+    let has_x0 = cols.iter().any(|c| !c[2].is_empty());
+    let heads = ["scenario", "noise_scale", "filter", "runs", "alpha"];
+    let col_heads = ["ANEES [band]", "ANIS [band]", "x0 NEES [band]", "verdict"];
+    let shown: Vec<usize> = (0..4).filter(|&c| c != 2 || has_x0).collect();
+    let kw: Vec<usize> = (0..5)
+        .map(|j| {
+            keys.iter()
+                .map(|k| k[j].chars().count())
+                .chain([heads[j].len()])
+                .max()
+                .unwrap_or(4)
+        })
+        .collect();
+    let cw: Vec<usize> = (0..4)
+        .map(|j| {
+            cols.iter()
+                .map(|c| c[j].chars().count().max(1))
+                .chain([col_heads[j].chars().count()])
+                .max()
+                .unwrap_or(4)
+        })
+        .collect();
+    out.push_str(
+        "\nConsistency (run-and-time averages with their χ² bands at α; verdict: NEES and NIS both at α/2)\n",
+    );
+    let mut line = String::new();
+    for j in 0..5 {
+        let _ = write!(line, "{:<w$}  ", heads[j], w = kw[j]);
+    }
+    for &j in &shown {
+        let _ = write!(line, "{:<w$}  ", col_heads[j], w = cw[j]);
+    }
+    out.push_str(line.trim_end());
+    out.push('\n');
+    for (k, c) in keys.iter().zip(&cols) {
+        let mut line = String::new();
+        for j in 0..5 {
+            let _ = write!(line, "{:<w$}  ", k[j], w = kw[j]);
+        }
+        for &j in &shown {
+            let text = if c[j].is_empty() {
+                "—"
+            } else {
+                c[j].as_str()
+            };
+            let _ = write!(line, "{:<w$}  ", text, w = cw[j]);
+        }
+        out.push_str(line.trim_end());
+        out.push('\n');
     }
     Ok(out)
 }

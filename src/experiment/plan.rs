@@ -6,8 +6,10 @@ use std::path::{Path, PathBuf};
 use super::spec::{OneOrMany, Scales, Spec};
 
 use crate::error::{SpecError, SpecErrors};
-use crate::filter::CovarianceUpdate;
+use crate::filter::luenberger::{SeedPoleReading, seed_poles};
+use crate::filter::{CovarianceUpdate, Luenberger};
 use crate::model::linear::{ContinuousLinear, LINEAR_DT_S, LINEAR_R_DIAG, LINEAR_STATES};
+use crate::model::linear::{Linear, LinearSensor};
 use crate::model::planar::{PLANAR_STATES, PlanarParams};
 use crate::scenario::planar::{
     BUILTIN_PLANAR, PlanarScenarioDef, ThrustProfile, ThrustStage, builtin,
@@ -92,6 +94,13 @@ pub enum FilterKind {
     Sqrt,
     /// Fixed-gain Kalman filter from the discrete algebraic Riccati equation (linear models).
     SteadyState,
+    /// The time update alone: the prior propagated open loop, measurements ignored.
+    OpenLoop,
+    /// Luenberger observer whose fixed gain places eig((I − K H) F) at `poles` (linear models).
+    PolePlacement {
+        /// The requested closed-loop poles (re, im), closed under conjugation.
+        poles: Vec<(f64, f64)>,
+    },
 }
 
 impl FilterKind {
@@ -103,6 +112,8 @@ impl FilterKind {
             FilterKind::Information => "information",
             FilterKind::Sqrt => "sqrt",
             FilterKind::SteadyState => "steady_state",
+            FilterKind::OpenLoop => "open_loop",
+            FilterKind::PolePlacement { .. } => "pole_placement",
         }
     }
 }
@@ -153,12 +164,14 @@ pub enum Assertion {
 }
 
 /// The validated `[consistency]` section.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct ConsistencyPlan {
     /// Significance level of every test.
     pub alpha: f64,
     /// Whiteness lags 1..=L.
     pub whiteness_lags: usize,
+    /// Extra (runs, α) evaluations of the same tests on the first `runs` runs of each cell.
+    pub subsets: Vec<(usize, f64)>,
 }
 
 /// What the filters assume when the truth noise is scaled.
@@ -177,6 +190,9 @@ pub enum InitialMode {
     Truth,
     /// x̂_0 ~ N(x_0, P_0), drawn once per run and shared by all filters.
     Sampled,
+    /// x̂_0 and P_0 by batch least squares on the run's measurements z_1..z_K
+    /// ([`crate::filter::BatchInitial`]; linear models with an observable sensor set).
+    BatchLs,
 }
 
 /// A validated, expanded experiment.
@@ -452,6 +468,69 @@ fn scale_list(
     out
 }
 
+/// The poles of a pole_placement filter: explicit `poles`, or the seed's list
+/// a·{−0.707 ± 0.707i, 1, −0.3536 ± 0.3536i, 0.5} with `pole_scale` = a and `pole_reading`.
+fn pole_list(c: &mut Checker, key: &str, f: &super::spec::FilterSpec) -> Option<Vec<(f64, f64)>> {
+    match (&f.poles, f.pole_scale) {
+        (Some(poles), None) => {
+            if f.pole_reading.is_some() {
+                c.err(
+                    format!("{key}.pole_reading"),
+                    "only the seed's list (pole_scale) has a reading; explicit poles are exact",
+                );
+            }
+            let mut out = Vec::with_capacity(poles.len());
+            for (i, p) in poles.iter().enumerate() {
+                match p.as_slice() {
+                    [re, im] if re.is_finite() && im.is_finite() => out.push((*re, *im)),
+                    [re] if re.is_finite() => out.push((*re, 0.0)),
+                    _ => {
+                        c.err(
+                            format!("{key}.poles[{i}]"),
+                            format!("expected [re, im] (finite numbers), got {p:?}"),
+                        );
+                        return None;
+                    }
+                }
+            }
+            Some(out)
+        }
+        (None, Some(a)) => {
+            if !positive(a) {
+                c.err(
+                    format!("{key}.pole_scale"),
+                    format!("{a} is not a positive number"),
+                );
+                return None;
+            }
+            let reading = match c.choice(
+                &format!("{key}.pole_reading"),
+                f.pole_reading.as_deref(),
+                "printed",
+                &["printed", "negated"],
+            ) {
+                "negated" => SeedPoleReading::Negated,
+                _ => SeedPoleReading::Printed,
+            };
+            Some(seed_poles(a, reading).to_vec())
+        }
+        (Some(_), Some(_)) => {
+            c.err(
+                format!("{key}.poles"),
+                "give either poles or pole_scale (the seed's list times a), not both",
+            );
+            None
+        }
+        (None, None) => {
+            c.err(
+                key.to_string(),
+                "a pole_placement filter needs poles = [[re, im], …] or pole_scale = a (the seed's list)",
+            );
+            None
+        }
+    }
+}
+
 /// Validates a parsed spec into a plan.
 pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors> {
     let mut c = Checker {
@@ -712,8 +791,27 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             &format!("{key}.kind"),
             Some(&f.kind),
             "ekf",
-            &["ekf", "running_mean", "information", "sqrt", "steady_state"],
+            &[
+                "ekf",
+                "running_mean",
+                "information",
+                "sqrt",
+                "steady_state",
+                "open_loop",
+                "pole_placement",
+            ],
         );
+        if kind_tag != "pole_placement" {
+            c.reject_present(
+                &key,
+                &[
+                    ("poles", f.poles.is_some()),
+                    ("pole_scale", f.pole_scale.is_some()),
+                    ("pole_reading", f.pole_reading.is_some()),
+                ],
+                "only a pole_placement filter has poles",
+            );
+        }
         if linear && f.q_std.is_some() {
             c.err(
                 format!("{key}.q_std"),
@@ -742,6 +840,50 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
                     c.err(format!("{key}.window"), "must be at least 1");
                 }
                 FilterKind::RunningMean { window: w as usize }
+            }
+            "pole_placement" => {
+                c.reject_present(
+                    &key,
+                    &[
+                        ("q_std", f.q_std.is_some()),
+                        ("r_std", f.r_std.is_some()),
+                        ("covariance_update", f.covariance_update.is_some()),
+                        ("window", f.window.is_some()),
+                        ("q_scale", f.q_scale.is_some()),
+                        ("r_scale", f.r_scale.is_some()),
+                    ],
+                    "not used by a pole_placement observer (its gain comes from the poles)",
+                );
+                let poles = pole_list(&mut c, &key, f);
+                if kind != ModelKind::LinearPositions {
+                    c.err(
+                        format!("{key}.kind"),
+                        "pole_placement needs model.kind = \"linear_quadrotor\" with sensor = \"positions\" (the only observable sensor set)",
+                    );
+                } else if let Some(poles) = &poles {
+                    // Place now, so an impossible request is a spec error, not 100 failed runs.
+                    let model = Linear::<3>::new(LinearSensor::Positions, params.dt_s)
+                        .expect("positions has 3 components");
+                    if let Err(e) = Luenberger::<6, 3>::from_poles(&model, poles) {
+                        c.err(format!("{key}.poles"), e.to_string());
+                    }
+                }
+                FilterKind::PolePlacement {
+                    poles: poles.unwrap_or_default(),
+                }
+            }
+            "open_loop" => {
+                c.reject_present(
+                    &key,
+                    &[
+                        ("window", f.window.is_some()),
+                        ("covariance_update", f.covariance_update.is_some()),
+                        ("r_std", f.r_std.is_some()),
+                        ("r_scale", f.r_scale.is_some()),
+                    ],
+                    "not used by an open_loop filter (it never updates)",
+                );
+                FilterKind::OpenLoop
             }
             "information" | "sqrt" | "steady_state" => {
                 c.reject_present(
@@ -806,7 +948,10 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
             positive,
             "a positive number (R must be positive definite)",
         );
-        if matches!(fk, FilterKind::RunningMean { .. }) {
+        if matches!(
+            fk,
+            FilterKind::RunningMean { .. } | FilterKind::PolePlacement { .. }
+        ) {
             c.reject_present(
                 &key,
                 &[
@@ -876,13 +1021,26 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         "initial_estimate.mode",
         ie.and_then(|i| i.mode.as_deref()),
         "truth",
-        &["truth", "sampled"],
+        &["truth", "sampled", "batch_ls"],
     );
-    let initial = if imode == "sampled" {
-        InitialMode::Sampled
-    } else {
-        InitialMode::Truth
+    let initial = match imode {
+        "sampled" => InitialMode::Sampled,
+        "batch_ls" => InitialMode::BatchLs,
+        _ => InitialMode::Truth,
     };
+    if initial == InitialMode::BatchLs {
+        if kind != ModelKind::LinearPositions {
+            c.err(
+                "initial_estimate.mode",
+                "batch_ls needs model.kind = \"linear_quadrotor\" with sensor = \"positions\": the other sensor sets leave x0 undetermined (observability rank 3 or 4 of 6)",
+            );
+        }
+        c.reject_present(
+            "initial_estimate",
+            &[("p0_std", ie.is_some_and(|i| i.p0_std.is_some()))],
+            "not used with mode = \"batch_ls\" (P0 is the least-squares covariance)",
+        );
+    }
     let p0_std = c.vector(
         "initial_estimate.p0_std",
         ie.and_then(|i| i.p0_std.as_ref()),
@@ -891,6 +1049,35 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         positive,
         "a positive number",
     );
+
+    if initial == InitialMode::BatchLs
+        && kind == ModelKind::LinearPositions
+        && positive(params.dt_s)
+        && c.errors.is_empty()
+    {
+        // Build each scenario's estimator now: a sensor schedule or noise level that cannot
+        // determine x0 is a spec error, and the study can then rely on it.
+        let model = Linear::<3>::new(LinearSensor::Positions, params.dt_s)
+            .expect("positions has 3 components");
+        let r = crate::linalg::Matrix::<3, 3>::from_fn(|i, j| {
+            if i == j {
+                measurement_noise_std[i].powi(2)
+            } else {
+                0.0
+            }
+        });
+        for (i, sc) in scenarios.iter().enumerate() {
+            let controls = vec![crate::linalg::Vector::<4>::zeros(); sc.steps(params.dt_s) + 1];
+            if let Err(e) =
+                crate::filter::BatchInitial::new(&model, &controls, &model.discrete().q, &r)
+            {
+                c.err(
+                    "initial_estimate.mode",
+                    format!("batch_ls for scenarios[{i}] (`{}`): {e}", sc.name),
+                );
+            }
+        }
+    }
 
     let rmse_thresholds = spec
         .divergence
@@ -916,9 +1103,33 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
     if whiteness_lags > 50 {
         c.err("consistency.whiteness_lags", "at most 50 lags");
     }
+    let runs = spec.runs.unwrap_or(100);
+    let mut subsets = Vec::new();
+    for (i, sub) in cs.iter().flat_map(|c| c.subsets.iter()).enumerate() {
+        let key = format!("consistency.subsets[{i}]");
+        if sub.runs < 2 || sub.runs > runs {
+            c.err(
+                format!("{key}.runs"),
+                format!("{} is not in 2..={runs} (the study's runs)", sub.runs),
+            );
+        }
+        if !(sub.alpha > 0.0 && sub.alpha < 1.0) {
+            c.err(
+                format!("{key}.alpha"),
+                format!("{} is not in (0, 1)", sub.alpha),
+            );
+        }
+        if subsets.contains(&(sub.runs as usize, sub.alpha))
+            || (sub.runs == runs && sub.alpha == alpha)
+        {
+            c.err(key, "duplicates another (runs, alpha) evaluation");
+        }
+        subsets.push((sub.runs as usize, sub.alpha));
+    }
     let consistency = cs.map(|_| ConsistencyPlan {
         alpha,
         whiteness_lags: whiteness_lags as usize,
+        subsets,
     });
 
     let states = kind.state_names();
@@ -1025,7 +1236,6 @@ pub fn validate(spec: Spec, path: &Path, text: &str) -> Result<Plan, SpecErrors>
         assertions.extend(parsed);
     }
 
-    let runs = spec.runs.unwrap_or(100);
     if runs == 0 {
         c.err("runs", "must be at least 1");
     }

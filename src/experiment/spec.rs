@@ -76,6 +76,20 @@ pub struct ConsistencySpec {
     pub alpha: Option<f64>,
     /// Innovation-whiteness lags 1..=L (default 5).
     pub whiteness_lags: Option<u64>,
+    /// The same tests again on the first `runs` runs at their own α (`[[consistency.subsets]]`).
+    #[serde(default)]
+    pub subsets: Vec<ConsistencySubsetSpec>,
+}
+
+/// `[[consistency.subsets]]`: runs are seeded by their index, so the first N runs of a study
+/// are exactly the runs an N-run study would make; one study can hold several (N, α) tests.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConsistencySubsetSpec {
+    /// N: the first N runs of every cell.
+    pub runs: u64,
+    /// α for this subset.
+    pub alpha: f64,
 }
 
 /// `[model]`
@@ -138,7 +152,8 @@ pub struct StageSpec {
 pub struct FilterSpec {
     /// Label in the tables' `filter` column.
     pub label: String,
-    /// `ekf` or `running_mean`.
+    /// `ekf`, `running_mean`, `information`, `sqrt`, `steady_state`, `open_loop` or
+    /// `pole_placement`.
     pub kind: String,
     /// Assumed process-noise std (default: the model's truth value).
     pub q_std: Option<OneOrMany>,
@@ -152,6 +167,12 @@ pub struct FilterSpec {
     pub q_scale: Option<Scales>,
     /// Multipliers of the assumed R: a sweep axis.
     pub r_scale: Option<Scales>,
+    /// Pole placement: the observer poles as `[re, im]` pairs (default: the seed's list).
+    pub poles: Option<Vec<Vec<f64>>>,
+    /// Pole placement: the multiplier `a` of the seed's pole list.
+    pub pole_scale: Option<f64>,
+    /// Pole placement: `printed` (real poles +a, +a/2) or `negated` (−a, −a/2).
+    pub pole_reading: Option<String>,
 }
 
 /// `[noise]`
@@ -168,7 +189,8 @@ pub struct NoiseSpec {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct InitialEstimateSpec {
-    /// `truth` (the seeds) or `sampled` (x̂_0 ~ N(x_0, P_0)).
+    /// `truth` (the seeds), `sampled` (x̂_0 ~ N(x_0, P_0)) or `batch_ls` (least squares on the
+    /// run's measurements).
     pub mode: Option<String>,
     /// Standard deviations of P_0's diagonal (P_0 = I in the seeds).
     pub p0_std: Option<OneOrMany>,

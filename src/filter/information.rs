@@ -18,15 +18,27 @@
 
 use super::{Filter, FilterError, Innovation, check_finite, mask_rows};
 use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
-use crate::model::{Measurement, Model};
+use crate::model::{Availability, Measurement, Model};
 
-/// Information-filter configuration: the assumed Q and R.
+/// Information-filter configuration: the assumed Q and R, with the inverses the recursion
+/// uses computed once rather than every step.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Information<const NX: usize, const NZ: usize> {
-    /// Assumed process-noise covariance Q (must be positive definite).
-    pub q: Matrix<NX, NX>,
-    /// Assumed measurement-noise covariance R.
-    pub r: Matrix<NZ, NZ>,
+    r: Matrix<NZ, NZ>,
+    q_inv: Result<Matrix<NX, NX>, FilterError>,
+    r_inv: Result<Matrix<NZ, NZ>, FilterError>,
+}
+
+impl<const NX: usize, const NZ: usize> Information<NX, NZ> {
+    /// The filter assuming process noise `q` and measurement noise `r` (both must be positive
+    /// definite; otherwise every run fails at its first step with that reason).
+    pub fn new(q: Matrix<NX, NX>, r: Matrix<NZ, NZ>) -> Self {
+        Information {
+            r,
+            q_inv: inverse_spd(&q, "process noise Q"),
+            r_inv: inverse_spd(&r, "measurement noise R"),
+        }
+    }
 }
 
 /// The information filter's belief.
@@ -39,7 +51,9 @@ pub struct InformationBelief<const NX: usize> {
     /// x̂⁻ of the last prediction (the linearisation point of the update).
     x_prior: Vector<NX>,
     f: Matrix<NX, NX>,
-    i_kh: Matrix<NX, NX>,
+    /// After an update, Hᵀ R⁻¹ H: the error transition's K H = P Hᵀ R⁻¹ H is formed from it
+    /// only when the consistency tests ask.
+    ht_rinv_h: Option<Matrix<NX, NX>>,
 }
 
 fn chol_y<const NX: usize>(y: &Matrix<NX, NX>) -> Result<SmallCholesky<NX>, FilterError> {
@@ -76,7 +90,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             info,
             x_prior: *x0_hat,
             f: Matrix::<NX, NX>::identity(),
-            i_kh: Matrix::<NX, NX>::identity(),
+            ht_rinv_h: None,
         }
     }
 
@@ -94,7 +108,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             which: "transition matrix F",
         })?;
         let m = symmetrize(&(f_inv.transpose() * b.info * f_inv));
-        let q_inv = inverse_spd(&self.q, "process noise Q")?;
+        let q_inv = self.q_inv.as_ref().map_err(Clone::clone)?;
         let c = SmallCholesky::new(&(m + q_inv)).ok_or(FilterError::NotPositiveDefinite {
             which: "M + Q⁻¹",
         })?;
@@ -102,7 +116,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         b.x_prior = model.propagate(&x, u);
         b.y = b.info * b.x_prior;
         b.f = f;
-        b.i_kh = Matrix::<NX, NX>::identity();
+        b.ht_rinv_h = None;
         check_finite(&b.y, &b.info)
     }
 
@@ -120,7 +134,11 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let mut h = model.measurement_jacobian(&x, u);
         let mut nu = model.residual(&z.z, &model.measure(&x, u));
         let r = mask_rows(&self.r, z.available, &mut h, &mut nu);
-        let r_inv = inverse_spd(&r, "measurement noise R")?;
+        let r_inv = if z.available == Availability::all(NZ) {
+            self.r_inv.clone()?
+        } else {
+            inverse_spd(&r, "measurement noise R")?
+        };
         // Innovation statistics for the metrics: S = H P⁻ Hᵀ + R.
         let p_prior = chol_y(&b.info)?.solve(&Matrix::<NX, NX>::identity());
         let s = h * p_prior * h.transpose() + r;
@@ -129,11 +147,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         })?;
         let whitened = s_chol.solve_lower(&nu);
         let ht_rinv = h.transpose() * r_inv;
-        b.info = symmetrize(&(b.info + ht_rinv * h));
+        let ht_rinv_h = ht_rinv * h;
+        b.info = symmetrize(&(b.info + ht_rinv_h));
         b.y += ht_rinv * (nu + h * x);
-        // K = P Hᵀ R⁻¹ (the gain this update applied), for the error transition only.
-        let p = chol_y(&b.info)?.solve(&Matrix::<NX, NX>::identity());
-        b.i_kh = Matrix::<NX, NX>::identity() - p * ht_rinv * h;
+        b.ht_rinv_h = Some(ht_rinv_h);
         check_finite(&b.y, &b.info)?;
         Ok(Some(Innovation::new(nu, whitened, z.available)))
     }
@@ -153,6 +170,11 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     }
 
     fn error_transition(&self, b: &InformationBelief<NX>) -> Option<Matrix<NX, NX>> {
-        Some(b.i_kh * b.f)
+        let Some(ht_rinv_h) = &b.ht_rinv_h else {
+            return Some(b.f);
+        };
+        // K H = P Hᵀ R⁻¹ H with P = Y⁻¹ (the gain this update applied).
+        let kh = SmallCholesky::new(&b.info)?.solve(ht_rinv_h);
+        Some((Matrix::<NX, NX>::identity() - kh) * b.f)
     }
 }

@@ -6,9 +6,11 @@
 //! [`Filter::mean`] / [`Filter::covariance`], so metrics never ask which filter ran; a filter
 //! without a covariance (the running mean) returns `None` and NEES/NIS are reported as null.
 
+pub mod batch_ls;
 pub mod ekf;
 pub mod information;
 pub mod luenberger;
+pub mod open_loop;
 pub mod running_mean;
 pub mod sqrt;
 pub mod steady_state;
@@ -16,11 +18,13 @@ pub mod steady_state;
 use crate::linalg::{Matrix, Vector};
 use crate::model::{Availability, Measurement, Model};
 
+pub use batch_ls::{BatchInitial, BatchLsError};
 pub use ekf::{CovarianceUpdate, Ekf};
 pub use information::Information;
 pub use luenberger::{
     Luenberger, PlacementError, SeedPoleReading, place_observer_poles, seed_poles,
 };
+pub use open_loop::OpenLoop;
 pub use running_mean::RunningMean;
 pub use sqrt::SquareRoot;
 pub use steady_state::SteadyState;

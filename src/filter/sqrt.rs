@@ -17,26 +17,40 @@
 
 use super::{Filter, FilterError, Innovation, check_finite, mask_rows};
 use crate::linalg::{Matrix, PreArray, SmallCholesky, Vector, triangularize};
-use crate::model::{Measurement, Model};
+use crate::model::{Availability, Measurement, Model};
 
-/// Square-root filter configuration: the assumed Q and R (both positive definite).
+/// Square-root filter configuration: the assumed Q and R (both positive definite), kept as
+/// their Cholesky factors so no step re-factors a constant matrix.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SquareRoot<const NX: usize, const NZ: usize> {
-    /// Assumed process-noise covariance Q.
-    pub q: Matrix<NX, NX>,
-    /// Assumed measurement-noise covariance R.
-    pub r: Matrix<NZ, NZ>,
+    r: Matrix<NZ, NZ>,
+    l_q: Result<Matrix<NX, NX>, FilterError>,
+    l_r: Result<Matrix<NZ, NZ>, FilterError>,
+}
+
+impl<const NX: usize, const NZ: usize> SquareRoot<NX, NZ> {
+    /// The filter assuming process noise `q` and measurement noise `r`. A matrix that is not
+    /// positive definite makes every run fail at its first step with that reason.
+    pub fn new(q: Matrix<NX, NX>, r: Matrix<NZ, NZ>) -> Self {
+        SquareRoot {
+            r,
+            l_q: factor(&q, "process noise Q"),
+            l_r: factor(&r, "measurement noise R"),
+        }
+    }
 }
 
 /// The square-root filter's belief.
 #[derive(Clone, Debug, PartialEq)]
-pub struct SqrtBelief<const NX: usize> {
+pub struct SqrtBelief<const NX: usize, const NZ: usize> {
     /// x̂
     pub x: Vector<NX>,
     /// S, lower triangular, P = S Sᵀ.
     pub s: Matrix<NX, NX>,
     f: Matrix<NX, NX>,
-    i_kh: Matrix<NX, NX>,
+    /// After an update: K̄, L_S and H, from which I − K H is formed only when the consistency
+    /// tests ask for the error transition (most studies never do).
+    gain: Option<(Matrix<NX, NZ>, Matrix<NZ, NZ>, Matrix<NZ, NX>)>,
 }
 
 fn factor<const N: usize>(
@@ -51,7 +65,7 @@ fn factor<const N: usize>(
 impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Filter<NX, NU, NZ, M>
     for SquareRoot<NX, NZ>
 {
-    type Belief = SqrtBelief<NX>;
+    type Belief = SqrtBelief<NX, NZ>;
 
     fn init(
         &self,
@@ -59,7 +73,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         x0_hat: &Vector<NX>,
         p0: &Matrix<NX, NX>,
         _z0: &Measurement<NZ>,
-    ) -> SqrtBelief<NX> {
+    ) -> SqrtBelief<NX, NZ> {
         // The one Cholesky factorisation of a covariance: P_0 is given, not propagated.
         let s = factor(p0, "initial covariance P0")
             .unwrap_or_else(|_| Matrix::<NX, NX>::from_element(f64::NAN));
@@ -67,29 +81,29 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             x: *x0_hat,
             s,
             f: Matrix::<NX, NX>::identity(),
-            i_kh: Matrix::<NX, NX>::identity(),
+            gain: None,
         }
     }
 
     fn predict(
         &self,
         model: &M,
-        b: &mut SqrtBelief<NX>,
+        b: &mut SqrtBelief<NX, NZ>,
         u: &Vector<NU>,
     ) -> Result<(), FilterError> {
         let f = model.transition_jacobian(&b.x, u);
-        let l_q = factor(&self.q, "process noise Q")?;
-        b.s = triangularize(&(f * b.s), &l_q);
+        let l_q = self.l_q.as_ref().map_err(Clone::clone)?;
+        b.s = triangularize(&(f * b.s), l_q);
         b.x = model.propagate(&b.x, u);
         b.f = f;
-        b.i_kh = Matrix::<NX, NX>::identity();
+        b.gain = None;
         check_finite(&b.x, &b.s)
     }
 
     fn update(
         &self,
         model: &M,
-        b: &mut SqrtBelief<NX>,
+        b: &mut SqrtBelief<NX, NZ>,
         u: &Vector<NU>,
         z: &Measurement<NZ>,
     ) -> Result<Option<Innovation<NZ>>, FilterError> {
@@ -99,7 +113,11 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let mut h = model.measurement_jacobian(&b.x, u);
         let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
         let r = mask_rows(&self.r, z.available, &mut h, &mut nu);
-        let l_r = factor(&r, "measurement noise R")?;
+        let l_r = if z.available == Availability::all(NZ) {
+            self.l_r.clone()?
+        } else {
+            factor(&r, "measurement noise R")?
+        };
         let mut pre = PreArray {
             a11: l_r,
             a12: h * b.s,
@@ -122,23 +140,25 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             })?;
         b.x += k_bar * whitened;
         b.s = pre.a22;
-        // K = K̄ L_S⁻¹, i.e. Kᵀ = L_S⁻ᵀ K̄ᵀ; only the error transition needs it.
-        if let Some(kt) = l_s.transpose().solve_upper_triangular(&k_bar.transpose()) {
-            b.i_kh = Matrix::<NX, NX>::identity() - kt.transpose() * h;
-        }
+        b.gain = Some((k_bar, l_s, h));
         check_finite(&b.x, &b.s)?;
         Ok(Some(Innovation::new(nu, whitened, z.available)))
     }
 
-    fn mean(&self, b: &SqrtBelief<NX>) -> Vector<NX> {
+    fn mean(&self, b: &SqrtBelief<NX, NZ>) -> Vector<NX> {
         b.x
     }
 
-    fn covariance(&self, b: &SqrtBelief<NX>) -> Option<Matrix<NX, NX>> {
+    fn covariance(&self, b: &SqrtBelief<NX, NZ>) -> Option<Matrix<NX, NX>> {
         Some(b.s * b.s.transpose())
     }
 
-    fn error_transition(&self, b: &SqrtBelief<NX>) -> Option<Matrix<NX, NX>> {
-        Some(b.i_kh * b.f)
+    fn error_transition(&self, b: &SqrtBelief<NX, NZ>) -> Option<Matrix<NX, NX>> {
+        let Some((k_bar, l_s, h)) = &b.gain else {
+            return Some(b.f);
+        };
+        // K = K̄ L_S⁻¹, i.e. Kᵀ = L_S⁻ᵀ K̄ᵀ.
+        let kt = l_s.transpose().solve_upper_triangular(&k_bar.transpose())?;
+        Some((Matrix::<NX, NX>::identity() - kt.transpose() * h) * b.f)
     }
 }

@@ -281,6 +281,19 @@ pub fn cell_tests(
         .flatten();
     out.extend(nis.clone());
 
+    // The initial estimate: N independent x̂_0 errors, so Σ NEES_0 ~ χ²(N·n) exactly.
+    let initial: Option<Vec<f64>> = runs.iter().map(|r| r.initial_nees).collect();
+    if let Some(v) = initial {
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        out.extend(scaled_chi2_test(
+            "initial_nees",
+            mean,
+            nf,
+            nf * v.len() as f64,
+            alpha,
+        ));
+    }
+
     // Model-free NEES check: runs are independent, so a t-test of their averages is valid.
     let per_run: Vec<f64> = runs.iter().map(|r| r.nees_sum / r.nees_n as f64).collect();
     out.extend(t_test("nees_run_average_t", &per_run, nf, alpha, true));

@@ -123,6 +123,8 @@ pub struct RunConsistency {
     pub lag_pairs: Vec<u64>,
     /// Σ ‖w_k‖².
     pub w_sq: f64,
+    /// NEES of x̂_0 under P_0, when x̂_0 is an estimate whose covariance is under test.
+    pub initial_nees: Option<f64>,
 }
 
 /// The per-run record of one filter (one row of `runs.parquet`).
