@@ -337,15 +337,8 @@ fn bench_l1() {
     let steps = 1000;
     let draws = NoiseDraws::<6, 3>::draw(run_seed(1, "hover", 0), steps);
     let x_hat0 = Vector::<6>::new(1.0, 0.0, 1.0, 0.0, 1.0, 0.0);
-    let sc = Scenario {
-        name: "hover".into(),
-        x0: x_hat0 + draws.initial,
-        controls: vec![Vector::<4>::zeros(); steps + 1],
-    };
-    let noise = TruthNoise {
-        process_std: Vector::<6>::zeros(),
-        measurement_std: Vector::<3>::from_fn(|i, _| r[(i, i)].sqrt()),
-    };
+    let sc = Scenario::unforced("hover", x_hat0 + draws.initial, steps);
+    let noise = model.truth_noise();
     let traj = simulate(&model, &sc, &noise, 1.0, None, &draws);
     let (controls, zs) = (&sc.controls, &traj.measurements);
     let kf = Ekf {

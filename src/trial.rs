@@ -608,10 +608,8 @@ pub fn build(plan: &Plan) -> Box<dyn Trial> {
     let linear = || -> Vec<Scenario<6, 4>> {
         plan.scenarios
             .iter()
-            .map(|s| Scenario {
-                name: s.name.clone(),
-                x0: Vector::<6>::from_column_slice(&s.x0),
-                controls: vec![Vector::<4>::zeros(); s.steps(dt) + 1],
+            .map(|s| {
+                Scenario::unforced(&s.name, Vector::<6>::from_column_slice(&s.x0), s.steps(dt))
             })
             .collect()
     };

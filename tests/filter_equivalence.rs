@@ -12,7 +12,7 @@ use kfmc::linalg::{Matrix, Vector, eigenvalues};
 use kfmc::model::linear::{Linear, LinearSensor};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
-use kfmc::sim::{NoiseDraws, Trajectory, TruthNoise, simulate};
+use kfmc::sim::{NoiseDraws, Trajectory, simulate};
 
 /// x̂_k, P_k and the error transition A_k = (I − K_k H_k) F_k after every step k = 0..=K
 /// (A_0 = I). A_k feeds the calibrated NEES test, so every form must expose the same one.
@@ -88,15 +88,8 @@ fn l1_run(model: &Linear<3>, seed: u64) -> Trajectory<6, 3> {
     let x_hat0 = Vector::<6>::new(1.0, 0.0, 1.0, 0.0, 1.0, 0.0);
     let steps = 400;
     let draws = NoiseDraws::<6, 3>::draw(seed, steps);
-    let sc = Scenario {
-        name: "hover".into(),
-        x0: x_hat0 + draws.initial,
-        controls: vec![Vector::<4>::zeros(); steps + 1],
-    };
-    let noise = TruthNoise {
-        process_std: Vector::<6>::zeros(),
-        measurement_std: Vector::<3>::from_fn(|i, _| model.r()[(i, i)].sqrt()),
-    };
+    let sc = Scenario::unforced("hover", x_hat0 + draws.initial, steps);
+    let noise = model.truth_noise();
     let mut t = simulate(model, &sc, &noise, 1.0, None, &draws);
     t.x0_hat = x_hat0;
     for (k, m) in t.measurements.iter_mut().enumerate() {

@@ -18,7 +18,7 @@ use kfmc::linalg::{Matrix, Vector};
 use kfmc::model::linear::{Linear, LinearSensor};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
-use kfmc::sim::{NoiseDraws, TruthNoise, simulate};
+use kfmc::sim::{NoiseDraws, simulate};
 
 const STEPS: usize = 300;
 
@@ -56,15 +56,8 @@ fn input_text() -> String {
     }
     let draws = NoiseDraws::<6, 3>::draw(42, STEPS);
     let x_hat0 = Vector::<6>::new(1.0, 0.0, 1.0, 0.0, 1.0, 0.0);
-    let sc = Scenario {
-        name: "filterpy".into(),
-        x0: x_hat0 + draws.initial,
-        controls: vec![Vector::<4>::zeros(); STEPS + 1],
-    };
-    let noise = TruthNoise {
-        process_std: Vector::<6>::zeros(),
-        measurement_std: Vector::<3>::from_fn(|i, _| m.r()[(i, i)].sqrt()),
-    };
+    let sc = Scenario::unforced("filterpy", x_hat0 + draws.initial, STEPS);
+    let noise = m.truth_noise();
     let t = simulate(&m, &sc, &noise, 1.0, None, &draws);
     for (k, z) in t.measurements.iter().enumerate().skip(1) {
         let a = u8::from(!gap(k));

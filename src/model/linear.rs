@@ -215,6 +215,16 @@ impl<const NZ: usize> Linear<NZ> {
         Matrix::<NZ, NZ>::from_fn(|i, j| if i == j { LINEAR_R_DIAG[i] } else { 0.0 })
     }
 
+    /// The truth's noise for [`crate::sim::simulate`]: measurement std √diag R; the process
+    /// noise is the model's full Q ([`Model::process_noise_covariance`]), so no per-state std.
+    pub fn truth_noise(&self) -> crate::sim::TruthNoise<6, NZ> {
+        let r = self.r();
+        crate::sim::TruthNoise {
+            process_std: Vector::<6>::zeros(),
+            measurement_std: Vector::<NZ>::from_fn(|i, _| r[(i, i)].sqrt()),
+        }
+    }
+
     /// Rank of the observability matrix [H; HF; …; HF⁵] (seed eq. 9), by faer's SVD.
     pub fn observability_rank(&self) -> usize {
         let mut o = faer::Mat::<f64>::zeros(6 * NZ, 6);

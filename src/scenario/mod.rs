@@ -23,4 +23,14 @@ impl<const NX: usize, const NU: usize> Scenario<NX, NU> {
     pub fn steps(&self) -> usize {
         self.controls.len().saturating_sub(1)
     }
+
+    /// A scenario with zero input for `steps` transitions (the L1 studies: the truth is
+    /// driven by process noise alone).
+    pub fn unforced(name: &str, x0: Vector<NX>, steps: usize) -> Self {
+        Scenario {
+            name: name.to_string(),
+            x0,
+            controls: vec![Vector::<NU>::zeros(); steps + 1],
+        }
+    }
 }
