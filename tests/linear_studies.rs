@@ -420,3 +420,41 @@ fn observers_pole_placement_against_the_kalman_filters() {
     assert!(c.rows.iter().all(|r| !r.filter.starts_with("place_")));
     assert!(c.rows.iter().any(|r| r.filter == "kf"));
 }
+
+#[test]
+fn linear_studies_are_bit_identical_for_any_thread_count() {
+    // The per-study caches (the DARE solution on first use, the placed gains, the batch
+    // estimator) and the subset evaluations must not make the tables depend on scheduling.
+    for (name, runs) in [
+        ("linear_observers", 30),
+        ("linear_batch_ls", 30),
+        ("linear_nees", 100),
+    ] {
+        let (_d, out) = tmp();
+        let tables = |threads: usize| {
+            let dir = out.join(format!("t{threads}"));
+            let plan = shipped(
+                name,
+                &dir,
+                Overrides {
+                    runs: Some(runs),
+                    ..Default::default()
+                },
+            );
+            run(&plan, &ExecOptions { threads }, &NullObserver).unwrap();
+            let mut files: Vec<_> = std::fs::read_dir(&dir)
+                .unwrap()
+                .map(|e| e.unwrap().path())
+                .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+                .collect();
+            files.sort();
+            files
+                .iter()
+                .map(|p| (p.file_name().unwrap().to_owned(), std::fs::read(p).unwrap()))
+                .collect::<Vec<_>>()
+        };
+        let (one, two) = (tables(1), tables(2));
+        assert!(one.len() >= 4, "{name}: {} tables", one.len());
+        assert_eq!(one, two, "{name}");
+    }
+}
