@@ -23,12 +23,12 @@ use kfmc::filter::{
     CovarianceUpdate, Ekf, Filter, FilterError, Information, Innovation, SquareRoot,
 };
 use kfmc::linalg::{Matrix, SmallCholesky, Vector};
-use kfmc::model::linear::{Linear, LinearSensor};
-use kfmc::model::planar::{PlanarP1, PlanarParams};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
-use kfmc::scenario::planar::builtin;
 use kfmc::sim::{NoiseDraws, TruthNoise, seed::run_seed, simulate};
+use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
+use kfmc::systems::planar::model::{PlanarP1, PlanarParams};
+use kfmc::systems::planar::scenario::builtin;
 use kfmc::trial::{Unit, build};
 use nalgebra::DMatrix;
 

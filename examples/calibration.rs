@@ -74,7 +74,7 @@ fn main() {
                     })
                 })
                 .collect();
-            let states = trial.names().states;
+            let states = trial.layout().quantity_names();
             let mut rej = vec![vec![false; NS.len()]; plan.filters.len()];
             let mut parts = [false; 2];
             for (fi, f) in plan.filters.iter().enumerate() {

@@ -48,5 +48,7 @@ pub mod runner;
 pub mod scenario;
 pub mod sim;
 pub mod study;
+pub mod system;
+pub mod systems;
 pub mod trial;
 pub mod tune;

@@ -1,5 +1,3 @@
-use clap::Parser;
-
 fn main() -> std::process::ExitCode {
-    kfmc::cli::main_with(kfmc::cli::Cli::parse())
+    kfmc::cli::main_with(kfmc::system::Registry::builtin())
 }

@@ -8,7 +8,7 @@ use crate::experiment::{FilterPlan, Plan};
 use crate::metrics::consistency::{BandCache, cell_tests};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::{RunConsistency, RunStatus, StepAccumulator, mean_std, quantile_sorted};
-use crate::output::manifest::{Manifest, TableEntry};
+use crate::output::manifest::{Manifest, QuantityEntry, TableEntry};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute};
 use crate::trial::{Trial, Unit, UnitResult, build};
@@ -59,7 +59,7 @@ struct CellState {
 struct Aggregator<'a> {
     plan: &'a Plan,
     trial: &'a dyn Trial,
-    states: Vec<&'static str>,
+    states: Vec<&'a str>,
     runs: TableWriter,
     steps: TableWriter,
     summary: TableWriter,
@@ -139,9 +139,10 @@ impl Aggregator<'_> {
             }
         }
         if let (Some(tr), Some(w)) = (&r.trace, self.traces.as_mut()) {
-            let names = self.trial.names();
-            let (nu, nz) = (names.inputs.len(), names.measurements.len());
-            let dt = plan.model.params.dt_s;
+            let layout = self.trial.layout();
+            let (nu, nz) = (layout.inputs.len(), layout.measurements.len());
+            let ntri = nx * (nx + 1) / 2;
+            let dt = plan.dt_s();
             for (fi, f) in plan.filters.iter().enumerate() {
                 for k in 0..tr.truth.len() / nx {
                     let mut row = cell_key(sname, noise, f).to_vec();
@@ -156,7 +157,11 @@ impl Aggregator<'_> {
                     row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
                     row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
                     row.extend(f64s(&tr.est[fi][k * nx..(k + 1) * nx]));
-                    row.extend(f64s(&tr.var[fi][k * nx..(k + 1) * nx]));
+                    let cov = &tr.cov[fi][k * ntri..(k + 1) * ntri];
+                    // var_<q> is the diagonal, kept for readers of the diagonal alone; the
+                    // P_<qi>_<qj> columns follow with the whole lower triangle.
+                    row.extend((0..nx).map(|i| Value::F64(Some(cov[i * (i + 1) / 2 + i]))));
+                    row.extend(f64s(cov));
                     w.push(&row)?;
                 }
             }
@@ -174,7 +179,7 @@ impl Aggregator<'_> {
         };
         let sname = plan.scenarios[scenario].name.as_str();
         let noise = plan.noise_scales[scale];
-        let dt = plan.model.params.dt_s;
+        let dt = plan.dt_s();
         let nf = plan.filters.len();
         let n = self.states.len() as u64;
         for (fi, f) in plan.filters.iter().enumerate() {
@@ -303,8 +308,8 @@ pub fn run(
         source,
     })?;
     let trial = build(plan);
-    let names = trial.names();
-    let states = names.states.clone();
+    let layout = plan.layout();
+    let states = layout.quantity_names();
     let nf = plan.filters.len();
     let mut agg = Aggregator {
         plan,
@@ -316,7 +321,7 @@ pub fn run(
             Some(TableWriter::create(
                 dir,
                 "traces",
-                schema::traces(&states, &names.inputs, &names.measurements),
+                schema::traces(&states, &layout.input_names(), &layout.measurement_names()),
             )?)
         } else {
             None
@@ -406,6 +411,20 @@ pub fn run(
     Manifest {
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
         experiment: plan.name.clone(),
+        system: plan.kind.clone(),
+        quantities: plan
+            .layout()
+            .quantities
+            .iter()
+            .map(|q| QuantityEntry {
+                name: q.name.clone(),
+                unit: q.unit.clone(),
+                angle: q.angle,
+            })
+            .collect(),
+        inputs: plan.layout().inputs.clone(),
+        measurements: plan.layout().measurements.clone(),
+        dt_s: plan.dt_s(),
         spec_path: plan.spec_path.display().to_string(),
         spec_hash: plan.spec_hash.clone(),
         master_seed: plan.master_seed,

@@ -1,23 +1,16 @@
-//! One Monte Carlo run: simulate the truth once, run every filter on it (paired comparison),
-//! and reduce each filter's run to per-step values and a per-run record.
+//! One Monte Carlo run and the monomorphised step loop every system shares.
 //!
-//! This is where the model and filter enums are matched — once per run — before entering the
-//! monomorphised step loop [`run_filter`]. The executor ([`crate::runner`]) only sees the
-//! object-safe [`Trial`] trait.
+//! A system's [`Trial`] simulates the world once per run and runs every filter on it (paired
+//! comparison); [`run_filter`] is the step loop: predict, update, and the per-step metrics on
+//! the evaluated quantities. The executor ([`crate::runner`]) only sees the object-safe
+//! [`Trial`] trait, so dynamic dispatch happens once per run, never per step.
 
-use crate::experiment::{FilterKind, FilterNoiseMode, InitialMode, ModelKind, Plan};
-use crate::filter::{
-    BatchInitial, Ekf, Filter, FilterError, Information, Innovation, Luenberger, OpenLoop,
-    RunningMean, SquareRoot, SteadyState,
-};
-use crate::linalg::{Matrix, SmallCholesky, Vector, diag_from_std};
+use crate::experiment::Plan;
+use crate::filter::{Filter, FilterError, Innovation};
+use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::metrics::{FilterRun, RunConsistency, StepValues};
-use crate::model::linear::{Linear, LinearSensor};
-use crate::model::planar::{Planar, PlanarImu, PlanarP1};
-use crate::model::{Model, Names};
-use crate::scenario::Scenario;
-use crate::sim::seed::run_seed;
-use crate::sim::{NoiseDraws, Trajectory, TruthNoise, simulate};
+use crate::model::{Measurement, Model};
+use crate::system::Layout;
 
 /// One unit of work: a run of one (scenario, noise scale) cell.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -33,16 +26,17 @@ pub struct Unit {
 /// Full trajectories of a traced run, flattened row-major by step.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RunTrace {
-    /// u_k, `nu` per step.
+    /// The filters' inputs u_k, `nu` per step.
     pub u: Vec<f64>,
-    /// x_k, `nx` per step.
+    /// The true evaluated quantities, `nq` per step.
     pub truth: Vec<f64>,
     /// z_k, `nz` per step (NaN where a component did not report).
     pub z: Vec<f64>,
-    /// Per filter: x̂_k, `nx` per step (NaN after a failure).
+    /// Per filter: the estimated quantities, `nq` per step (NaN after a failure).
     pub est: Vec<Vec<f64>>,
-    /// Per filter: diag P_k, `nx` per step (NaN without a covariance).
-    pub var: Vec<Vec<f64>>,
+    /// Per filter: the lower triangle of the quantities' covariance, row by row
+    /// ((0,0), (1,0), (1,1), (2,0), …), `nq(nq+1)/2` per step (NaN without a covariance).
+    pub cov: Vec<Vec<f64>>,
 }
 
 /// What one unit produces.
@@ -52,20 +46,25 @@ pub struct UnitResult {
     pub unit: Unit,
     /// The run's seed (all its streams derive from it).
     pub seed: u64,
-    /// One record per filter, in plan order.
+    /// One record per filter variant, in plan order.
     pub filters: Vec<FilterRun>,
     /// Present for traced runs.
     pub trace: Option<RunTrace>,
 }
 
-/// A study that can execute units. Implemented once, generically, for every model.
+/// A study that can execute units: what a [`crate::system::SystemPlan`] builds.
 pub trait Trial: Sync {
     /// Runs one unit.
     fn run(&self, unit: &Unit) -> UnitResult;
-    /// Number of transitions K of a scenario.
+    /// Number of transitions K of a plan scenario.
     fn steps(&self, scenario: usize) -> usize;
-    /// Column names of the model.
-    fn names(&self) -> Names;
+    /// Column names.
+    fn layout(&self) -> &Layout;
+}
+
+/// Binds a plan to its system's executor.
+pub fn build(plan: &Plan) -> Box<dyn Trial + '_> {
+    plan.system.trial(plan)
 }
 
 /// What the consistency tests need computed during a run.
@@ -80,8 +79,80 @@ pub struct ConsistencyOptions {
     pub initial_nees: bool,
 }
 
+impl ConsistencyOptions {
+    /// The options a plan asks for (`None` without a `[consistency]` section).
+    pub fn of(plan: &Plan) -> Option<Self> {
+        use crate::experiment::InitialMode;
+        plan.consistency.as_ref().map(|c| ConsistencyOptions {
+            lags: c.whiteness_lags,
+            burn_in: plan.initial != InitialMode::Sampled,
+            initial_nees: plan.initial == InitialMode::BatchLs,
+        })
+    }
+}
+
 /// The initial-error term tr(P_k⁻¹ G_k) below which a step counts as free of the prior.
 pub const BURN_IN_THRESHOLD: f64 = 1e-3;
+
+/// Maps a filter's belief (state x̂ of dimension NX and its covariance) onto the NQ evaluated
+/// quantities. A filter whose state holds bias or clone states, or another parameterisation,
+/// is scored on the same quantities as one whose state *is* the quantities.
+pub trait Evaluate<const NX: usize, const NQ: usize>: Sync {
+    /// The estimated quantities q̂ = g(x̂).
+    fn mean(&self, x: &Vector<NX>) -> Vector<NQ>;
+    /// Their covariance: the marginal block, or G P Gᵀ with G = ∂g/∂x at x̂.
+    fn covariance(&self, x: &Vector<NX>, p: &Matrix<NX, NX>) -> Matrix<NQ, NQ>;
+    /// The error transition in quantity space, when it exists. The calibrated NEES verdict
+    /// and the burn-in rule need it; only an identity evaluation has one (a marginal of a
+    /// larger state does not evolve on its own), others leave the model-free test.
+    fn transition(&self, a: &Matrix<NX, NX>) -> Option<Matrix<NQ, NQ>>;
+}
+
+/// The evaluation of a filter whose state is the quantities.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Identity;
+
+impl<const N: usize> Evaluate<N, N> for Identity {
+    #[inline]
+    fn mean(&self, x: &Vector<N>) -> Vector<N> {
+        *x
+    }
+    #[inline]
+    fn covariance(&self, _x: &Vector<N>, p: &Matrix<N, N>) -> Matrix<N, N> {
+        *p
+    }
+    #[inline]
+    fn transition(&self, a: &Matrix<N, N>) -> Option<Matrix<N, N>> {
+        Some(*a)
+    }
+}
+
+/// The evaluation that picks quantities out of a larger state: q = x[indices], its covariance
+/// the marginal block.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Marginal<const NQ: usize> {
+    /// State index of each quantity.
+    pub indices: [usize; NQ],
+}
+
+impl<const NX: usize, const NQ: usize> Evaluate<NX, NQ> for Marginal<NQ> {
+    fn mean(&self, x: &Vector<NX>) -> Vector<NQ> {
+        Vector::<NQ>::from_fn(|i, _| x[self.indices[i]])
+    }
+    fn covariance(&self, _x: &Vector<NX>, p: &Matrix<NX, NX>) -> Matrix<NQ, NQ> {
+        Matrix::<NQ, NQ>::from_fn(|i, j| p[(self.indices[i], self.indices[j])])
+    }
+    fn transition(&self, _a: &Matrix<NX, NX>) -> Option<Matrix<NQ, NQ>> {
+        None
+    }
+}
+
+/// Wraps an angle error to [−π, π) (radians) or [−180, 180) (degrees).
+#[inline]
+pub fn wrap_angle(e: f64, degrees: bool) -> f64 {
+    let half = if degrees { 180.0 } else { std::f64::consts::PI };
+    (e + half).rem_euclid(2.0 * half) - half
+}
 
 /// Consistency sums from one starting step on: W_k for ρ, the whitened-innovation lags, …
 struct Window<const NX: usize, const NZ: usize> {
@@ -157,18 +228,30 @@ impl<const NX: usize, const NZ: usize> Window<NX, NZ> {
     }
 }
 
-/// Everything a filter run needs besides the filter.
-pub struct RunContext<'a, const NX: usize, const NU: usize, const NZ: usize> {
-    /// The scenario (controls).
-    pub scenario: &'a Scenario<NX, NU>,
-    /// The simulated run.
-    pub trajectory: &'a Trajectory<NX, NZ>,
+/// The initial belief every filter of a run starts from, in the filters' state space.
+#[derive(Clone, Copy, Debug)]
+pub struct Prior<'a, const NX: usize> {
+    /// x̂_0.
+    pub x0_hat: &'a Vector<NX>,
     /// P_0.
     pub p0: &'a Matrix<NX, NX>,
-    /// Divergence thresholds.
+}
+
+/// Everything a filter run needs besides the filter: the world's output for this run.
+pub struct RunContext<'a, const NQ: usize, const NU: usize, const NZ: usize> {
+    /// The true evaluated quantities q_0..q_K.
+    pub truth: &'a [Vector<NQ>],
+    /// The inputs the filter receives, u_0..u_K (u_k drives the transition k−1 → k): the
+    /// controls, or measured IMU samples.
+    pub inputs: &'a [Vector<NU>],
+    /// z_0..z_K with their availability.
+    pub measurements: &'a [Measurement<NZ>],
+    /// Indices of the angle quantities (their errors are wrapped), and whether in degrees.
+    pub angles: &'a [(usize, bool)],
+    /// Divergence thresholds per quantity.
     pub thresholds: Option<&'a [f64]>,
-    /// State names (for status details).
-    pub state_names: &'a [&'static str],
+    /// Quantity names (for status details).
+    pub quantity_names: &'a [&'a str],
     /// Whether to keep the estimate trajectory.
     pub trace: bool,
     /// Consistency sums to compute, if any.
@@ -179,45 +262,51 @@ pub struct RunContext<'a, const NX: usize, const NU: usize, const NZ: usize> {
 pub struct FilterOutput {
     /// The per-run record and per-step values.
     pub run: FilterRun,
-    /// x̂_k and diag P_k when traced.
+    /// The estimated quantities and their covariance's lower triangle when traced (see
+    /// [`RunTrace`]).
     pub trace: Option<(Vec<f64>, Vec<f64>)>,
 }
 
-/// The monomorphised step loop: predict, update, and per-step metrics.
-pub fn run_filter<const NX: usize, const NU: usize, const NZ: usize, M, F>(
+/// The monomorphised step loop: predict, update, and per-step metrics on the quantities that
+/// `eval` maps the filter's belief to.
+pub fn run_filter<const NX: usize, const NU: usize, const NZ: usize, const NQ: usize, M, F, E>(
     model: &M,
     filter: &F,
-    ctx: &RunContext<'_, NX, NU, NZ>,
+    eval: &E,
+    prior: &Prior<'_, NX>,
+    ctx: &RunContext<'_, NQ, NU, NZ>,
 ) -> FilterOutput
 where
     M: Model<NX, NU, NZ>,
     F: Filter<NX, NU, NZ, M>,
+    E: Evaluate<NX, NQ>,
 {
-    let traj = ctx.trajectory;
-    let steps = traj.truth.len() - 1;
-    let mut values = StepValues::new(NX, steps);
-    let mut est = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * NX]);
-    let mut var = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * NX]);
+    let steps = ctx.truth.len() - 1;
+    let ntri = NQ * (NQ + 1) / 2;
+    let mut values = StepValues::new(NQ, steps);
+    let mut est = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * NQ]);
+    let mut cov = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * ntri]);
     let mut repairs = 0u32;
     let mut failure: Option<(usize, String)> = None;
-    let mut belief = filter.init(model, &traj.x0_hat, ctx.p0, &traj.measurements[0]);
+    let mut belief = filter.init(model, prior.x0_hat, prior.p0, &ctx.measurements[0]);
     let opts = ctx.consistency;
     let lags = opts.map_or(0, |o| o.lags);
     // Truth mode: one window from step 1 and one from the end of the burn-in (G_k tracks the
     // prior's share of P_k); sampled mode: the prior is real, so every step from 1 counts.
-    let mut from_start = opts.map(|_| Window::<NX, NZ>::new(1, lags));
-    let mut after_burn_in: Option<Window<NX, NZ>> = None;
-    let mut g = opts.filter(|o| o.burn_in).map(|_| *ctx.p0);
-    let mut p_prev = *ctx.p0;
+    let mut from_start = opts.map(|_| Window::<NQ, NZ>::new(1, lags));
+    let mut after_burn_in: Option<Window<NQ, NZ>> = None;
+    let p0_q = eval.covariance(prior.x0_hat, prior.p0);
+    let mut g = opts.filter(|o| o.burn_in).map(|_| p0_q);
+    let mut p_prev = p0_q;
 
     for k in 0..=steps {
         let mut nis = f64::NAN;
         let mut innovation = None;
         if k > 0 {
-            let u = &ctx.scenario.controls[k];
+            let u = &ctx.inputs[k];
             let step = filter
                 .predict(model, &mut belief, u)
-                .and_then(|()| filter.update(model, &mut belief, u, &traj.measurements[k]));
+                .and_then(|()| filter.update(model, &mut belief, u, &ctx.measurements[k]));
             match step {
                 Ok(Some(inn)) => {
                     nis = inn.nis;
@@ -231,17 +320,21 @@ where
                 }
             }
         }
-        let mean = filter.mean(&belief);
-        let e: Vector<NX> = traj.truth[k] - mean;
+        let x = filter.mean(&belief);
+        let mean = eval.mean(&x);
+        let mut e: Vector<NQ> = ctx.truth[k] - mean;
+        for &(i, degrees) in ctx.angles {
+            e[i] = wrap_angle(e[i], degrees);
+        }
         let mut nees = f64::NAN;
         if let Some(p) = filter.covariance(&belief) {
-            let chol = match SmallCholesky::new(&p) {
+            let chol = match SmallCholesky::new(&eval.covariance(&x, &p)) {
                 Some(c) => Some(c),
                 None if filter.repair_covariance(&mut belief) => {
                     repairs += 1;
                     filter
                         .covariance(&belief)
-                        .and_then(|p| SmallCholesky::new(&p))
+                        .and_then(|p| SmallCholesky::new(&eval.covariance(&x, &p)))
                 }
                 None => None,
             };
@@ -253,9 +346,11 @@ where
                 break;
             };
             nees = chol.inverse_quadratic_form(&e);
-            let p_now = filter.covariance(&belief).unwrap_or(p);
+            let p_now = eval.covariance(&x, &filter.covariance(&belief).unwrap_or(p));
             if k > 0 && opts.is_some() {
-                let a = filter.error_transition(&belief);
+                let a = filter
+                    .error_transition(&belief)
+                    .and_then(|a| eval.transition(&a));
                 if let (Some(gm), Some(a)) = (g.as_mut(), a.as_ref()) {
                     *gm = a * *gm * a.transpose();
                     if after_burn_in.is_none() && chol.solve(gm).trace() <= BURN_IN_THRESHOLD {
@@ -279,25 +374,29 @@ where
                 }
             }
             p_prev = p_now;
-            if let Some(var) = var.as_mut() {
-                let p = filter.covariance(&belief).unwrap_or(p);
-                for i in 0..NX {
-                    var[k * NX + i] = p[(i, i)];
+            if let Some(cov) = cov.as_mut() {
+                let row = &mut cov[k * ntri..(k + 1) * ntri];
+                let mut t = 0;
+                for i in 0..NQ {
+                    for j in 0..=i {
+                        row[t] = p_now[(i, j)];
+                        t += 1;
+                    }
                 }
             }
         }
         if let Some(est) = est.as_mut() {
-            est[k * NX..(k + 1) * NX].copy_from_slice(filter.mean(&belief).as_slice());
+            est[k * NQ..(k + 1) * NQ].copy_from_slice(eval.mean(&filter.mean(&belief)).as_slice());
         }
-        for i in 0..NX {
-            values.sq_err[k * NX + i] = e[i] * e[i];
+        for i in 0..NQ {
+            values.sq_err[k * NQ + i] = e[i] * e[i];
         }
         values.nees[k] = nees;
         values.nis[k] = nis;
         values.completed = k + 1;
     }
     let nees0 = values.nees[0];
-    let mut run = values.finish(failure, ctx.thresholds, ctx.state_names, repairs);
+    let mut run = values.finish(failure, ctx.thresholds, ctx.quantity_names, repairs);
     run.consistency = match (after_burn_in, from_start) {
         (Some(w), _) => Some(w.sums),
         (None, Some(w)) if w.started => {
@@ -313,332 +412,6 @@ where
     }
     FilterOutput {
         run,
-        trace: est.zip(var),
-    }
-}
-
-/// Runs a configured filter kind on a model. Filters that work on any model (the EKF) are
-/// dispatched here once; a model adds the filters that only exist for it (the running mean
-/// reads P1's measurements directly) in [`FilterSet::run_model_specific`].
-pub trait FilterSet<const NX: usize, const NU: usize, const NZ: usize>:
-    Model<NX, NU, NZ> + Sized
-{
-    /// Runs a filter kind that is specific to this model, or `None` if the model has no
-    /// such filter (plan validation rejects those combinations).
-    fn run_model_specific(
-        &self,
-        kind: &FilterKind,
-        ctx: &RunContext<'_, NX, NU, NZ>,
-    ) -> Option<FilterOutput>;
-
-    /// Dispatches `kind` with assumed noise `q`, `r` (every kind except `steady_state` and
-    /// `pole_placement`, which a [`Study`] prepares once and runs itself).
-    fn run_kind(
-        &self,
-        kind: &FilterKind,
-        q: Matrix<NX, NX>,
-        r: Matrix<NZ, NZ>,
-        ctx: &RunContext<'_, NX, NU, NZ>,
-    ) -> FilterOutput {
-        match kind {
-            FilterKind::Ekf { update } => run_filter(
-                self,
-                &Ekf {
-                    q,
-                    r,
-                    update_form: *update,
-                },
-                ctx,
-            ),
-            FilterKind::Information => run_filter(self, &Information::new(q, r), ctx),
-            FilterKind::Sqrt => run_filter(self, &SquareRoot::new(q, r), ctx),
-            FilterKind::OpenLoop => run_filter(
-                self,
-                &OpenLoop {
-                    predictor: Ekf {
-                        q,
-                        r,
-                        update_form: crate::filter::CovarianceUpdate::Standard,
-                    },
-                },
-                ctx,
-            ),
-            // Filters prepared once per study (a DARE solution, a placed gain) are run by
-            // `Study`, which caches them; everything else is cheap to build per run.
-            other => self.run_model_specific(other, ctx).unwrap_or_else(|| {
-                unreachable!("plan validation rejects {} for this model", other.tag())
-            }),
-        }
-    }
-}
-
-impl FilterSet<6, 2, 3> for PlanarP1 {
-    fn run_model_specific(
-        &self,
-        kind: &FilterKind,
-        ctx: &RunContext<'_, 6, 2, 3>,
-    ) -> Option<FilterOutput> {
-        match kind {
-            FilterKind::RunningMean { window } => {
-                Some(run_filter(self, &RunningMean { window: *window }, ctx))
-            }
-            _ => None,
-        }
-    }
-}
-
-impl FilterSet<6, 2, 4> for PlanarImu {
-    fn run_model_specific(
-        &self,
-        _kind: &FilterKind,
-        _ctx: &RunContext<'_, 6, 2, 4>,
-    ) -> Option<FilterOutput> {
-        None
-    }
-}
-
-impl<const NZ: usize> FilterSet<6, 4, NZ> for Linear<NZ> {
-    fn run_model_specific(
-        &self,
-        _kind: &FilterKind,
-        _ctx: &RunContext<'_, 6, 4, NZ>,
-    ) -> Option<FilterOutput> {
-        None
-    }
-}
-
-/// A plan bound to a concrete model type.
-pub struct Study<const NX: usize, const NU: usize, const NZ: usize, M> {
-    model: M,
-    scenarios: Vec<Scenario<NX, NU>>,
-    noise: TruthNoise<NX, NZ>,
-    p0: Matrix<NX, NX>,
-    p0_factor: Option<Matrix<NX, NX>>,
-    /// The model's full discrete Q, which filters assume (times q_scale) when it exists.
-    model_q: Option<Matrix<NX, NX>>,
-    plan: Plan,
-    state_names: Vec<&'static str>,
-    /// Per scenario: the batch least-squares estimator of x_0 (initial mode `batch_ls`).
-    batch: Option<Vec<BatchInitial<NX>>>,
-    /// Per filter entry: the placed observer (pole_placement filters).
-    observers: Vec<Option<Luenberger<NX, NZ>>>,
-    /// Per (filter entry, noise scale): the DARE solution, solved on first use.
-    steady: Vec<std::sync::OnceLock<SteadyState<NX, NZ>>>,
-}
-
-impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>>
-    Study<NX, NU, NZ, M>
-{
-    fn new(model: M, scenarios: Vec<Scenario<NX, NU>>, plan: &Plan) -> Self {
-        let p0_std = Vector::<NX>::from_column_slice(&plan.p0_std);
-        let p0 = diag_from_std(&p0_std);
-        let p0_factor = (plan.initial == InitialMode::Sampled)
-            .then(|| Matrix::<NX, NX>::from_diagonal(&p0_std));
-        let state_names = model.names().states;
-        // The batch estimator assumes the truth's noise at scale 1; validation built the same
-        // estimator for every scenario already, so it cannot fail here.
-        let batch = (plan.initial == InitialMode::BatchLs).then(|| {
-            let q = model.process_noise_covariance().unwrap_or_else(|| {
-                diag_from_std(&Vector::<NX>::from_column_slice(
-                    &plan.model.process_noise_std,
-                ))
-            });
-            let r = diag_from_std(&Vector::<NZ>::from_column_slice(
-                &plan.model.measurement_noise_std,
-            ));
-            scenarios
-                .iter()
-                .map(|s| {
-                    BatchInitial::new(&model, &s.controls, &q, &r)
-                        .expect("plan validation builds the batch estimator of every scenario")
-                })
-                .collect()
-        });
-        let observers = plan
-            .filters
-            .iter()
-            .map(|f| match &f.kind {
-                FilterKind::PolePlacement { poles } => Some(
-                    Luenberger::from_poles(&model, poles)
-                        .expect("plan validation places every pole_placement filter"),
-                ),
-                _ => None,
-            })
-            .collect();
-        let steady = (0..plan.filters.len() * plan.noise_scales.len())
-            .map(|_| std::sync::OnceLock::new())
-            .collect();
-        Study {
-            batch,
-            observers,
-            steady,
-            noise: TruthNoise {
-                process_std: Vector::<NX>::from_column_slice(&plan.model.process_noise_std),
-                measurement_std: Vector::<NZ>::from_column_slice(&plan.model.measurement_noise_std),
-            },
-            model_q: model.process_noise_covariance(),
-            model,
-            scenarios,
-            p0,
-            p0_factor,
-            plan: plan.clone(),
-            state_names,
-        }
-    }
-}
-
-impl<const NX: usize, const NU: usize, const NZ: usize, M: FilterSet<NX, NU, NZ>> Trial
-    for Study<NX, NU, NZ, M>
-{
-    fn run(&self, unit: &Unit) -> UnitResult {
-        let plan = &self.plan;
-        let scenario = &self.scenarios[unit.scenario];
-        let noise_scale = plan.noise_scales[unit.scale];
-        let seed = run_seed(plan.master_seed, &scenario.name, unit.run as u64);
-        let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
-        let mut trajectory = simulate(
-            &self.model,
-            scenario,
-            &self.noise,
-            noise_scale,
-            self.p0_factor.as_ref(),
-            &draws,
-        );
-        let traced = unit.run < plan.trace_runs;
-        let filter_scale = match plan.filter_noise {
-            FilterNoiseMode::Nominal => 1.0,
-            FilterNoiseMode::Matched => noise_scale,
-        };
-        let p0 = match &self.batch {
-            Some(batch) => {
-                let b = &batch[unit.scenario];
-                trajectory.x0_hat = b.estimate(&trajectory.measurements);
-                b.covariance * (filter_scale * filter_scale)
-            }
-            None => self.p0,
-        };
-        let ctx = RunContext {
-            scenario,
-            trajectory: &trajectory,
-            p0: &p0,
-            thresholds: plan.rmse_thresholds.as_deref(),
-            state_names: &self.state_names,
-            trace: traced,
-            consistency: plan.consistency.as_ref().map(|c| ConsistencyOptions {
-                lags: c.whiteness_lags,
-                burn_in: plan.initial != InitialMode::Sampled,
-                initial_nees: plan.initial == InitialMode::BatchLs,
-            }),
-        };
-        let mut filters = Vec::with_capacity(plan.filters.len());
-        let mut est = Vec::new();
-        let mut var = Vec::new();
-        for (fi, f) in plan.filters.iter().enumerate() {
-            let q = match &self.model_q {
-                Some(q) => q * (filter_scale * filter_scale * f.q_scale),
-                None => {
-                    diag_from_std(&(Vector::<NX>::from_column_slice(&f.q_std) * filter_scale))
-                        * f.q_scale
-                }
-            };
-            let r = diag_from_std(&(Vector::<NZ>::from_column_slice(&f.r_std) * filter_scale))
-                * f.r_scale;
-            let out = match &f.kind {
-                FilterKind::SteadyState => {
-                    let slot = &self.steady[fi * plan.noise_scales.len() + unit.scale];
-                    let filter = slot.get_or_init(|| SteadyState::new(&self.model, &q, &r));
-                    run_filter(&self.model, filter, &ctx)
-                }
-                FilterKind::PolePlacement { .. } => {
-                    let observer = self.observers[fi].as_ref().expect("built for this entry");
-                    run_filter(&self.model, observer, &ctx)
-                }
-                kind => self.model.run_kind(kind, q, r, &ctx),
-            };
-            if let Some((e, v)) = out.trace {
-                est.push(e);
-                var.push(v);
-            }
-            filters.push(out.run);
-        }
-        let trace = traced.then(|| RunTrace {
-            u: scenario
-                .controls
-                .iter()
-                .flat_map(|u| u.iter().copied())
-                .collect(),
-            truth: trajectory
-                .truth
-                .iter()
-                .flat_map(|x| x.iter().copied())
-                .collect(),
-            z: trajectory
-                .measurements
-                .iter()
-                .flat_map(|m| {
-                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
-                })
-                .collect(),
-            est,
-            var,
-        });
-        UnitResult {
-            unit: *unit,
-            seed,
-            filters,
-            trace,
-        }
-    }
-
-    fn steps(&self, scenario: usize) -> usize {
-        self.scenarios[scenario].steps()
-    }
-
-    fn names(&self) -> Names {
-        self.model.names()
-    }
-}
-
-/// Binds a plan to its model type.
-pub fn build(plan: &Plan) -> Box<dyn Trial> {
-    let dt = plan.model.params.dt_s;
-    let planar =
-        || -> Vec<Scenario<6, 2>> { plan.scenarios.iter().map(|s| s.expand(dt)).collect() };
-    // L1 runs with zero input (see `model::linear`): a scenario is x0 and a duration.
-    let linear = || -> Vec<Scenario<6, 4>> {
-        plan.scenarios
-            .iter()
-            .map(|s| {
-                Scenario::unforced(&s.name, Vector::<6>::from_column_slice(&s.x0), s.steps(dt))
-            })
-            .collect()
-    };
-    const SIZES: &str = "ModelKind::nz matches the sensor set's size";
-    match plan.model.kind {
-        ModelKind::PlanarP1 => Box::new(Study::<6, 2, 3, _>::new(
-            Planar::<3>::new(plan.model.params),
-            planar(),
-            plan,
-        )),
-        ModelKind::PlanarImu => Box::new(Study::<6, 2, 4, _>::new(
-            Planar::<4>::new(plan.model.params),
-            planar(),
-            plan,
-        )),
-        ModelKind::LinearPositions => Box::new(Study::<6, 4, 3, _>::new(
-            Linear::<3>::new(LinearSensor::Positions, dt).expect(SIZES),
-            linear(),
-            plan,
-        )),
-        ModelKind::LinearVelocities => Box::new(Study::<6, 4, 3, _>::new(
-            Linear::<3>::new(LinearSensor::Velocities, dt).expect(SIZES),
-            linear(),
-            plan,
-        )),
-        ModelKind::LinearXy => Box::new(Study::<6, 4, 2, _>::new(
-            Linear::<2>::new(LinearSensor::Xy, dt).expect(SIZES),
-            linear(),
-            plan,
-        )),
+        trace: est.zip(cov),
     }
 }

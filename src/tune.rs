@@ -20,7 +20,7 @@ use std::path::PathBuf;
 
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::plan::ConsistencyPlan;
-use crate::experiment::{FilterKind, FilterPlan, Plan};
+use crate::experiment::{FilterPlan, Plan};
 use crate::output::table::read;
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::RunObserver;
@@ -170,7 +170,7 @@ fn stage(
         col_s("state")?,
         col_f("rmse_mean")?,
     );
-    let states = p.model.kind.state_names();
+    let states = p.quantity_names();
     for i in 0..s.height() {
         let (scn, n, qq, rr) = (
             sc.get(i).unwrap_or(""),
@@ -290,7 +290,9 @@ pub fn tune(
         .filters
         .iter()
         .find(|f| {
-            matches!(f.kind, FilterKind::Ekf { .. })
+            let info = &plan.system.filters()[f.entry];
+            info.has_covariance
+                && info.q_scale
                 && opts.filter.as_ref().is_none_or(|l| *l == f.label)
         })
         .cloned()
@@ -299,12 +301,20 @@ pub fn tune(
                 file: plan.spec_path.clone(),
                 key_path: "filters".into(),
                 message: match &opts.filter {
-                    Some(l) => format!("no filter with a covariance labelled `{l}` to tune"),
-                    None => "no filter with a covariance (kind = \"ekf\") to tune".into(),
+                    Some(l) => {
+                        format!("no filter with a covariance and a q_scale labelled `{l}` to tune")
+                    }
+                    None => {
+                        "no filter with a covariance and a q_scale (e.g. kind = \"ekf\") to tune"
+                            .into()
+                    }
                 },
             }]))
         })?;
-    let (n, p) = (plan.model.kind.nx() as f64, plan.model.kind.nz() as f64);
+    let (n, p) = (
+        plan.layout().quantities.len() as f64,
+        plan.layout().measurements.len() as f64,
+    );
 
     let coarse: Vec<(f64, f64)> = if opts.tune_r {
         let g = log_grid(1.0, 3.0, 13);
@@ -363,13 +373,13 @@ pub fn tune(
         }
     }
 
-    let states = plan.model.kind.state_names();
+    let states = plan.quantity_names();
     std::fs::create_dir_all(&plan.output).map_err(|source| OutputError::Io {
         action: "cannot create the output folder",
         path: plan.output.clone(),
         source,
     })?;
-    let mut w = TableWriter::create(&plan.output, "tuning", schema::tuning(states))?;
+    let mut w = TableWriter::create(&plan.output, "tuning", schema::tuning(&states))?;
     for pt in &points {
         let mut row = vec![
             Value::Str(pt.stage),

@@ -159,7 +159,7 @@ fn tuned_planar_ekf_false_alarm_rate_over_200_master_seeds() {
             let cons: Vec<RunConsistency> = (0..plan.runs)
                 .filter_map(|run| trial.run(&Unit { scenario: 0, scale: 0, run }).filters[0].consistency.clone())
                 .collect();
-            let states = trial.names().states;
+            let states = trial.layout().quantity_names();
             let tests = cell_tests(&cons, 6, &states, ALPHA, (None, None));
             !tests.iter().find(|t| t.test == VERDICT).unwrap().pass as usize
         })

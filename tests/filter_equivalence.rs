@@ -9,10 +9,10 @@
 use kfmc::filter::steady_state::solve_dare;
 use kfmc::filter::{CovarianceUpdate, Ekf, Filter, Information, SquareRoot, SteadyState};
 use kfmc::linalg::{Matrix, Vector, eigenvalues};
-use kfmc::model::linear::{Linear, LinearSensor};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
 use kfmc::sim::{NoiseDraws, Trajectory, simulate};
+use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
 
 /// x̂_k, P_k and the error transition A_k = (I − K_k H_k) F_k after every step k = 0..=K
 /// (A_0 = I). A_k feeds the calibrated NEES test, so every form must expose the same one.

@@ -15,10 +15,10 @@ use std::fmt::Write as _;
 use common::{Csv, repo};
 use kfmc::filter::{CovarianceUpdate, Ekf, Filter};
 use kfmc::linalg::{Matrix, Vector};
-use kfmc::model::linear::{Linear, LinearSensor};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
 use kfmc::sim::{NoiseDraws, simulate};
+use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
 
 const STEPS: usize = 300;
 

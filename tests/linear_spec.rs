@@ -2,7 +2,17 @@
 
 use std::path::Path;
 
-use kfmc::experiment::{self, FilterKind, ModelKind};
+use kfmc::experiment::{self, Plan};
+use kfmc::system::additive::AdditivePlan;
+use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
+
+/// The configured L1 system behind a plan (three measurement components).
+fn l1(plan: &Plan) -> &AdditivePlan<6, 4, 3, Linear<3>> {
+    plan.system
+        .as_any()
+        .downcast_ref()
+        .expect("an L1 plan with 3 components")
+}
 
 fn errors(text: &str) -> Vec<(String, String)> {
     match experiment::parse(text, Path::new("t.toml")) {
@@ -34,28 +44,39 @@ fn shipped_linear_nees_spec_holds_the_seeds_three_tests() {
         &Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/linear_nees.toml"),
     )
     .expect("valid spec");
-    assert_eq!(plan.model.kind, ModelKind::LinearPositions);
+    assert_eq!(plan.kind, "linear_quadrotor");
+    assert_eq!(l1(&plan).model.sensor(), LinearSensor::Positions);
     assert_eq!(plan.runs, 200);
-    assert_eq!(plan.model.params.dt_s, 0.1);
+    assert_eq!(plan.dt_s(), 0.1);
     let c = plan.consistency.as_ref().unwrap();
     assert_eq!(c.alpha, 0.003);
     assert_eq!(c.subsets, [(50, 0.05), (100, 0.01)]);
     let labels: Vec<_> = plan.filters.iter().map(|f| f.label.as_str()).collect();
     assert_eq!(labels, ["kf", "information", "sqrt", "steady_state"]);
-    assert_eq!(plan.filters[1].kind, FilterKind::Information);
-    assert_eq!(plan.filters[2].kind, FilterKind::Sqrt);
+    assert_eq!(plan.filters[1].kind, "information");
+    assert_eq!(plan.filters[2].kind, "sqrt");
 }
 
 #[test]
 fn linear_defaults_are_the_seeds() {
     let plan = experiment::parse(&spec("xy", "sqrt"), Path::new("t.toml")).unwrap();
-    assert_eq!(plan.model.kind, ModelKind::LinearXy);
-    assert_eq!(plan.model.kind.nz(), 2);
-    assert_eq!(plan.scenarios[0].x0, [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]);
-    assert_eq!(plan.scenarios[0].steps(plan.model.params.dt_s), 400);
-    let r: Vec<f64> = plan.filters[0].r_std.iter().map(|s| s * s).collect();
+    let sys: &AdditivePlan<6, 4, 2, Linear<2>> =
+        plan.system.as_any().downcast_ref().expect("an xy plan");
+    assert_eq!(sys.model.sensor(), LinearSensor::Xy);
+    assert_eq!(plan.layout().measurements.len(), 2);
+    assert_eq!(
+        sys.scenarios[0].x0.as_slice(),
+        [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]
+    );
+    assert_eq!(plan.scenarios[0].steps, 400);
+    let r: Vec<f64> = sys.entries[0]
+        .assumed_std()
+        .1
+        .iter()
+        .map(|s| s * s)
+        .collect();
     assert!((r[0] - 0.0933).abs() < 1e-15 && (r[1] - 0.0885).abs() < 1e-15);
-    assert_eq!(plan.model.kind.state_names()[5], "zdot");
+    assert_eq!(plan.quantity_names()[5], "zdot");
 }
 
 #[test]

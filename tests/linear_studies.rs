@@ -9,10 +9,10 @@ use std::path::{Path, PathBuf};
 use kfmc::experiment::{self, Overrides, Plan};
 use kfmc::filter::BatchInitial;
 use kfmc::linalg::{Matrix, SmallCholesky, Vector};
-use kfmc::model::linear::{Linear3, LinearSensor};
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
 use kfmc::study::{ExecOptions, run};
+use kfmc::systems::linear_quadrotor::model::{Linear3, LinearSensor};
 use kfmc::trial::{Unit, build};
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 

@@ -7,10 +7,10 @@ use kfmc::filter::luenberger::place_observer;
 use kfmc::filter::steady_state::solve_dare;
 use kfmc::filter::{Filter, Luenberger, SeedPoleReading, seed_poles};
 use kfmc::linalg::{Matrix, Vector, eigenvalues};
-use kfmc::model::linear::{Linear, LinearSensor};
 use kfmc::model::{Measurement, Model};
 use kfmc::scenario::Scenario;
 use kfmc::sim::{NoiseDraws, Trajectory, TruthNoise, simulate};
+use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
 
 const SCALES: [f64; 3] = [0.9, 0.5, 0.2];
 const READINGS: [SeedPoleReading; 2] = [SeedPoleReading::Printed, SeedPoleReading::Negated];

@@ -46,7 +46,7 @@ fn monte_carlo_means_match_the_orders_of_magnitude_of_table_1() {
         ..Default::default()
     })
     .unwrap();
-    plan.scenarios.retain(|s| s.name == "horizontal");
+    plan.retain_scenarios(|s| s == "horizontal");
     run(&plan, &ExecOptions { threads: 0 }, &NullObserver).unwrap();
     let ekf = mean_rmse(tmp.path(), "ekf", "horizontal");
     let rm = mean_rmse(tmp.path(), "running_mean", "horizontal");

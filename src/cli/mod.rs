@@ -15,9 +15,9 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 use crate::error::KfmcError;
-use crate::experiment::{self, FilterKind, Overrides, Plan};
+use crate::experiment::{self, Overrides, Plan};
 use crate::plot::{FigureKind, Format, PlotOptions};
-use crate::scenario::planar::{BUILTIN_PLANAR, builtin};
+use crate::system::Registry;
 use progress::ProgressObserver;
 
 /// Exit code: success.
@@ -70,8 +70,8 @@ pub struct StudyArgs {
 
 impl StudyArgs {
     /// Loads and validates the spec and applies the overrides.
-    fn plan(&self, trace_runs: Option<usize>) -> Result<Plan, KfmcError> {
-        let mut plan = experiment::load(&self.spec)?;
+    fn plan(&self, registry: &Registry, trace_runs: Option<usize>) -> Result<Plan, KfmcError> {
+        let mut plan = experiment::load_with(&self.spec, registry)?;
         plan.apply(&Overrides {
             runs: self.runs,
             master_seed: self.seed,
@@ -158,7 +158,7 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// List models, sensors, scenarios and filters.
+    /// List the registered systems with their sensors, scenarios and filter kinds.
     List,
 }
 
@@ -167,7 +167,7 @@ fn describe(plan: &Plan) -> String {
     let filters: Vec<String> = plan
         .filters
         .iter()
-        .map(|f| format!("{} ({})", f.label, f.kind.tag()))
+        .map(|f| format!("{} ({})", f.label, f.kind))
         .collect();
     let scales = match plan.noise_scales.as_slice() {
         [one] => format!("{one}"),
@@ -193,81 +193,39 @@ fn describe(plan: &Plan) -> String {
     )
 }
 
-fn list() -> String {
-    let mut s = String::from(
-        "models:\n  planar_quadrotor  state [x, xdot, y, ydot, theta, thetadot], input [u1, u2] (seeds 000/001/003)\n  \
-         linear_quadrotor  state [x, xdot, y, ydot, z, zdot], input [t1..t4] = 0, dt 0.1 s (seed 002)\n\
-         sensors (model.sensor):\n  p1   [y, theta, thetadot]  (seeds 000/001)\n  imu  [y, thetadot, xddot, yddot]  (seed 003)\n  \
-         positions   [x, y, z]  (linear_quadrotor, default)\n  velocities  [xdot, ydot, zdot]  (linear_quadrotor)\n  xy   [x, y]  (linear_quadrotor)\n\
-         scenarios (built-in, planar_quadrotor):\n",
-    );
-    for name in BUILTIN_PLANAR {
-        let d = builtin(name).expect("built-in");
-        let stages: Vec<String> = d
-            .profile
-            .stages
-            .iter()
-            .map(|st| {
-                format!(
-                    "k≥{}: [{}, {}] N",
-                    st.from_step, st.thrust_n[0], st.thrust_n[1]
-                )
-            })
-            .collect();
-        s.push_str(&format!(
-            "  {name:<11} x0 = {:?}; {}\n",
-            d.x0.map(|v| (v * 1e4).round() / 1e4),
-            stages.join(", ")
-        ));
+fn list(registry: &Registry) -> String {
+    let mut s = String::from("systems (model.kind):\n");
+    for sys in registry.systems() {
+        s.push_str(&format!("  {:<18} {}\n", sys.kind(), sys.catalogue().about));
     }
-    s.push_str("filters (filters[].kind):\n");
-    for (k, d) in [
-        (
-            FilterKind::Ekf {
-                update: crate::filter::CovarianceUpdate::Standard,
-            },
-            "extended Kalman filter; q_std, r_std, covariance_update = standard | joseph",
-        ),
-        (
-            FilterKind::RunningMean { window: 11 },
-            "running-mean baseline of seed 000 (sensor p1 only); window (samples, default 11)",
-        ),
-        (
-            FilterKind::Information,
-            "information filter (Y = P⁻¹, y = P⁻¹x̂); needs F invertible and Q positive definite",
-        ),
-        (
-            FilterKind::Sqrt,
-            "square-root filter (P = S Sᵀ by QR of stacked pre-arrays)",
-        ),
-        (
-            FilterKind::SteadyState,
-            "fixed-gain KF from the discrete Riccati equation (linear_quadrotor, sensor positions)",
-        ),
-        (
-            FilterKind::OpenLoop,
-            "the time update alone (measurements ignored): propagated covariance vs Monte Carlo spread",
-        ),
-        (
-            FilterKind::PolePlacement { poles: Vec::new() },
-            "Luenberger observer, gain by MIMO pole placement; poles = [[re, im], …] or pole_scale = a \
-             (seed list a·{−0.707±0.707i, 1, −0.3536±0.3536i, 0.5}), pole_reading = printed | negated \
-             (linear_quadrotor, sensor positions); no covariance, so NEES/NIS are null",
-        ),
-    ] {
-        s.push_str(&format!("  {:<15} {d}\n", k.tag()));
+    for sys in registry.systems() {
+        let cat = sys.catalogue();
+        s.push_str(&format!("\n{} — {}\n", sys.kind(), cat.about));
+        for (title, entries) in &cat.sections {
+            s.push_str(&format!("  {title}:\n"));
+            let width = entries
+                .iter()
+                .map(|(n, _)| n.chars().count())
+                .max()
+                .unwrap_or(0);
+            for (name, about) in entries {
+                s.push_str(&format!("    {name:<width$}  {about}\n"));
+            }
+        }
     }
-    s.push_str(
-        "initial estimates (initial_estimate.mode):\n  truth     x̂0 = x0, P0 = diag(p0_std²) (the seeds)\n  \
-         sampled   x̂0 ~ N(x0, P0), one draw per run shared by all filters\n  \
-         batch_ls  x̂0, P0 by generalised least squares on z_1..z_K (linear_quadrotor, sensor positions)\n",
-    );
     s
 }
 
-/// Runs the CLI and returns the process exit code.
-pub fn main_with(cli: Cli) -> ExitCode {
-    match dispatch(cli) {
+/// The whole command line for the systems of `registry`: parses the process's arguments,
+/// runs the command and returns the exit code. A downstream crate's `main` is
+/// `kfmc::cli::main_with(Registry::builtin().with(MySystem))`.
+pub fn main_with(registry: Registry) -> ExitCode {
+    run(Cli::parse(), &registry)
+}
+
+/// Runs a parsed command line and returns the process exit code.
+pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
+    match dispatch(cli, registry) {
         Ok(()) => ExitCode::from(EXIT_OK),
         Err(e) => {
             if e.downcast_ref::<CheckFailed>().is_some() {
@@ -290,14 +248,14 @@ fn plot_dir(dir: &std::path::Path, opts: &PlotOptions) -> anyhow::Result<Vec<Pat
         .map_err(|e| anyhow::Error::from(e).context(format!("plotting {}", dir.display())))
 }
 
-fn dispatch(cli: Cli) -> anyhow::Result<()> {
+fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
     match cli.command {
         Command::Run {
             study,
             trace_runs,
             plot,
         } => {
-            let plan = study.plan(trace_runs)?;
+            let plan = study.plan(registry, trace_runs)?;
             let StudyArgs {
                 spec,
                 threads,
@@ -356,7 +314,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Check { study, junit } => {
-            let mut plan = study.plan(None)?;
+            let mut plan = study.plan(registry, None)?;
             let StudyArgs {
                 spec,
                 threads,
@@ -414,7 +372,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             tune_r,
             filter,
         } => {
-            let plan = study.plan(None)?;
+            let plan = study.plan(registry, None)?;
             let StudyArgs {
                 spec,
                 threads,
@@ -453,9 +411,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             println!(
                 "best q_scale = {q}, r_scale = {r}: objective {obj:.4}, ANEES {} (n = {}), ANIS {} (p = {})",
                 fmt(mean(&|p| p.anees)),
-                plan.model.kind.nx(),
+                plan.layout().quantities.len(),
                 fmt(mean(&|p| p.anis)),
-                plan.model.kind.nz()
+                plan.layout().measurements.len()
             );
             if report.per_noise_scale.len() > 1 {
                 println!("best per truth-noise scale (over the scenarios):");
@@ -479,7 +437,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Validate { spec } => {
-            let plan = experiment::load(&spec).map_err(KfmcError::from)?;
+            let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
             println!("{}", describe(&plan));
             Ok(())
         }
@@ -493,7 +451,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::List => {
-            print!("{}", list());
+            print!("{}", list(registry));
             Ok(())
         }
     }

@@ -4,19 +4,30 @@
 //! (unknown keys are errors), [`plan`] validates them into typed values, reporting every
 //! problem at once with the file and the key path (`filters[1].q_std: …`).
 
+pub mod checker;
 pub mod plan;
 pub mod spec;
 
 use std::path::Path;
 
-pub use plan::{
-    FilterKind, FilterNoiseMode, FilterPlan, InitialMode, ModelKind, Overrides, Plan, PlanSize,
-};
+pub use checker::{Checker, non_negative, positive};
+pub use plan::{FilterNoiseMode, FilterPlan, InitialMode, Overrides, Plan, PlanSize, ScenarioPlan};
 
 use crate::error::{SpecError, SpecErrors};
+use crate::system::Registry;
 
-/// Reads, parses and validates a spec file.
+/// Reads, parses and validates a spec file against the built-in systems.
 pub fn load(path: &Path) -> Result<Plan, SpecErrors> {
+    load_with(path, &Registry::builtin())
+}
+
+/// Parses and validates spec text against the built-in systems; `path` names it in errors.
+pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
+    parse_with(text, path, &Registry::builtin())
+}
+
+/// Reads, parses and validates a spec file; `registry` supplies the systems.
+pub fn load_with(path: &Path, registry: &Registry) -> Result<Plan, SpecErrors> {
     let text = std::fs::read_to_string(path).map_err(|e| {
         SpecErrors(vec![SpecError {
             file: path.to_path_buf(),
@@ -24,11 +35,11 @@ pub fn load(path: &Path) -> Result<Plan, SpecErrors> {
             message: format!("cannot read the spec: {e}"),
         }])
     })?;
-    parse(&text, path)
+    parse_with(&text, path, registry)
 }
 
-/// Parses and validates spec text; `path` names it in errors.
-pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
+/// Parses and validates spec text; `path` names it in errors, `registry` supplies the systems.
+pub fn parse_with(text: &str, path: &Path, registry: &Registry) -> Result<Plan, SpecErrors> {
     let one = |key_path: String, message: String| {
         SpecErrors(vec![SpecError {
             file: path.to_path_buf(),
@@ -46,7 +57,7 @@ pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
             with_line(text, inner),
         )
     })?;
-    plan::validate(spec, path, text)
+    plan::validate(spec, path, text, registry)
 }
 
 /// The TOML error's message with its line number.

@@ -21,11 +21,11 @@ pub struct Spec {
     pub output: Option<String>,
     /// Number of runs per (scenario, noise scale) whose full trajectories are written.
     pub trace_runs: Option<u64>,
-    /// The model.
-    pub model: ModelSpec,
-    /// Scenarios (at least one).
+    /// The system (`kind`) and its own keys, which the system validates.
+    pub model: toml::Table,
+    /// Scenarios (at least one); `name` is generic, every other key belongs to the system.
     #[serde(default)]
-    pub scenarios: Vec<ScenarioSpec>,
+    pub scenarios: Vec<toml::Table>,
     /// Filters (at least one).
     #[serde(default)]
     pub filters: Vec<FilterSpec>,
@@ -92,87 +92,20 @@ pub struct ConsistencySubsetSpec {
     pub alpha: f64,
 }
 
-/// `[model]`
+/// `[[filters]]`: the generic keys; every other key goes to the filter kind's own parser.
 #[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ModelSpec {
-    /// `planar_quadrotor`
-    pub kind: String,
-    /// `p1` (`[y, θ, θ̇]`) or `imu` (`[y, θ̇, ẍ, ÿ]`).
-    pub sensor: Option<String>,
-    /// m (kg)
-    pub mass_kg: Option<f64>,
-    /// r (m)
-    pub arm_m: Option<f64>,
-    /// I (kg·m²)
-    pub inertia_kg_m2: Option<f64>,
-    /// g (m/s²)
-    pub gravity_m_s2: Option<f64>,
-    /// Δt (s)
-    pub dt_s: Option<f64>,
-    /// Truth process-noise standard deviation per state at noise scale 1.
-    pub process_noise_std: Option<OneOrMany>,
-    /// Truth measurement-noise standard deviation per component at noise scale 1.
-    pub measurement_noise_std: Option<OneOrMany>,
-}
-
-/// `[[scenarios]]`
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ScenarioSpec {
-    /// Name; a built-in name (`basic`, `horizontal`, `roll`, `fall`) supplies defaults.
-    pub name: String,
-    /// Built-in scenario to start from when `name` is not one.
-    pub base: Option<String>,
-    /// Initial state override.
-    pub x0: Option<Vec<f64>>,
-    /// Duration override (s).
-    pub duration_s: Option<f64>,
-    /// Thrust stages override.
-    pub stages: Option<Vec<StageSpec>>,
-    /// Relative ripple amplitude override.
-    pub ripple: Option<f64>,
-    /// Ripple angular frequency override (rad/s).
-    pub ripple_rad_s: Option<f64>,
-}
-
-/// One thrust stage.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct StageSpec {
-    /// First step of the stage.
-    pub from_step: u64,
-    /// `[u1, u2]` in N.
-    pub thrust_n: Vec<f64>,
-}
-
-/// `[[filters]]`
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
 pub struct FilterSpec {
     /// Label in the tables' `filter` column.
     pub label: String,
-    /// `ekf`, `running_mean`, `information`, `sqrt`, `steady_state`, `open_loop` or
-    /// `pole_placement`.
+    /// The filter kind (`kfmc list` shows each system's).
     pub kind: String,
-    /// Assumed process-noise std (default: the model's truth value).
-    pub q_std: Option<OneOrMany>,
-    /// Assumed measurement-noise std (default: the model's truth value).
-    pub r_std: Option<OneOrMany>,
-    /// `standard` (the seeds) or `joseph`.
-    pub covariance_update: Option<String>,
-    /// Window length in samples (running mean; the seeds average 11).
-    pub window: Option<u64>,
     /// Multipliers of the assumed Q (a number, a list or a range): a sweep axis.
     pub q_scale: Option<Scales>,
     /// Multipliers of the assumed R: a sweep axis.
     pub r_scale: Option<Scales>,
-    /// Pole placement: the observer poles as `[re, im]` pairs (default: the seed's list).
-    pub poles: Option<Vec<Vec<f64>>>,
-    /// Pole placement: the multiplier `a` of the seed's pole list.
-    pub pole_scale: Option<f64>,
-    /// Pole placement: `printed` (real poles +a, +a/2) or `negated` (−a, −a/2).
-    pub pole_reading: Option<String>,
+    /// The kind's own keys.
+    #[serde(flatten)]
+    pub keys: toml::Table,
 }
 
 /// `[noise]`

@@ -185,9 +185,9 @@ impl<const NX: usize> BatchInitial<NX> {
 mod tests {
     use super::*;
     use crate::linalg::SmallCholesky;
-    use crate::model::linear::{Linear, Linear2, Linear3, LinearSensor};
     use crate::scenario::Scenario;
     use crate::sim::{NoiseDraws, TruthNoise, simulate};
+    use crate::systems::linear_quadrotor::model::{Linear, Linear2, Linear3, LinearSensor};
 
     fn scenario(steps: usize, with_input: bool) -> Scenario<6, 4> {
         Scenario {

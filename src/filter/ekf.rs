@@ -170,7 +170,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 mod tests {
     use super::*;
     use crate::model::Availability;
-    use crate::model::planar::{PlanarP1, PlanarParams};
+    use crate::systems::planar::model::{PlanarP1, PlanarParams};
 
     fn setup() -> (PlanarP1, Ekf<6, 3>, Gaussian<6>) {
         let model = PlanarP1::new(PlanarParams::default());

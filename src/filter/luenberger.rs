@@ -661,7 +661,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 mod tests {
     use super::*;
     use crate::model::Availability;
-    use crate::model::linear::{Linear, LinearSensor};
+    use crate::systems::linear_quadrotor::model::{Linear, LinearSensor};
     use rand::{RngExt, SeedableRng};
     use rand_distr::{Distribution, StandardNormal};
     use rand_pcg::Pcg64;

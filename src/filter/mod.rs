@@ -11,7 +11,6 @@ pub mod ekf;
 pub mod information;
 pub mod luenberger;
 pub mod open_loop;
-pub mod running_mean;
 pub mod sqrt;
 pub mod steady_state;
 
@@ -25,7 +24,6 @@ pub use luenberger::{
     Luenberger, PlacementError, SeedPoleReading, place_observer_poles, seed_poles,
 };
 pub use open_loop::OpenLoop;
-pub use running_mean::RunningMean;
 pub use sqrt::SquareRoot;
 pub use steady_state::SteadyState;
 

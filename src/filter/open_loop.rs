@@ -70,7 +70,7 @@ mod tests {
     use super::*;
     use crate::filter::CovarianceUpdate;
     use crate::model::Availability;
-    use crate::model::linear::{Linear3, LinearSensor};
+    use crate::systems::linear_quadrotor::model::{Linear3, LinearSensor};
 
     #[test]
     fn the_covariance_follows_the_lyapunov_recursion_and_measurements_are_ignored() {

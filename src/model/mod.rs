@@ -7,9 +7,6 @@
 //! Dimensions are compile-time constants (`NX` states, `NU` inputs, `NZ` measurement
 //! components) so the per-step algebra is stack-allocated and monomorphised.
 
-pub mod linear;
-pub mod planar;
-
 use crate::linalg::{Matrix, Vector};
 
 /// Which measurement components report at a step, as a bit mask (bit `i` ⇔ component `i`).
@@ -43,17 +40,6 @@ pub struct Measurement<const NZ: usize> {
     pub available: Availability,
 }
 
-/// Names used for table columns and figure labels. They match across code, TOML and Parquet.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Names {
-    /// State names, e.g. `x, xdot, y, ydot, theta, thetadot` (columns `rmse_<state>`).
-    pub states: Vec<&'static str>,
-    /// Input names (columns `u_<input>` in traces).
-    pub inputs: Vec<&'static str>,
-    /// Measurement component names (columns `z_<name>` in traces).
-    pub measurements: Vec<&'static str>,
-}
-
 /// A discrete-time nonlinear state-space model with additive Gaussian noise:
 ///
 /// x_k = f(x_{k−1}, u_k) + w_k,  z_k = h(x_k, u_k) + v_k.
@@ -61,8 +47,6 @@ pub struct Names {
 /// Note the index of the input: the seeds' code integrates from k−1 to k with the control of
 /// the *new* step k, and so does every model here.
 pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync {
-    /// Column and label names.
-    fn names(&self) -> Names;
     /// Sample time Δt in seconds.
     fn dt_s(&self) -> f64;
     /// f(x_{k−1}, u_k): the noise-free transition.

@@ -15,6 +15,17 @@ pub struct TableEntry {
     pub rows: u64,
 }
 
+/// One evaluated quantity, as the manifest records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QuantityEntry {
+    /// Name (`rmse_<name>`, `truth_<name>`, …).
+    pub name: String,
+    /// Unit.
+    pub unit: String,
+    /// Whether its error is a wrapped angle.
+    pub angle: bool,
+}
+
 /// The manifest of a result folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -22,6 +33,21 @@ pub struct Manifest {
     pub kfmc_version: String,
     /// Experiment name.
     pub experiment: String,
+    /// `model.kind`: the system that made the folder.
+    #[serde(default)]
+    pub system: String,
+    /// The evaluated quantities, in column order.
+    #[serde(default)]
+    pub quantities: Vec<QuantityEntry>,
+    /// The filters' inputs (`u_<name>`).
+    #[serde(default)]
+    pub inputs: Vec<String>,
+    /// The measurement components (`z_<name>`).
+    #[serde(default)]
+    pub measurements: Vec<String>,
+    /// Sample time Δt (s).
+    #[serde(default)]
+    pub dt_s: f64,
     /// The spec file as given.
     pub spec_path: String,
     /// FNV-1a 64 of the spec text.

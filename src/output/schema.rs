@@ -215,5 +215,18 @@ pub fn traces(states: &[&str], inputs: &[&str], meas: &[&str]) -> Vec<ColumnDef>
     c.extend(per("z_", meas, Dtype::F64));
     c.extend(per("est_", states, Dtype::F64));
     c.extend(per("var_", states, Dtype::F64));
+    c.extend(covariance_columns(states));
+    c
+}
+
+/// The lower triangle of a covariance over `names`, row by row: `P_<qi>_<qj>` with qi at or
+/// after qj in the quantity order ((0,0), (1,0), (1,1), (2,0), …).
+pub fn covariance_columns(names: &[&str]) -> Vec<ColumnDef> {
+    let mut c = Vec::with_capacity(names.len() * (names.len() + 1) / 2);
+    for (i, qi) in names.iter().enumerate() {
+        for qj in &names[..=i] {
+            c.push(col(format!("P_{qi}_{qj}"), Dtype::F64));
+        }
+    }
     c
 }

@@ -477,10 +477,9 @@ impl Tables {
             .map(|t| t.names().iter().filter(|n| n.starts_with("z_")).count())
             .filter(|&n| n > 0)
             .or_else(|| {
-                // No traces: the spec in the manifest names the sensor set.
+                // No traces: the manifest names the measurement components.
                 let m = manifest.as_ref()?;
-                let plan = crate::experiment::parse(&m.spec, Path::new("manifest.toml")).ok()?;
-                Some(plan.model.kind.nz())
+                (!m.measurements.is_empty()).then_some(m.measurements.len())
             });
         Ok(Tables {
             dir: dir.to_path_buf(),

@@ -1,9 +1,7 @@
 //! The scenario role: initial state, control profile, duration.
 //!
-//! A [`Scenario`] is model-agnostic data (x0 and the control sequence u_0..u_K); the built-in
-//! profiles of each model live beside it (e.g. [`planar`]).
-
-pub mod planar;
+//! A [`Scenario`] is model-agnostic data (x0 and the control sequence u_0..u_K); each system builds its
+//! own (the planar thrust profiles live in the planar system).
 
 use crate::linalg::Vector;
 

@@ -133,8 +133,8 @@ pub fn simulate<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::planar::{PlanarP1, PlanarParams};
-    use crate::scenario::planar::builtin;
+    use crate::systems::planar::model::{PlanarP1, PlanarParams};
+    use crate::systems::planar::scenario::builtin;
 
     #[test]
     fn common_random_numbers_across_noise_scales() {

@@ -10,8 +10,8 @@
 //! * `horizontal`, the last loop runs to `length(time)` and so writes one element past the end
 //!   (MATLAB grows the array); the extra sample is never used.
 
-use super::Scenario;
 use crate::linalg::Vector;
+use crate::scenario::Scenario;
 
 /// A constant-thrust stage starting at a step index.
 #[derive(Clone, Copy, Debug, PartialEq)]

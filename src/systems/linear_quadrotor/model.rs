@@ -21,8 +21,8 @@
 //! u = 0: it is driven by process noise alone, which is what the seed's NEES/NIS tests
 //! exercise. F and G are still exact, so a control profile can be added later.
 
-use super::{Model, Names};
 use crate::linalg::{Matrix, Vector, expm, numerical_rank};
+use crate::model::Model;
 
 /// State names (`rmse_<state>` columns).
 pub const LINEAR_STATES: [&str; 6] = ["x", "xdot", "y", "ydot", "z", "zdot"];
@@ -195,6 +195,17 @@ impl<const NZ: usize> Linear<NZ> {
         })
     }
 
+    /// The measured components' names.
+    pub fn measurement_names(&self) -> Vec<&'static str> {
+        let m = ["x", "y", "z"];
+        let v = ["xdot", "ydot", "zdot"];
+        match self.sensor {
+            LinearSensor::Positions => m.to_vec(),
+            LinearSensor::Velocities => v.to_vec(),
+            LinearSensor::Xy => m[..2].to_vec(),
+        }
+    }
+
     /// F, G and Q.
     pub fn discrete(&self) -> &Discrete {
         &self.disc
@@ -242,21 +253,6 @@ impl<const NZ: usize> Linear<NZ> {
 }
 
 impl<const NZ: usize> Model<6, 4, NZ> for Linear<NZ> {
-    fn names(&self) -> Names {
-        let m = ["x", "y", "z"];
-        let v = ["xdot", "ydot", "zdot"];
-        let measurements = match self.sensor {
-            LinearSensor::Positions => m.to_vec(),
-            LinearSensor::Velocities => v.to_vec(),
-            LinearSensor::Xy => m[..2].to_vec(),
-        };
-        Names {
-            states: LINEAR_STATES.to_vec(),
-            inputs: vec!["t1", "t2", "t3", "t4"],
-            measurements,
-        }
-    }
-
     fn dt_s(&self) -> f64 {
         self.dt_s
     }

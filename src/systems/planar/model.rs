@@ -14,8 +14,8 @@
 //! * [`PlanarSensor::Imu`] — `[y, θ̇, ẍ, ÿ]` (seed 003): an altimeter, a gyro and the model's
 //!   accelerations, nonlinear in θ and in the input.
 
-use super::{Model, Names};
 use crate::linalg::{Matrix, Vector};
+use crate::model::Model;
 
 /// Physical parameters of the planar quadrotor (SI units).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -53,6 +53,11 @@ pub enum PlanarSensor {
     /// `[y, θ̇, ẍ, ÿ]` — seed 003's altimeter + IMU.
     Imu,
 }
+
+/// Measurement names of P1.
+pub const P1_MEASUREMENTS: [&str; 3] = ["y", "theta", "thetadot"];
+/// Measurement names of P2 (the IMU set).
+pub const IMU_MEASUREMENTS: [&str; 4] = ["y", "thetadot", "xddot", "yddot"];
 
 /// State names of the planar model, shared by both sensor sets.
 pub const PLANAR_STATES: [&str; 6] = ["x", "xdot", "y", "ydot", "theta", "thetadot"];
@@ -129,13 +134,6 @@ pub fn wrap_angle(a: f64) -> f64 {
 }
 
 impl Model<6, 2, 3> for PlanarP1 {
-    fn names(&self) -> Names {
-        Names {
-            states: PLANAR_STATES.to_vec(),
-            inputs: vec!["u1", "u2"],
-            measurements: vec!["y", "theta", "thetadot"],
-        }
-    }
     fn dt_s(&self) -> f64 {
         self.params.dt_s
     }
@@ -163,13 +161,6 @@ impl Model<6, 2, 3> for PlanarP1 {
 }
 
 impl Model<6, 2, 4> for PlanarImu {
-    fn names(&self) -> Names {
-        Names {
-            states: PLANAR_STATES.to_vec(),
-            inputs: vec!["u1", "u2"],
-            measurements: vec!["y", "thetadot", "xddot", "yddot"],
-        }
-    }
     fn dt_s(&self) -> f64 {
         self.params.dt_s
     }

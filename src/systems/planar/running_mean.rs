@@ -13,9 +13,9 @@
 //! Requirements on the model: the P1 planar quadrotor (it reads y, θ, θ̇ directly from the
 //! measurement). It carries no covariance, so its NEES/NIS are reported as null.
 
-use super::{Filter, FilterError, Innovation};
+use super::model::PlanarP1;
+use crate::filter::{Filter, FilterError, Innovation};
 use crate::linalg::{Matrix, Vector};
-use crate::model::planar::PlanarP1;
 use crate::model::{Measurement, Model};
 
 /// Running-mean baseline configuration.
@@ -126,7 +126,7 @@ impl Filter<6, 2, 3, PlanarP1> for RunningMean {
 mod tests {
     use super::*;
     use crate::model::Availability;
-    use crate::model::planar::PlanarParams;
+    use crate::systems::planar::model::PlanarParams;
 
     #[test]
     fn window_averages_the_last_samples_including_z0() {

@@ -1,0 +1,250 @@
+//! The system role: plugins that the spec's `[model] kind` names.
+//!
+//! A [`System`] parses and validates its own part of a spec (the `[model]` table, the
+//! scenarios and the filter entries' own keys, with key-path errors), names its scenarios and
+//! filter kinds for `kfmc list`, and binds a world, filters and the evaluated quantities into
+//! a [`SystemPlan`]. The plan builds the [`Trial`] that runs one Monte Carlo run at a time.
+//! A [`Registry`] maps `model.kind` to systems.
+//!
+//! Everything outside a system's own module — the executor, metrics, tables, check, tune,
+//! plot and CLI — sees only these traits and the [`Layout`] (quantity, input and measurement
+//! names). The built-in systems register through [`Registry::builtin`], which uses exactly the
+//! public API a downstream crate uses: a user's crate calls
+//! `kfmc::cli::main_with(Registry::builtin().with(MySystem))` and gets every subcommand with
+//! its own kinds in its specs.
+//!
+//! Most systems whose world is the filter's model plus additive Gaussian noise need not write
+//! a trial at all: [`additive`] has a generic one ([`additive::AdditivePlan`]) and the filter
+//! kinds that work on any [`crate::model::Model`].
+
+pub mod additive;
+
+use std::any::Any;
+use std::fmt::Debug;
+use std::path::Path;
+use std::sync::Arc;
+
+use crate::experiment::spec::OneOrMany;
+use crate::experiment::{Checker, InitialMode, Plan};
+use crate::trial::Trial;
+
+/// One evaluated quantity: what is scored (RMSE, NEES, divergence, traces).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Quantity {
+    /// Name (columns `rmse_<name>`, `truth_<name>`, `est_<name>`, …).
+    pub name: String,
+    /// Unit, for figures and reports (`m`, `m/s`, `rad`, `deg`, or empty).
+    pub unit: String,
+    /// Whether the error of this quantity is an angle wrapped to [−π, π) (or [−180°, 180°)
+    /// when the unit is `deg`).
+    pub angle: bool,
+}
+
+impl Quantity {
+    /// A quantity whose error is a plain difference.
+    pub fn new(name: impl Into<String>, unit: impl Into<String>) -> Self {
+        Quantity {
+            name: name.into(),
+            unit: unit.into(),
+            angle: false,
+        }
+    }
+    /// An angle quantity: its error is wrapped.
+    pub fn angle(name: impl Into<String>, unit: impl Into<String>) -> Self {
+        Quantity {
+            name: name.into(),
+            unit: unit.into(),
+            angle: true,
+        }
+    }
+}
+
+/// The names and sizes a study's tables are made of.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Layout {
+    /// The evaluated quantities, in order (NEES has as many degrees of freedom).
+    pub quantities: Vec<Quantity>,
+    /// The inputs the filters receive (trace columns `u_<name>`).
+    pub inputs: Vec<String>,
+    /// The measurement components (trace columns `z_<name>`; NIS degrees of freedom).
+    pub measurements: Vec<String>,
+    /// Sample time Δt in seconds (the `t` column is `step · Δt`).
+    pub dt_s: f64,
+}
+
+impl Layout {
+    /// The quantity names, in order.
+    pub fn quantity_names(&self) -> Vec<&str> {
+        self.quantities.iter().map(|q| q.name.as_str()).collect()
+    }
+    /// The input names.
+    pub fn input_names(&self) -> Vec<&str> {
+        self.inputs.iter().map(String::as_str).collect()
+    }
+    /// The measurement-component names.
+    pub fn measurement_names(&self) -> Vec<&str> {
+        self.measurements.iter().map(String::as_str).collect()
+    }
+    /// Indices of the angle quantities.
+    pub fn angle_indices(&self) -> Vec<usize> {
+        (0..self.quantities.len())
+            .filter(|&i| self.quantities[i].angle)
+            .collect()
+    }
+}
+
+/// A validated scenario, as the generic code sees it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ScenarioInfo {
+    /// Name (the `scenario` column; it also selects the run seeds).
+    pub name: String,
+    /// Transitions K (the run has K + 1 samples).
+    pub steps: usize,
+}
+
+/// A validated filter entry, as the generic code sees it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FilterInfo {
+    /// The `kind` tag.
+    pub kind: String,
+    /// Whether the filter reports a covariance (NEES, consistency, tuning).
+    pub has_covariance: bool,
+    /// Whether `q_scale` applies to it.
+    pub q_scale: bool,
+    /// Whether `r_scale` applies to it.
+    pub r_scale: bool,
+}
+
+/// One `[[filters]]` entry before validation: its label and kind, and every other key for the
+/// system (the generic keys `q_scale` and `r_scale` are taken out).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FilterTable {
+    /// `label`.
+    pub label: String,
+    /// `kind`.
+    pub kind: String,
+    /// Every key of the entry except `label`, `kind`, `q_scale` and `r_scale`.
+    pub keys: toml::Table,
+}
+
+/// `[initial_estimate]` after its generic part is read.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InitialSpec {
+    /// `mode`.
+    pub mode: InitialMode,
+    /// Whether the table was present at all.
+    pub present: bool,
+    /// `p0_std`, for the system to check against its state dimension.
+    pub p0_std: Option<OneOrMany>,
+}
+
+/// What a system is given to validate: its own parts of the spec.
+#[derive(Clone, Copy, Debug)]
+pub struct SystemSpec<'a> {
+    /// The spec file (for messages).
+    pub file: &'a Path,
+    /// The `[model]` table without `kind`.
+    pub model: &'a toml::Table,
+    /// The `[[scenarios]]` tables (each with its `name`, already checked unique).
+    pub scenarios: &'a [toml::Table],
+    /// The `[[filters]]` entries.
+    pub filters: &'a [FilterTable],
+    /// `[initial_estimate]`.
+    pub initial: &'a InitialSpec,
+}
+
+/// What `kfmc list` shows of a system.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Catalogue {
+    /// One line: what the system is.
+    pub about: String,
+    /// Titled lists of (name, description): scenarios, filter kinds, sensors, model keys, …
+    pub sections: Vec<(String, Vec<(String, String)>)>,
+}
+
+/// A plugin system: what one `[model] kind` means.
+pub trait System: Send + Sync {
+    /// The `model.kind` value that selects it.
+    fn kind(&self) -> &str;
+    /// What `kfmc list` prints for it.
+    fn catalogue(&self) -> Catalogue;
+    /// Validates the system's parts of a spec, reporting every problem into `checker` with its
+    /// key path; returns the configured system when there is none.
+    fn configure(
+        &self,
+        spec: &SystemSpec<'_>,
+        checker: &mut Checker,
+    ) -> Option<Arc<dyn SystemPlan>>;
+}
+
+/// A configured system: the world, the filters and the evaluated quantities of one spec.
+pub trait SystemPlan: Send + Sync + Debug {
+    /// Names and sizes of the tables.
+    fn layout(&self) -> &Layout;
+    /// The scenarios, in spec order.
+    fn scenarios(&self) -> &[ScenarioInfo];
+    /// The filter entries, in spec order.
+    fn filters(&self) -> &[FilterInfo];
+    /// The executor of one run, for `plan` (whose scenarios and filter variants index into
+    /// [`SystemPlan::scenarios`] and [`SystemPlan::filters`]).
+    fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a>;
+    /// For tests and tools that need the concrete plan back.
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// Maps `model.kind` to systems.
+#[derive(Clone, Default)]
+pub struct Registry {
+    systems: Vec<Arc<dyn System>>,
+}
+
+impl Debug for Registry {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list().entries(self.kinds()).finish()
+    }
+}
+
+impl Registry {
+    /// An empty registry.
+    pub fn new() -> Self {
+        Registry::default()
+    }
+
+    /// Every system kfmc ships.
+    pub fn builtin() -> Self {
+        crate::systems::register(Registry::new())
+    }
+
+    /// Adds a system; one of the same kind is replaced (so a user can extend a built-in
+    /// system with filter kinds of their own and register it again).
+    pub fn with(mut self, system: impl System + 'static) -> Self {
+        self.register(Arc::new(system));
+        self
+    }
+
+    /// Adds a shared system (see [`Registry::with`]).
+    pub fn register(&mut self, system: Arc<dyn System>) {
+        match self.systems.iter().position(|s| s.kind() == system.kind()) {
+            Some(i) => self.systems[i] = system,
+            None => self.systems.push(system),
+        }
+    }
+
+    /// The system of a kind.
+    pub fn get(&self, kind: &str) -> Option<&dyn System> {
+        self.systems
+            .iter()
+            .find(|s| s.kind() == kind)
+            .map(|s| s.as_ref())
+    }
+
+    /// The registered kinds, in registration order.
+    pub fn kinds(&self) -> Vec<&str> {
+        self.systems.iter().map(|s| s.kind()).collect()
+    }
+
+    /// The registered systems.
+    pub fn systems(&self) -> impl Iterator<Item = &dyn System> {
+        self.systems.iter().map(|s| s.as_ref())
+    }
+}

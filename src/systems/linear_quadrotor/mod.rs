@@ -1,0 +1,293 @@
+//! The linear 3-axis quadrotor of seed 002 (`model.kind = "linear_quadrotor"`, L1).
+//!
+//! The world is the discretised model plus additive noise (the full Q of Van Loan's method),
+//! run with zero input, so a scenario is an initial state and a duration. Filter kinds: the
+//! common ones plus the fixed-gain kinds of a linear model ([`linear_kinds`]), which need the
+//! position sensor (the only detectable and observable set); `initial_estimate.mode =
+//! "batch_ls"` gives x̂0 and P0 by least squares on each run's measurements.
+
+pub mod model;
+
+use std::any::Any;
+use std::sync::Arc;
+
+use serde::Deserialize;
+
+use crate::experiment::spec::OneOrMany;
+use crate::experiment::{Checker, InitialMode, non_negative, positive};
+use crate::filter::BatchInitial;
+use crate::linalg::{Matrix, Vector};
+use crate::scenario::Scenario;
+use crate::sim::TruthNoise;
+use crate::system::additive::{AdditivePlan, FilterKinds, linear_kinds};
+use crate::system::{Catalogue, Layout, Quantity, System, SystemPlan, SystemSpec};
+use model::{ContinuousLinear, LINEAR_DT_S, LINEAR_R_DIAG, LINEAR_STATES, Linear, LinearSensor};
+
+/// `model.kind` of this system.
+pub const KIND: &str = "linear_quadrotor";
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ModelKeys {
+    sensor: Option<String>,
+    dt_s: Option<f64>,
+    measurement_noise_std: Option<OneOrMany>,
+    process_noise_std: Option<toml::Value>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ScenarioKeys {
+    name: String,
+    x0: Option<Vec<f64>>,
+    duration_s: Option<f64>,
+}
+
+/// The linear-quadrotor system.
+#[derive(Clone)]
+pub struct LinearQuadrotorSystem {
+    three: FilterKinds<6, 4, 3, Linear<3>>,
+    two: FilterKinds<6, 4, 2, Linear<2>>,
+}
+
+impl Default for LinearQuadrotorSystem {
+    fn default() -> Self {
+        LinearQuadrotorSystem::new()
+    }
+}
+
+/// The steady state and the pole placement need the position sensor.
+fn positions_only(model: &dyn Any) -> Option<String> {
+    let positions = model
+        .downcast_ref::<Linear<3>>()
+        .is_some_and(|m| m.sensor() == LinearSensor::Positions);
+    (!positions).then(|| {
+        "steady_state needs model.kind = \"linear_quadrotor\" with sensor = \"positions\" (the only detectable sensor set)".to_string()
+    })
+}
+
+impl LinearQuadrotorSystem {
+    /// The built-in system.
+    pub fn new() -> Self {
+        LinearQuadrotorSystem {
+            three: linear_kinds(positions_only),
+            two: linear_kinds(positions_only),
+        }
+    }
+}
+
+impl System for LinearQuadrotorSystem {
+    fn kind(&self) -> &str {
+        KIND
+    }
+
+    fn catalogue(&self) -> Catalogue {
+        Catalogue {
+            about: "linear 3-axis quadrotor, state [x, xdot, y, ydot, z, zdot], input [t1..t4] = 0, dt 0.1 s (seed 002)".into(),
+            sections: vec![
+                (
+                    "sensors (model.sensor)".into(),
+                    vec![
+                        ("positions".into(), "[x, y, z]  (C, default)".into()),
+                        ("velocities".into(), "[xdot, ydot, zdot]  (C1)".into()),
+                        ("xy".into(), "[x, y]  (C2)".into()),
+                    ],
+                ),
+                (
+                    "model keys".into(),
+                    vec![("[model]".into(), "sensor, dt_s, measurement_noise_std".into())],
+                ),
+                (
+                    "scenarios (any name; x0, duration_s)".into(),
+                    vec![("hover".into(), "x0 = [1, 0, 1, 0, 1, 0], 40 s (the defaults)".into())],
+                ),
+                ("filters (filters[].kind)".into(), self.three.catalogue()),
+                (
+                    "initial estimates (initial_estimate.mode)".into(),
+                    vec![
+                        ("truth".into(), "x̂0 = x0, P0 = diag(p0_std²)".into()),
+                        ("sampled".into(), "x̂0 ~ N(x0, P0), one draw per run shared by all filters".into()),
+                        ("batch_ls".into(), "x̂0, P0 by generalised least squares on z_1..z_K (sensor positions)".into()),
+                    ],
+                ),
+            ],
+        }
+    }
+
+    fn configure(&self, spec: &SystemSpec<'_>, c: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
+        let m: ModelKeys = c.parse("model", spec.model).unwrap_or_default();
+        let sensor = match c.choice(
+            "model.sensor",
+            m.sensor.as_deref(),
+            "positions",
+            &["positions", "velocities", "xy"],
+        ) {
+            "velocities" => LinearSensor::Velocities,
+            "xy" => LinearSensor::Xy,
+            _ => LinearSensor::Positions,
+        };
+        if m.process_noise_std.is_some() {
+            c.err(
+                "model.process_noise_std",
+                "not used by linear_quadrotor (its process noise is the discretised Q of the seed's Q̃)",
+            );
+        }
+        let dt_s = m.dt_s.unwrap_or(LINEAR_DT_S);
+        if !positive(dt_s) {
+            c.err("model.dt_s", format!("{dt_s} is not a positive number"));
+            return None;
+        }
+        match sensor.nz() {
+            2 => self.build::<2>(&self.two, sensor, dt_s, &m, spec, c),
+            _ => self.build::<3>(&self.three, sensor, dt_s, &m, spec, c),
+        }
+    }
+}
+
+impl LinearQuadrotorSystem {
+    fn build<const NZ: usize>(
+        &self,
+        kinds: &FilterKinds<6, 4, NZ, Linear<NZ>>,
+        sensor: LinearSensor,
+        dt_s: f64,
+        m: &ModelKeys,
+        spec: &SystemSpec<'_>,
+        c: &mut Checker,
+    ) -> Option<Arc<dyn SystemPlan>> {
+        let model = Linear::<NZ>::new(sensor, dt_s).expect("the sensor's size selects NZ");
+        // √diag Q, informational: the truth and the filters use the full Q.
+        let q = ContinuousLinear::seed().discretise(dt_s).q;
+        let process_std: Vec<f64> = (0..6).map(|i| q[(i, i)].sqrt()).collect();
+        // The seed gives one R (for its position sensor); the velocity sensor reuses it and xy
+        // takes its first two entries.
+        let default_r: Vec<f64> = LINEAR_R_DIAG[..NZ].iter().map(|v| v.sqrt()).collect();
+        let measurement_std = c.vector(
+            "model.measurement_noise_std",
+            m.measurement_noise_std.as_ref(),
+            NZ,
+            &default_r,
+            non_negative,
+            "a non-negative number",
+        );
+
+        let mut scenarios = Vec::new();
+        for (i, t) in spec.scenarios.iter().enumerate() {
+            let key = format!("scenarios[{i}]");
+            let Some(s) = c.parse::<ScenarioKeys>(&key, t) else {
+                continue;
+            };
+            let mut x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0];
+            match &s.x0 {
+                Some(v) if v.len() != 6 || !v.iter().all(|v| v.is_finite()) => c.err(
+                    format!("{key}.x0"),
+                    format!("expected 6 finite numbers, got {v:?}"),
+                ),
+                Some(v) => x0.copy_from_slice(v),
+                None => {}
+            }
+            let duration_s = s.duration_s.unwrap_or(40.0);
+            if !positive(duration_s) || duration_s < dt_s {
+                c.err(
+                    format!("{key}.duration_s"),
+                    format!("{duration_s} is shorter than one sample"),
+                );
+                continue;
+            }
+            // The same rounding as the planar scenarios: K = round(duration / Δt).
+            let steps = (duration_s / dt_s).round() as usize;
+            scenarios.push(Scenario::unforced(
+                &s.name,
+                Vector::<6>::from_column_slice(&x0),
+                steps,
+            ));
+        }
+
+        let entries = kinds.configure_all(
+            spec.filters,
+            &model,
+            KIND,
+            &process_std,
+            &measurement_std,
+            true,
+            &|_| None,
+            c,
+        );
+
+        let batch_ls = spec.initial.mode == InitialMode::BatchLs;
+        if batch_ls {
+            if sensor != LinearSensor::Positions {
+                c.err(
+                    "initial_estimate.mode",
+                    "batch_ls needs model.kind = \"linear_quadrotor\" with sensor = \"positions\": the other sensor sets leave x0 undetermined (observability rank 3 or 4 of 6)",
+                );
+            }
+            c.reject_present(
+                "initial_estimate",
+                &[("p0_std", spec.initial.p0_std.is_some())],
+                "not used with mode = \"batch_ls\" (P0 is the least-squares covariance)",
+            );
+        }
+        let p0_std = c.vector(
+            "initial_estimate.p0_std",
+            spec.initial.p0_std.as_ref(),
+            6,
+            &[1.0; 6],
+            positive,
+            "a positive number",
+        );
+        let mut batch = None;
+        if batch_ls && sensor == LinearSensor::Positions && c.is_clean() {
+            // Build each scenario's estimator now: a sensor schedule or noise level that
+            // cannot determine x0 is a spec error, and the study can then rely on it.
+            let r = Matrix::<NZ, NZ>::from_fn(|i, j| {
+                if i == j {
+                    measurement_std[i].powi(2)
+                } else {
+                    0.0
+                }
+            });
+            let mut all = Vec::new();
+            for (i, sc) in scenarios.iter().enumerate() {
+                match BatchInitial::new(&model, &sc.controls, &model.discrete().q, &r) {
+                    Ok(b) => all.push(b),
+                    Err(e) => c.err(
+                        "initial_estimate.mode",
+                        format!("batch_ls for scenarios[{i}] (`{}`): {e}", sc.name),
+                    ),
+                }
+            }
+            batch = Some(all);
+        }
+        if !c.is_clean() {
+            return None;
+        }
+        let layout = Layout {
+            quantities: LINEAR_STATES
+                .iter()
+                .zip(["m", "m/s", "m", "m/s", "m", "m/s"])
+                .map(|(n, u)| Quantity::new(*n, u))
+                .collect(),
+            inputs: ["t1", "t2", "t3", "t4"].map(String::from).to_vec(),
+            measurements: model
+                .measurement_names()
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+            dt_s,
+        };
+        let noise = TruthNoise {
+            process_std: Vector::<6>::from_column_slice(&process_std),
+            measurement_std: Vector::<NZ>::from_column_slice(&measurement_std),
+        };
+        let mut plan = AdditivePlan::new(
+            model,
+            layout,
+            scenarios,
+            noise,
+            Vector::<6>::from_column_slice(&p0_std),
+            entries,
+        );
+        plan.batch = batch;
+        Some(Arc::new(plan))
+    }
+}

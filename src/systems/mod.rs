@@ -1,0 +1,15 @@
+//! The built-in systems. Each registers through the same public API a downstream crate uses
+//! ([`crate::system::System`] and [`crate::system::Registry`]); nothing outside its own module
+//! names a system, its parameters or its filter kinds.
+
+pub mod linear_quadrotor;
+pub mod planar;
+
+use crate::system::Registry;
+
+/// The registration list: every system kfmc ships, in `kfmc list` order.
+pub fn register(registry: Registry) -> Registry {
+    registry
+        .with(planar::PlanarSystem::new())
+        .with(linear_quadrotor::LinearQuadrotorSystem::new())
+}
