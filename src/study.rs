@@ -141,6 +141,7 @@ impl Aggregator<'_> {
         if let (Some(tr), Some(w)) = (&r.trace, self.traces.as_mut()) {
             let layout = self.trial.layout();
             let (nu, nz) = (layout.inputs.len(), layout.measurements.len());
+            let nw = layout.world_states.len();
             let ntri = nx * (nx + 1) / 2;
             let dt = plan.dt_s();
             for (fi, f) in plan.filters.iter().enumerate() {
@@ -156,6 +157,7 @@ impl Aggregator<'_> {
                     row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
                     row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
                     row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                    row.extend(f64s(tr.world.get(k * nw..(k + 1) * nw).unwrap_or(&[])));
                     row.extend(f64s(&tr.est[fi][k * nx..(k + 1) * nx]));
                     let cov = &tr.cov[fi][k * ntri..(k + 1) * ntri];
                     // var_<q> is the diagonal, kept for readers of the diagonal alone; the
@@ -321,7 +323,12 @@ pub fn run(
             Some(TableWriter::create(
                 dir,
                 "traces",
-                schema::traces(&states, &layout.input_names(), &layout.measurement_names()),
+                schema::traces(
+                    &states,
+                    &layout.input_names(),
+                    &layout.measurement_names(),
+                    &layout.world_state_names(),
+                ),
             )?)
         } else {
             None

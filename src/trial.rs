@@ -32,6 +32,8 @@ pub struct RunTrace {
     pub truth: Vec<f64>,
     /// z_k, `nz` per step (NaN where a component did not report).
     pub z: Vec<f64>,
+    /// The world's own states, `world_states` per step (empty when it has none).
+    pub world: Vec<f64>,
     /// Per filter: the estimated quantities, `nq` per step (NaN after a failure).
     pub est: Vec<Vec<f64>>,
     /// Per filter: the lower triangle of the quantities' covariance, row by row

@@ -203,7 +203,7 @@ pub fn tuning(states: &[&str]) -> Vec<ColumnDef> {
 }
 
 /// `traces.parquet`: one row per traced run × filter × step.
-pub fn traces(states: &[&str], inputs: &[&str], meas: &[&str]) -> Vec<ColumnDef> {
+pub fn traces(states: &[&str], inputs: &[&str], meas: &[&str], world: &[&str]) -> Vec<ColumnDef> {
     let mut c = cell_keys();
     c.extend([
         col("run", Dtype::I64),
@@ -213,6 +213,7 @@ pub fn traces(states: &[&str], inputs: &[&str], meas: &[&str]) -> Vec<ColumnDef>
     c.extend(per("u_", inputs, Dtype::F64));
     c.extend(per("truth_", states, Dtype::F64));
     c.extend(per("z_", meas, Dtype::F64));
+    c.extend(per("world_", world, Dtype::F64));
     c.extend(per("est_", states, Dtype::F64));
     c.extend(per("var_", states, Dtype::F64));
     c.extend(covariance_columns(states));

@@ -44,7 +44,17 @@ pub fn run_seed(master_seed: u64, scenario: &str, run: u64) -> u64 {
 
 /// The PCG-64 generator of one stream of a run.
 pub fn stream(run_seed: u64, kind: StreamKind) -> Pcg64 {
-    let k = kind as u64;
+    stream_id(run_seed, kind as u64)
+}
+
+/// The `index`-th stream of a world's own sources of randomness (one per sensor noise,
+/// bias, drift, …): independent of each other and of the [`StreamKind`] streams, and fixed by
+/// the index, so adding a sensor at a new index leaves the others' draws unchanged.
+pub fn world_stream(run_seed: u64, index: u64) -> Pcg64 {
+    stream_id(run_seed, 1 << 32 | index)
+}
+
+fn stream_id(run_seed: u64, k: u64) -> Pcg64 {
     let a = mix64(run_seed ^ mix64(k));
     let b = mix64(a ^ 0x9e37_79b9_7f4a_7c15);
     let c = mix64(run_seed.wrapping_add(k.wrapping_mul(0xd1b5_4a32_d192_ed03)));

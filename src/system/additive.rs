@@ -810,6 +810,7 @@ where
                     (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
                 })
                 .collect(),
+            world: Vec::new(),
             est,
             cov,
         });

@@ -18,6 +18,7 @@
 //! kinds that work on any [`crate::model::Model`].
 
 pub mod additive;
+pub mod world;
 
 use std::any::Any;
 use std::fmt::Debug;
@@ -68,6 +69,9 @@ pub struct Layout {
     pub inputs: Vec<String>,
     /// The measurement components (trace columns `z_<name>`; NIS degrees of freedom).
     pub measurements: Vec<String>,
+    /// The world's own states beyond the quantities (sensor biases, drifts; trace columns
+    /// `world_<name>`); empty when the world is the filters' model.
+    pub world_states: Vec<String>,
     /// Sample time Δt in seconds (the `t` column is `step · Δt`).
     pub dt_s: f64,
 }
@@ -84,6 +88,10 @@ impl Layout {
     /// The measurement-component names.
     pub fn measurement_names(&self) -> Vec<&str> {
         self.measurements.iter().map(String::as_str).collect()
+    }
+    /// The world-state names.
+    pub fn world_state_names(&self) -> Vec<&str> {
+        self.world_states.iter().map(String::as_str).collect()
     }
     /// Indices of the angle quantities.
     pub fn angle_indices(&self) -> Vec<usize> {

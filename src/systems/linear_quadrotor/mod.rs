@@ -273,6 +273,7 @@ impl LinearQuadrotorSystem {
                 .iter()
                 .map(|s| s.to_string())
                 .collect(),
+            world_states: Vec::new(),
             dt_s,
         };
         let noise = TruthNoise {

@@ -241,6 +241,7 @@ impl System for PlanarSystem {
             } else {
                 P1_MEASUREMENTS.iter().map(|s| s.to_string()).collect()
             },
+            world_states: Vec::new(),
             dt_s: params.dt_s,
         };
         let p0 = Vector::<6>::from_column_slice(&p0_std);

@@ -1,0 +1,290 @@
+//! Systems whose world is not the filters' model.
+//!
+//! The world of one run — truth dynamics plus sensors, each with its own rate, noise and error
+//! states (bias, drift, delay) — produces a [`Realisation`]: the true evaluated quantities,
+//! the measurement stream with its availability, and the inputs the filters receive (for an
+//! INS, the measured IMU samples). Each filter carries its own model and state, larger,
+//! smaller or differently parameterised than the world's, forms its own prior from the
+//! realisation, and is scored on the same quantities through an
+//! [`Evaluate`](crate::trial::Evaluate) map.
+//!
+//! A system implements [`World`] and one [`WorldFilterEntry`] per filter kind, and
+//! [`WorldPlan`] is its [`SystemPlan`]: seeds, filter variants, caching per cell and traces
+//! are done here once for every such system.
+
+use std::any::Any;
+use std::fmt::Debug;
+use std::sync::{Arc, OnceLock};
+
+use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
+use crate::experiment::{FilterNoiseMode, Plan};
+use crate::linalg::Vector;
+use crate::model::Measurement;
+use crate::sim::seed::run_seed;
+use crate::trial::{
+    ConsistencyOptions, FilterOutput, RunContext, RunTrace, Trial, Unit, UnitResult,
+};
+
+/// One simulated run of a world.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Realisation<const NQ: usize, const NU: usize, const NZ: usize> {
+    /// The true evaluated quantities q_0..q_K.
+    pub truth: Vec<Vector<NQ>>,
+    /// The inputs the filters receive, u_0..u_K.
+    pub inputs: Vec<Vector<NU>>,
+    /// z_0..z_K with the components that reported.
+    pub measurements: Vec<Measurement<NZ>>,
+    /// The world's own states beyond the quantities (biases, drifts), one value per
+    /// [`Layout::world_states`] name per step, row-major; empty when the world has none.
+    pub world: Vec<f64>,
+    /// Standard normals drawn once per run for the filters' priors (shared by every filter
+    /// of the run, so their initial errors are paired); as many as the world declares.
+    pub prior_draws: Vec<f64>,
+}
+
+/// The truth and sensors of a system.
+pub trait World<const NQ: usize, const NU: usize, const NZ: usize>: Send + Sync {
+    /// Simulates one run of scenario `scenario` (an index into the system's scenarios) with
+    /// every truth-noise level times `noise_scale`. All randomness must come from `seed`
+    /// (e.g. through [`crate::sim::seed::stream`]), so runs are reproducible on any thread
+    /// and shard.
+    fn simulate(&self, scenario: usize, noise_scale: f64, seed: u64) -> Realisation<NQ, NU, NZ>;
+}
+
+/// What a filter variant of a cell is told about its noise settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoiseSettings {
+    /// The truth-noise multiplier of the cell.
+    pub noise_scale: f64,
+    /// The multiplier of the filter's assumed standard deviations: 1 (`nominal`) or the
+    /// truth's multiplier (`matched`).
+    pub filter_scale: f64,
+    /// The variant's Q multiplier.
+    pub q_scale: f64,
+    /// The variant's R multiplier.
+    pub r_scale: f64,
+}
+
+/// A filter ready to run on realisations of a world: one virtual call per run, then the
+/// monomorphised step loop ([`crate::trial::run_filter`] with the filter's own prior and
+/// evaluation).
+pub trait WorldFilter<const NQ: usize, const NU: usize, const NZ: usize>: Send + Sync {
+    /// Runs the filter on one realisation.
+    fn run(
+        &self,
+        realisation: &Realisation<NQ, NU, NZ>,
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+    ) -> FilterOutput;
+}
+
+/// A validated filter entry of a world system.
+pub trait WorldFilterEntry<const NQ: usize, const NU: usize, const NZ: usize>:
+    Send + Sync + Debug
+{
+    /// What the generic code needs to know of it.
+    fn info(&self) -> FilterInfo;
+    /// Builds the filter of one cell (variant × truth-noise scale); cached per cell.
+    fn prepare(&self, noise: &NoiseSettings) -> Box<dyn WorldFilter<NQ, NU, NZ>>;
+}
+
+/// A configured world system: the [`SystemPlan`] of any [`World`].
+pub struct WorldPlan<const NQ: usize, const NU: usize, const NZ: usize> {
+    /// The world.
+    pub world: Arc<dyn World<NQ, NU, NZ>>,
+    /// Names and Δt.
+    pub layout: Layout,
+    /// The scenarios (names and lengths; the world knows the rest).
+    pub scenario_info: Vec<ScenarioInfo>,
+    /// The filter entries, in spec order.
+    pub entries: Vec<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>>,
+    /// Their infos.
+    pub filter_info: Vec<FilterInfo>,
+}
+
+impl<const NQ: usize, const NU: usize, const NZ: usize> WorldPlan<NQ, NU, NZ> {
+    /// A plan from its parts.
+    pub fn new(
+        world: Arc<dyn World<NQ, NU, NZ>>,
+        layout: Layout,
+        scenario_info: Vec<ScenarioInfo>,
+        entries: Vec<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>>,
+    ) -> Self {
+        WorldPlan {
+            filter_info: entries.iter().map(|e| e.info()).collect(),
+            world,
+            layout,
+            scenario_info,
+            entries,
+        }
+    }
+}
+
+impl<const NQ: usize, const NU: usize, const NZ: usize> Debug for WorldPlan<NQ, NU, NZ> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorldPlan")
+            .field("layout", &self.layout)
+            .field("scenarios", &self.scenario_info)
+            .field("filters", &self.entries)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan<NQ, NU, NZ> {
+    fn layout(&self) -> &Layout {
+        &self.layout
+    }
+    fn scenarios(&self) -> &[ScenarioInfo] {
+        &self.scenario_info
+    }
+    fn filters(&self) -> &[FilterInfo] {
+        &self.filter_info
+    }
+    fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a> {
+        Box::new(WorldTrial {
+            names: self.layout.quantity_names(),
+            angles: self
+                .layout
+                .quantities
+                .iter()
+                .enumerate()
+                .filter(|(_, q)| q.angle)
+                .map(|(i, q)| (i, q.unit == "deg"))
+                .collect(),
+            prepared: (0..plan.filters.len() * plan.noise_scales.len())
+                .map(|_| OnceLock::new())
+                .collect(),
+            sys: self,
+            plan,
+        })
+    }
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+struct WorldTrial<'a, const NQ: usize, const NU: usize, const NZ: usize> {
+    sys: &'a WorldPlan<NQ, NU, NZ>,
+    plan: &'a Plan,
+    names: Vec<&'a str>,
+    angles: Vec<(usize, bool)>,
+    prepared: Vec<OnceLock<Box<dyn WorldFilter<NQ, NU, NZ>>>>,
+}
+
+impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_, NQ, NU, NZ> {
+    fn run(&self, unit: &Unit) -> UnitResult {
+        let plan = self.plan;
+        let si = plan.scenarios[unit.scenario].index;
+        let name = &self.sys.scenario_info[si].name;
+        let noise_scale = plan.noise_scales[unit.scale];
+        let seed = run_seed(plan.master_seed, name, unit.run as u64);
+        let real = self.sys.world.simulate(si, noise_scale, seed);
+        let traced = unit.run < plan.trace_runs;
+        let ctx = RunContext {
+            truth: &real.truth,
+            inputs: &real.inputs,
+            measurements: &real.measurements,
+            angles: &self.angles,
+            thresholds: plan.rmse_thresholds.as_deref(),
+            quantity_names: &self.names,
+            trace: traced,
+            consistency: ConsistencyOptions::of(plan),
+        };
+        let settings = NoiseSettings {
+            noise_scale,
+            filter_scale: match plan.filter_noise {
+                FilterNoiseMode::Nominal => 1.0,
+                FilterNoiseMode::Matched => noise_scale,
+            },
+            q_scale: 1.0,
+            r_scale: 1.0,
+        };
+        let mut filters = Vec::with_capacity(plan.filters.len());
+        let (mut est, mut cov) = (Vec::new(), Vec::new());
+        for (fi, f) in plan.filters.iter().enumerate() {
+            let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
+            let filter = slot.get_or_init(|| {
+                self.sys.entries[f.entry].prepare(&NoiseSettings {
+                    q_scale: f.q_scale,
+                    r_scale: f.r_scale,
+                    ..settings
+                })
+            });
+            let out = filter.run(&real, &ctx);
+            if let Some((e, c)) = out.trace {
+                est.push(e);
+                cov.push(c);
+            }
+            filters.push(out.run);
+        }
+        let trace = traced.then(|| RunTrace {
+            u: real.inputs.iter().flat_map(|u| u.iter().copied()).collect(),
+            truth: real.truth.iter().flat_map(|x| x.iter().copied()).collect(),
+            z: real
+                .measurements
+                .iter()
+                .flat_map(|m| {
+                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
+                })
+                .collect(),
+            world: real.world.clone(),
+            est,
+            cov,
+        });
+        UnitResult {
+            unit: *unit,
+            seed,
+            filters,
+            trace,
+        }
+    }
+
+    fn steps(&self, scenario: usize) -> usize {
+        self.sys.scenario_info[self.plan.scenarios[scenario].index].steps
+    }
+
+    fn layout(&self) -> &Layout {
+        &self.sys.layout
+    }
+}
+
+/// A filter of its own model on a world: the model, the filter, the evaluation that maps its
+/// state onto the quantities, and the prior it forms from each realisation. It is the
+/// [`WorldFilter`] most entries prepare.
+pub struct ModelFilter<const NX: usize, M, F, E, P> {
+    /// The filter's model.
+    pub model: M,
+    /// The filter.
+    pub filter: F,
+    /// Its state → the evaluated quantities.
+    pub eval: E,
+    /// x̂_0 and P_0 from a realisation (e.g. the first GPS fix, or the truth plus
+    /// [`Realisation::prior_draws`]).
+    pub prior: P,
+}
+
+impl<const NX: usize, const NQ: usize, const NU: usize, const NZ: usize, M, F, E, P>
+    WorldFilter<NQ, NU, NZ> for ModelFilter<NX, M, F, E, P>
+where
+    M: crate::model::Model<NX, NU, NZ>,
+    F: crate::filter::Filter<NX, NU, NZ, M> + Send,
+    E: crate::trial::Evaluate<NX, NQ> + Send,
+    P: Fn(&Realisation<NQ, NU, NZ>) -> (Vector<NX>, crate::linalg::Matrix<NX, NX>) + Send + Sync,
+{
+    fn run(
+        &self,
+        realisation: &Realisation<NQ, NU, NZ>,
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+    ) -> FilterOutput {
+        let (x0_hat, p0) = (self.prior)(realisation);
+        crate::trial::run_filter(
+            &self.model,
+            &self.filter,
+            &self.eval,
+            &crate::trial::Prior {
+                x0_hat: &x0_hat,
+                p0: &p0,
+            },
+            ctx,
+        )
+    }
+}
