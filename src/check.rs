@@ -109,6 +109,7 @@ fn fmt(v: Option<f64>) -> String {
 
 /// Evaluates every assertion of `plan` against the tables in `dir`.
 pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError> {
+    crate::output::folder::verify(dir)?;
     let mut out = Vec::new();
     let needs = |a: &Assertion| matches!(a, Assertion::TestPasses { .. });
     let cons = if plan.assertions.iter().any(needs) {

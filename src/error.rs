@@ -83,6 +83,47 @@ pub enum OutputError {
         /// What is wrong.
         message: String,
     },
+    /// Another kfmc process is writing into the folder.
+    #[error(
+        "{path} is being written by another kfmc (pid {pid}); wait for it or choose another --out"
+    )]
+    Locked {
+        /// The folder.
+        path: PathBuf,
+        /// The process holding the lock.
+        pid: u32,
+    },
+    /// The folder holds files that no kfmc study wrote.
+    #[error(
+        "{path} is not empty and is not a kfmc result folder ({count} other entries, e.g. `{example}`); choose another --out, or pass --force to write into it"
+    )]
+    Foreign {
+        /// The folder.
+        path: PathBuf,
+        /// One of the foreign entries.
+        example: String,
+        /// How many.
+        count: usize,
+    },
+    /// A folder a reader was given is not a complete kfmc study.
+    #[error("{path} is not a complete kfmc result folder: {why}")]
+    NotAStudy {
+        /// The folder.
+        path: PathBuf,
+        /// Why not.
+        why: String,
+    },
+    /// A table does not match the manifest that should describe it.
+    #[error("{path} {why}")]
+    Mismatch {
+        /// The table.
+        path: PathBuf,
+        /// What does not match.
+        why: String,
+    },
+    /// The run was interrupted (SIGINT or SIGTERM); nothing was committed.
+    #[error("interrupted; no table of this run was committed and the partial files were removed")]
+    Interrupted,
 }
 
 /// Drawing figures or writing the report failed.

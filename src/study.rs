@@ -8,7 +8,8 @@ use crate::experiment::{FilterPlan, Plan};
 use crate::metrics::consistency::{BandCache, cell_tests};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::{RunConsistency, RunStatus, StepAccumulator, mean_std, quantile_sorted};
-use crate::output::manifest::{Manifest, QuantityEntry, TableEntry};
+use crate::output::folder::StudyFolder;
+use crate::output::manifest::{Manifest, QuantityEntry};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute};
 use crate::trial::{Trial, Unit, UnitResult, build};
@@ -18,6 +19,8 @@ use crate::trial::{Trial, Unit, UnitResult, build};
 pub struct ExecOptions {
     /// Worker threads; 0 = all cores.
     pub threads: usize,
+    /// Write into a non-empty folder that is not a kfmc study.
+    pub force: bool,
 }
 
 /// What a finished study wrote.
@@ -304,11 +307,7 @@ pub fn run(
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
     let dir = &plan.output;
-    std::fs::create_dir_all(dir).map_err(|source| OutputError::Io {
-        action: "cannot create the output folder",
-        path: dir.clone(),
-        source,
-    })?;
+    let folder = StudyFolder::open(dir, opts.force)?;
     let trial = build(plan);
     let layout = plan.layout();
     let states = layout.quantity_names();
@@ -383,31 +382,10 @@ pub fn run(
     written.extend(consistency);
     written.extend(traces);
 
-    // Commit every table, then drop tables of an earlier run that this one did not write, so
-    // a folder never mixes two studies; the manifest goes last.
-    let mut tables = Vec::new();
-    for w in written {
-        let name = w
-            .path()
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let (_, rows) = w.commit()?;
-        tables.push((name, rows));
-    }
-    for t in schema::TABLES {
-        if !tables.iter().any(|(n, _)| n == t) {
-            let stale = dir.join(format!("{t}.parquet"));
-            if stale.exists() {
-                std::fs::remove_file(&stale).map_err(|source| OutputError::Io {
-                    action: "cannot remove the stale table",
-                    path: stale,
-                    source,
-                })?;
-            }
-        }
-    }
-    tables.sort_by_key(|(n, _)| schema::TABLES.iter().position(|t| t == n));
+    let finished = written
+        .into_iter()
+        .map(TableWriter::finish)
+        .collect::<Result<Vec<_>, _>>()?;
     let wall_s = started.elapsed().as_secs_f64();
     let size = plan.size();
     let threads = if opts.threads == 0 {
@@ -415,7 +393,7 @@ pub fn run(
     } else {
         opts.threads
     };
-    Manifest {
+    let manifest = Manifest {
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
         experiment: plan.name.clone(),
         system: plan.kind.clone(),
@@ -444,16 +422,11 @@ pub fn run(
         started_unix_s,
         wall_s,
         runs_per_s: size.runs as f64 / wall_s.max(1e-9),
-        tables: tables
-            .iter()
-            .map(|(n, r)| TableEntry {
-                name: n.clone(),
-                rows: *r,
-            })
-            .collect(),
+        // Filled in by the commit, with each table's size and checksum.
+        tables: Vec::new(),
         spec: plan.spec_text.clone(),
-    }
-    .write(dir)?;
+    };
+    let tables = folder.commit(finished, manifest)?;
     Ok(StudyReport {
         output: dir.clone(),
         tables,

@@ -21,6 +21,7 @@ use std::path::PathBuf;
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::plan::ConsistencyPlan;
 use crate::experiment::{FilterPlan, Plan};
+use crate::output::folder::{FinishedTable, StudyFolder};
 use crate::output::table::read;
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::RunObserver;
@@ -44,6 +45,8 @@ pub struct TuneOptions {
     pub tune_r: bool,
     /// The filter label (default: the first filter with a covariance).
     pub filter: Option<String>,
+    /// Write into a non-empty folder that is not a kfmc study.
+    pub force: bool,
     /// Worker threads.
     pub threads: usize,
 }
@@ -137,6 +140,7 @@ fn stage(
         &p,
         &ExecOptions {
             threads: opts.threads,
+            force: false,
         },
         observer,
     )?;
@@ -311,6 +315,8 @@ pub fn tune(
                 },
             }]))
         })?;
+    // Locked for the whole search: the stages write into its subfolders.
+    let folder = StudyFolder::open(&plan.output, opts.force)?;
     let (n, p) = (
         plan.layout().quantities.len() as f64,
         plan.layout().measurements.len() as f64,
@@ -374,11 +380,6 @@ pub fn tune(
     }
 
     let states = plan.quantity_names();
-    std::fs::create_dir_all(&plan.output).map_err(|source| OutputError::Io {
-        action: "cannot create the output folder",
-        path: plan.output.clone(),
-        source,
-    })?;
     let mut w = TableWriter::create(&plan.output, "tuning", schema::tuning(&states))?;
     for pt in &points {
         let mut row = vec![
@@ -395,18 +396,38 @@ pub fn tune(
         row.push(Value::F64(Some(pt.objective).filter(|o| o.is_finite())));
         w.push(&row)?;
     }
-    let (table, _) = w.commit()?;
-    // The coarse stage's summary and manifest beside tuning.parquet make the folder
-    // plottable as it is (`kfmc plot DIR` draws the tuning curves and the coarse grid's RMSE).
-    for f in ["summary.parquet", "manifest.toml"] {
-        let from = plan.output.join("tune_coarse").join(f);
-        let to = plan.output.join(f);
-        std::fs::copy(&from, &to).map_err(|source| OutputError::Io {
-            action: "cannot copy the coarse stage's table to",
-            path: to.clone(),
+    let tuning = w.finish()?;
+    // The coarse stage's summary beside tuning.parquet makes the folder plottable as it is
+    // (`kfmc plot DIR` draws the tuning curves and the coarse grid's RMSE); the folder's own
+    // manifest, written last, commits both.
+    let coarse = plan.output.join("tune_coarse");
+    let mut manifest = crate::output::folder::verify(&coarse)?;
+    let summary_tmp = plan.output.join(".summary.parquet.partial");
+    std::fs::copy(coarse.join("summary.parquet"), &summary_tmp).map_err(|source| {
+        OutputError::Io {
+            action: "cannot copy the coarse stage's summary to",
+            path: summary_tmp.clone(),
             source,
-        })?;
-    }
+        }
+    })?;
+    let summary_rows = manifest
+        .tables
+        .iter()
+        .find(|t| t.name == "summary")
+        .map_or(0, |t| t.rows);
+    manifest.tables.clear();
+    folder.commit(
+        vec![
+            tuning,
+            FinishedTable {
+                name: "summary".into(),
+                tmp: summary_tmp,
+                rows: summary_rows,
+            },
+        ],
+        manifest,
+    )?;
+    let table = plan.output.join("tuning.parquet");
     Ok(TuneReport {
         filter: base.label.clone(),
         points,

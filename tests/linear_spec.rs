@@ -230,7 +230,15 @@ fn linear_nees_study_runs_and_the_three_forms_agree() {
     let path = dir.path().join("spec.toml");
     std::fs::write(&path, text).unwrap();
     let plan = experiment::load(&path).unwrap();
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let df = read(&plan.output.join("runs.parquet")).unwrap();
     assert_eq!(df.height(), 100 * 4);
     let filter = df.column("filter").unwrap().str().unwrap().clone();

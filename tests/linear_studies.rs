@@ -198,7 +198,15 @@ fn open_loop_monte_carlo_spread_matches_the_propagated_covariance() {
         );
     }
     // The study's own per-step band agrees: ANEES inside at ≥ 99 % of the steps.
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let c = Consistency::read(&out);
     let (inside, pass, _) = c.get("open_loop", 1.0, "anees_steps_inside", runs as i64);
     assert!(pass && inside >= 0.99, "{inside}");
@@ -220,7 +228,15 @@ fn batch_least_squares_x0_errors_are_consistent_with_their_covariance() {
             ..Default::default()
         },
     );
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let c = Consistency::read(&out);
     let (stat, pass, _) = c.get("kf", 1.0, "initial_nees", runs as i64);
     assert!(pass, "initial_nees {stat}");
@@ -259,7 +275,15 @@ fn the_seeds_three_nees_tests_are_prefixes_of_one_study() {
     // numbers of a separate 50-run study at α = 0.05.
     let (_d, out) = tmp();
     let plan = shipped("linear_nees", &out, Overrides::default());
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let big = Consistency::read(&out);
 
     let (_d2, out2) = tmp();
@@ -274,7 +298,15 @@ fn the_seeds_three_nees_tests_are_prefixes_of_one_study() {
     let cp = small_plan.consistency.as_mut().unwrap();
     cp.alpha = 0.05;
     cp.subsets.clear();
-    run(&small_plan, &ExecOptions { threads: 1 }, &NullObserver).unwrap();
+    run(
+        &small_plan,
+        &ExecOptions {
+            threads: 1,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let small = Consistency::read(&out2);
 
     let mut compared = 0;
@@ -321,7 +353,15 @@ fn q_scaling_the_time_average_tests_catch_2x_while_per_step_nis_needs_thousands(
     // below are many standard errors wide (numbers in README.md).
     let (_d, out) = tmp();
     let plan = shipped("linear_q_scaling", &out, Overrides::default());
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let c = Consistency::read(&out);
     let verdict = |q: f64| c.get("kf", q, "verdict", 50);
     let nees = |q: f64| c.get("kf", q, "nees_time_average", 50);
@@ -353,7 +393,15 @@ fn observers_pole_placement_against_the_kalman_filters() {
     // by state; the observers carry no covariance, so their NEES/NIS are null, not invented.
     let (_d, out) = tmp();
     let plan = shipped("linear_observers", &out, Overrides::default());
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let summary = read(&out.join("summary.parquet")).unwrap();
     let filter: Vec<String> = summary
         .column("filter")
@@ -441,7 +489,15 @@ fn linear_studies_are_bit_identical_for_any_thread_count() {
                     ..Default::default()
                 },
             );
-            run(&plan, &ExecOptions { threads }, &NullObserver).unwrap();
+            run(
+                &plan,
+                &ExecOptions {
+                    threads,
+                    ..Default::default()
+                },
+                &NullObserver,
+            )
+            .unwrap();
             let mut files: Vec<_> = std::fs::read_dir(&dir)
                 .unwrap()
                 .map(|e| e.unwrap().path())

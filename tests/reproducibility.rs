@@ -16,7 +16,15 @@ use polars::prelude::*;
 fn run_spec(text: &str, threads: usize) -> (tempfile::TempDir, std::path::PathBuf) {
     let (dir, spec) = spec_in_tempdir(text);
     let plan = experiment::load(&spec).expect("valid spec");
-    run(&plan, &ExecOptions { threads }, &NullObserver).expect("study runs");
+    run(
+        &plan,
+        &ExecOptions {
+            threads,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .expect("study runs");
     let out = plan.output.clone();
     (dir, out)
 }

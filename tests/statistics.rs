@@ -47,7 +47,15 @@ fn monte_carlo_means_match_the_orders_of_magnitude_of_table_1() {
     })
     .unwrap();
     plan.retain_scenarios(|s| s == "horizontal");
-    run(&plan, &ExecOptions { threads: 0 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 0,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let ekf = mean_rmse(tmp.path(), "ekf", "horizontal");
     let rm = mean_rmse(tmp.path(), "running_mean", "horizontal");
     for i in 0..6 {
@@ -107,7 +115,15 @@ p0_std = 0.01
     );
     let (_d, spec) = spec_in_tempdir(&text);
     let plan = experiment::load(&spec).unwrap();
-    run(&plan, &ExecOptions { threads: 0 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 0,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let df = read(&tmp.path().join("runs.parquet")).unwrap();
     let nees: Vec<f64> = df
         .column("nees_mean")
@@ -146,7 +162,15 @@ fn numerical_trouble_is_recorded_per_run_and_never_aborts_the_batch() {
     );
     let (_d, spec) = spec_in_tempdir(&text);
     let plan = experiment::load(&spec).unwrap();
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
     let df = read(&tmp.path().join("runs.parquet")).unwrap();
     let status = df.column("status").unwrap().str().unwrap().clone();
     let scenario = df.column("scenario").unwrap().str().unwrap().clone();

@@ -240,7 +240,15 @@ fn an_augmented_state_filter_is_scored_on_the_worlds_quantities() {
     let tmp = tempfile::tempdir().unwrap();
     let mut plan = experiment::parse_with(SPEC, Path::new("biased.toml"), &registry).unwrap();
     plan.output = tmp.path().to_path_buf();
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
 
     // Both filters have the same error columns: the quantities, not their states.
     let runs = read(&tmp.path().join("runs.parquet")).unwrap();

@@ -4,7 +4,8 @@
 //! * 0 — success;
 //! * 1 — a runtime failure (I/O, an unreadable result folder);
 //! * 2 — an invalid spec or invalid command-line usage;
-//! * 3 — `kfmc check`: the study ran and at least one assertion failed.
+//! * 3 — `kfmc check`: the study ran and at least one assertion failed;
+//! * 130 — interrupted by SIGINT or SIGTERM (nothing committed, partial files removed).
 
 pub mod progress;
 pub mod summary;
@@ -28,6 +29,9 @@ pub const EXIT_FAILURE: u8 = 1;
 pub const EXIT_INVALID_SPEC: u8 = 2;
 /// Exit code: `kfmc check` found a failing assertion.
 pub const EXIT_CHECK_FAILED: u8 = 3;
+/// Exit code: stopped by SIGINT or SIGTERM (128 + SIGINT's number, as shells report it);
+/// nothing of the interrupted run was committed.
+pub const EXIT_INTERRUPTED: u8 = 130;
 
 /// A failed `kfmc check` (its report is already printed).
 #[derive(Debug, thiserror::Error)]
@@ -39,7 +43,7 @@ pub struct CheckFailed {
 
 /// kfmc — judge state estimators statistically with seeded Monte Carlo studies.
 #[derive(Debug, Parser)]
-#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed.")]
+#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed, 130 interrupted (SIGINT/SIGTERM; nothing committed).")]
 pub struct Cli {
     /// The command.
     #[command(subcommand)]
@@ -66,6 +70,12 @@ pub struct StudyArgs {
     /// No progress bar and no report.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Write into a non-empty output folder that is not a kfmc result folder.
+    #[arg(long)]
+    pub force: bool,
+    /// Run a plan above the documented memory, disk or step limits.
+    #[arg(long)]
+    pub allow_large: bool,
 }
 
 impl StudyArgs {
@@ -78,7 +88,25 @@ impl StudyArgs {
             output: self.out.clone(),
             trace_runs,
         })?;
+        plan.check_limits(self.allow_large)?;
         Ok(plan)
+    }
+
+    /// The worker threads to use: more than the machine's logical CPUs only adds contention
+    /// (and thousands of threads can stall a shared host), so the count is clamped, saying so.
+    fn threads(&self, quiet: bool) -> usize {
+        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+        if self.threads > cpus {
+            if !quiet {
+                eprintln!(
+                    "note: --threads {} is more than the {cpus} logical CPUs; using {cpus}",
+                    self.threads
+                );
+            }
+            cpus
+        } else {
+            self.threads
+        }
     }
 }
 
@@ -123,10 +151,14 @@ pub enum Command {
         #[arg(long)]
         filter: Option<String>,
     },
-    /// Check a spec and print the plan size, without running it.
+    /// Check a spec and print the plan size and its estimated memory and disk, without
+    /// running it. Plans above the documented limits are refused (exit 2).
     Validate {
         /// The experiment spec (TOML).
         spec: PathBuf,
+        /// Accept a plan above the memory, disk or step limits.
+        #[arg(long)]
+        allow_large: bool,
     },
     /// Print the RMSE summary (and divergence points) of a result folder.
     Summary {
@@ -174,7 +206,8 @@ fn describe(plan: &Plan) -> String {
         s => format!("{} values from {} to {}", s.len(), s[0], s[s.len() - 1]),
     };
     format!(
-        "{name}: {cells} cells × {runs} runs = {total} runs, {fr} filter runs, {steps} filter steps\n  scenarios: {scen}\n  filters: {filters}\n  noise scales: {scales}\n  master seed: {seed}\n  output: {out}",
+        "{name}: {cells} cells × {runs} runs = {total} runs, {fr} filter runs, {steps} filter steps\n  {resources}\n  scenarios: {scen}\n  filters: {filters}\n  noise scales: {scales}\n  master seed: {seed}\n  output: {out}",
+        resources = plan.resources().describe(),
         name = plan.name,
         cells = size.cells,
         runs = plan.runs,
@@ -220,6 +253,7 @@ fn list(registry: &Registry) -> String {
 /// runs the command and returns the exit code. A downstream crate's `main` is
 /// `kfmc::cli::main_with(Registry::builtin().with(MySystem))`.
 pub fn main_with(registry: Registry) -> ExitCode {
+    crate::runner::stop_on_signals();
     run(Cli::parse(), &registry)
 }
 
@@ -234,12 +268,27 @@ pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
             }
             let code = match e.downcast_ref::<KfmcError>() {
                 Some(KfmcError::Spec(_)) => EXIT_INVALID_SPEC,
+                Some(KfmcError::Output(crate::error::OutputError::Interrupted)) => EXIT_INTERRUPTED,
                 _ => EXIT_FAILURE,
             };
             eprintln!("error: {e:#}");
             ExitCode::from(code)
         }
     }
+}
+
+/// Writes to stdout; a reader that went away (`kfmc summary DIR | head -1`) is not an error,
+/// the rest of the output is simply not wanted.
+fn emit(text: &str) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = out.write_all(text.as_bytes()).and_then(|()| out.flush());
+}
+
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        emit(&format!("{}\n", format!($($arg)*)))
+    };
 }
 
 fn plot_dir(dir: &std::path::Path, opts: &PlotOptions) -> anyhow::Result<Vec<PathBuf>> {
@@ -256,19 +305,20 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             plot,
         } => {
             let plan = study.plan(registry, trace_runs)?;
+            let threads = study.threads(study.quiet);
             let StudyArgs {
-                spec,
-                threads,
-                quiet,
-                ..
+                spec, quiet, force, ..
             } = study;
             let observer = ProgressObserver::new(!quiet);
-            let report =
-                crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
-                    .map_err(anyhow::Error::from)
-                    .map_err(|e| e.context(format!("running {}", spec.display())))?;
+            let report = crate::study::run(
+                &plan,
+                &crate::study::ExecOptions { threads, force },
+                &observer,
+            )
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("running {}", spec.display())))?;
             if !quiet {
-                println!(
+                outln!(
                     "{} runs in {:.1} s ({:.0} runs/s) → {}",
                     report.runs,
                     report.wall_s,
@@ -276,13 +326,13 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     report.output.display()
                 );
                 for (name, rows) in &report.tables {
-                    println!("  {name}.parquet  {rows} rows");
+                    outln!("  {name}.parquet  {rows} rows");
                 }
             }
             if plot {
                 let files = plot_dir(&report.output, &PlotOptions::default())?;
                 if !quiet {
-                    println!(
+                    outln!(
                         "  {} figures in {}",
                         files.len(),
                         report.output.join("figures").display()
@@ -299,7 +349,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
         } => {
             let files = plot_dir(&dir, &PlotOptions { out, format, only })?;
             for f in &files {
-                println!("{}", f.display());
+                outln!("{}", f.display());
             }
             Ok(())
         }
@@ -310,16 +360,14 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     anyhow::Error::from(e)
                         .context(format!("writing the report of {}", dir.display()))
                 })?;
-            println!("{}", path.display());
+            outln!("{}", path.display());
             Ok(())
         }
         Command::Check { study, junit } => {
             let mut plan = study.plan(registry, None)?;
+            let threads = study.threads(study.quiet);
             let StudyArgs {
-                spec,
-                threads,
-                quiet,
-                ..
+                spec, quiet, force, ..
             } = study;
             if plan.assertions.is_empty() {
                 return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
@@ -339,14 +387,17 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     subsets: Vec::new(),
                 });
             let observer = ProgressObserver::new(!quiet);
-            let report =
-                crate::study::run(&plan, &crate::study::ExecOptions { threads }, &observer)
-                    .map_err(anyhow::Error::from)
-                    .map_err(|e| e.context(format!("running {}", spec.display())))?;
+            let report = crate::study::run(
+                &plan,
+                &crate::study::ExecOptions { threads, force },
+                &observer,
+            )
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("running {}", spec.display())))?;
             let cases = crate::check::evaluate(&plan, &report.output)
                 .map_err(KfmcError::from)
                 .map_err(|e| anyhow::Error::from(e).context("evaluating the assertions"))?;
-            print!("{}", crate::check::render(&plan.name, &cases));
+            emit(&crate::check::render(&plan.name, &cases));
             if let Some(path) = junit {
                 std::fs::write(
                     &path,
@@ -373,11 +424,9 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             filter,
         } => {
             let plan = study.plan(registry, None)?;
+            let threads = study.threads(study.quiet);
             let StudyArgs {
-                spec,
-                threads,
-                quiet,
-                ..
+                spec, quiet, force, ..
             } = study;
             let observer = ProgressObserver::new(!quiet);
             let opts = crate::tune::TuneOptions {
@@ -385,6 +434,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 tune_r,
                 filter,
                 threads,
+                force,
             };
             let report = crate::tune::tune(&plan, &opts, &observer)
                 .map_err(anyhow::Error::from)
@@ -400,7 +450,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
             };
             let fmt = |v: Option<f64>| v.map_or("—".into(), |x| format!("{x:.4}"));
-            println!(
+            outln!(
                 "kfmc tune {}: filter {}, objective {:?}, {} candidates evaluated → {}",
                 plan.name,
                 report.filter,
@@ -408,7 +458,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 report.points.len(),
                 report.table.display()
             );
-            println!(
+            outln!(
                 "best q_scale = {q}, r_scale = {r}: objective {obj:.4}, ANEES {} (n = {}), ANIS {} (p = {})",
                 fmt(mean(&|p| p.anees)),
                 plan.layout().quantities.len(),
@@ -416,7 +466,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 plan.layout().measurements.len()
             );
             if report.per_noise_scale.len() > 1 {
-                println!("best per truth-noise scale (over the scenarios):");
+                outln!("best per truth-noise scale (over the scenarios):");
                 for (s, q, r, o) in &report.per_noise_scale {
                     let pts: Vec<_> = report
                         .points
@@ -427,7 +477,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                         let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
                         (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
                     };
-                    println!(
+                    outln!(
                         "  noise_scale {s:<6} q_scale {q:<10} r_scale {r:<10} objective {o:.4}  ANEES {}  ANIS {}",
                         fmt(m(&|p| p.anees)),
                         fmt(m(&|p| p.anis))
@@ -436,9 +486,10 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             }
             Ok(())
         }
-        Command::Validate { spec } => {
+        Command::Validate { spec, allow_large } => {
             let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-            println!("{}", describe(&plan));
+            plan.check_limits(allow_large).map_err(KfmcError::from)?;
+            outln!("{}", describe(&plan));
             Ok(())
         }
         Command::Summary { dir, noise_scale } => {
@@ -447,11 +498,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 .map_err(|e| {
                     anyhow::Error::from(e).context(format!("reading results in {}", dir.display()))
                 })?;
-            print!("{text}");
+            emit(&text);
             Ok(())
         }
         Command::List => {
-            print!("{}", list(registry));
+            emit(&list(registry));
             Ok(())
         }
     }

@@ -43,6 +43,7 @@ fn num(v: Option<f64>) -> String {
 
 /// Renders the summary of a result folder as text.
 pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
+    crate::output::folder::verify(dir)?;
     let path = dir.join("summary.parquet");
     let df = read(&path)?;
     let scen = strs(&df, "scenario", &path)?;

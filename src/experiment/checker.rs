@@ -127,6 +127,30 @@ impl Checker {
         out
     }
 
+    /// The transitions K = round(duration / Δt) of a scenario at key path `key` (reported at
+    /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`].
+    /// Systems call this before expanding a scenario, so an absurd duration is an error,
+    /// never an allocation failure.
+    pub fn scenario_steps(&mut self, key: &str, duration_s: f64, dt_s: f64) -> Option<usize> {
+        let max = super::plan::limits::MAX_STEPS;
+        if !positive(duration_s) || !positive(dt_s) || duration_s < dt_s {
+            self.err(
+                format!("{key}.duration_s"),
+                format!("{duration_s} is shorter than one sample"),
+            );
+            return None;
+        }
+        let steps = (duration_s / dt_s).round();
+        if steps > max as f64 {
+            self.err(
+                format!("{key}.duration_s"),
+                format!("{duration_s} s is {steps} steps of {dt_s} s; at most {max} per run"),
+            );
+            return None;
+        }
+        Some(steps as usize)
+    }
+
     /// A string option with a default, which must be one of `allowed`.
     pub fn choice<'a>(
         &mut self,

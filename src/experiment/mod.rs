@@ -28,13 +28,27 @@ pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
 
 /// Reads, parses and validates a spec file; `registry` supplies the systems.
 pub fn load_with(path: &Path, registry: &Registry) -> Result<Plan, SpecErrors> {
-    let text = std::fs::read_to_string(path).map_err(|e| {
+    use std::io::Read;
+    let one = |message: String| {
         SpecErrors(vec![SpecError {
             file: path.to_path_buf(),
             key_path: String::new(),
-            message: format!("cannot read the spec: {e}"),
+            message,
         }])
-    })?;
+    };
+    let file = std::fs::File::open(path).map_err(|e| one(format!("cannot read the spec: {e}")))?;
+    // Read at most one byte past the cap, so `/dev/zero` or a huge file is refused, not read.
+    let mut bytes = Vec::new();
+    file.take(plan::limits::MAX_SPEC_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| one(format!("cannot read the spec: {e}")))?;
+    if bytes.len() as u64 > plan::limits::MAX_SPEC_BYTES {
+        return Err(one(format!(
+            "larger than {} bytes; a spec is a small TOML file",
+            plan::limits::MAX_SPEC_BYTES
+        )));
+    }
+    let text = String::from_utf8(bytes).map_err(|e| one(format!("not UTF-8 text: {e}")))?;
     parse_with(&text, path, registry)
 }
 

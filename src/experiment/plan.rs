@@ -146,6 +146,63 @@ pub struct Plan {
     pub assertions: Vec<Assertion>,
 }
 
+/// Documented caps on a plan. Beyond them a spec is refused before anything runs (the
+/// resource caps can be lifted with `--allow-large`; the count caps cannot).
+pub mod limits {
+    /// Runs per cell.
+    pub const MAX_RUNS: u64 = 1_000_000_000;
+    /// Transitions K of one scenario.
+    pub const MAX_STEPS: u64 = 10_000_000;
+    /// Truth-noise multipliers, and Q/R scales of one filter entry.
+    pub const MAX_SCALES: usize = 100_000;
+    /// Scenarios, and filter variants.
+    pub const MAX_ENTRIES: usize = 10_000;
+    /// Spec file size in bytes.
+    pub const MAX_SPEC_BYTES: u64 = 1 << 20;
+    /// Estimated peak memory, bytes (lifted by `--allow-large`).
+    pub const MAX_MEMORY_BYTES: u128 = 8 << 30;
+    /// Estimated disk use of the tables, bytes (lifted by `--allow-large`).
+    pub const MAX_DISK_BYTES: u128 = 100 << 30;
+    /// Simulated filter steps in total (lifted by `--allow-large`).
+    pub const MAX_FILTER_STEPS: u128 = 100_000_000_000_000;
+}
+
+/// What a plan will take, estimated in exact (128-bit) arithmetic before it runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Resources {
+    /// Simulated runs (cells × runs per cell).
+    pub runs: u128,
+    /// Filter steps in total.
+    pub filter_steps: u128,
+    /// Peak memory of the executor and the per-cell folding, bytes (an upper estimate).
+    pub memory_bytes: u128,
+    /// Uncompressed size of the tables, bytes (an upper estimate of the disk they take).
+    pub disk_bytes: u128,
+}
+
+fn human_bytes(b: u128) -> String {
+    let units = ["B", "KiB", "MiB", "GiB", "TiB", "PiB", "EiB"];
+    let mut v = b as f64;
+    let mut i = 0;
+    while v >= 1024.0 && i + 1 < units.len() {
+        v /= 1024.0;
+        i += 1;
+    }
+    format!("{v:.1} {}", units[i])
+}
+
+impl Resources {
+    /// One line for `validate`.
+    pub fn describe(&self) -> String {
+        format!(
+            "estimated peak memory {}, tables up to {} uncompressed, {} filter steps",
+            human_bytes(self.memory_bytes),
+            human_bytes(self.disk_bytes),
+            self.filter_steps
+        )
+    }
+}
+
 /// Command-line overrides of spec values.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Overrides {
@@ -194,16 +251,122 @@ impl Plan {
         self.scenarios.retain(|s| keep(&s.name));
     }
 
+    /// The resources the plan will take (see [`Resources`]).
+    pub fn resources(&self) -> Resources {
+        let l = self.layout();
+        let (nq, nz, nu) = (
+            l.quantities.len() as u128,
+            l.measurements.len() as u128,
+            l.inputs.len() as u128 + l.world_states.len() as u128,
+        );
+        let nf = self.filters.len() as u128;
+        let scales = self.noise_scales.len() as u128;
+        let runs = self.runs as u128;
+        let samples: Vec<u128> = self.scenarios.iter().map(|s| s.steps as u128 + 1).collect();
+        let max_k = samples.iter().copied().max().unwrap_or(1);
+        let sum_k: u128 = samples.iter().sum();
+        let cells = self.scenarios.len() as u128 * scales;
+        // Per unit in flight: every filter's per-step values (squared errors, NEES, NIS) plus
+        // the simulated run; two windows of 256 units are alive at once.
+        let unit = nf * max_k * (8 * nq + 17) + max_k * 8 * (2 * nq + nz + nu);
+        let traced = (self.trace_runs > 0) as u128 * nf * max_k * 8 * (nq * (nq + 3) / 2);
+        let executor = 512 * (unit + traced);
+        // Per cell being folded: per-step sums and the |e| sketches per filter, per-run RMSE
+        // and consistency sums; per (scenario, filter): the runs' divergence crossings.
+        let cell = nf * max_k * (8 * nq + 48)
+            + nf * max_k.div_ceil(5) * nq * 320
+            + nf * runs * (8 * nq + 320);
+        let divergence = self.rmse_thresholds.as_ref().map_or(0, |_| {
+            self.scenarios.len() as u128 * nf * (runs * 16 * nq + scales * 16 * nq)
+        });
+        let row = |cols: u128| cols * 8 + 32;
+        let disk = cells * nf * runs * row(nq + 12)
+            + cells * nf * max_k * row(3 * nq + 16)
+            + cells * nf * 64 * row(12)
+            + (self.trace_runs as u128)
+                * scales
+                * nf
+                * sum_k
+                * row(nq * (nq + 5) / 2 + nz + nu + 8);
+        Resources {
+            runs: cells * runs,
+            filter_steps: sum_k.saturating_sub(self.scenarios.len() as u128) * scales * runs * nf,
+            memory_bytes: (64 << 20) + executor + cell + divergence,
+            disk_bytes: disk,
+        }
+    }
+
+    /// Refuses a plan beyond the documented [`limits`], with the estimate in the message;
+    /// `allow_large` lifts the resource caps.
+    pub fn check_limits(&self, allow_large: bool) -> Result<(), SpecErrors> {
+        let r = self.resources();
+        let mut errs = Vec::new();
+        if (self.runs as u64) > limits::MAX_RUNS {
+            errs.push(self.err(
+                "runs",
+                format!("{} runs per cell; at most {}", self.runs, limits::MAX_RUNS),
+            ));
+        }
+        if !allow_large {
+            let over = [
+                (r.memory_bytes > limits::MAX_MEMORY_BYTES).then(|| {
+                    format!(
+                        "needs about {} of memory (limit {})",
+                        human_bytes(r.memory_bytes),
+                        human_bytes(limits::MAX_MEMORY_BYTES)
+                    )
+                }),
+                (r.disk_bytes > limits::MAX_DISK_BYTES).then(|| {
+                    format!(
+                        "writes up to {} of tables (limit {})",
+                        human_bytes(r.disk_bytes),
+                        human_bytes(limits::MAX_DISK_BYTES)
+                    )
+                }),
+                (r.filter_steps > limits::MAX_FILTER_STEPS).then(|| {
+                    format!(
+                        "{} filter steps (limit {})",
+                        r.filter_steps,
+                        limits::MAX_FILTER_STEPS
+                    )
+                }),
+            ];
+            for msg in over.into_iter().flatten() {
+                errs.push(self.err(
+                    "(plan)",
+                    format!(
+                        "this plan ({} runs) {msg}; reduce runs, scenarios, noise scales, trace_runs or filters, or pass --allow-large",
+                        r.runs
+                    ),
+                ));
+            }
+        }
+        if errs.is_empty() {
+            Ok(())
+        } else {
+            Err(SpecErrors(errs))
+        }
+    }
+
     /// Counts cells, runs and steps.
     pub fn size(&self) -> PlanSize {
-        let cells = self.scenarios.len() * self.noise_scales.len();
-        let runs = cells * self.runs;
-        let steps: u64 = self.scenarios.iter().map(|s| s.steps as u64).sum::<u64>()
-            * (self.noise_scales.len() * self.runs * self.filters.len()) as u64;
+        // Saturating: an absurd plan is refused by `check_limits`, never shown wrapped.
+        let cells = self.scenarios.len().saturating_mul(self.noise_scales.len());
+        let runs = cells.saturating_mul(self.runs);
+        let steps: u64 = self
+            .scenarios
+            .iter()
+            .map(|s| s.steps as u64)
+            .fold(0u64, u64::saturating_add)
+            .saturating_mul(
+                (self.noise_scales.len() as u64)
+                    .saturating_mul(self.runs as u64)
+                    .saturating_mul(self.filters.len() as u64),
+            );
         PlanSize {
             cells,
             runs,
-            filter_runs: runs * self.filters.len(),
+            filter_runs: runs.saturating_mul(self.filters.len()),
             filter_steps: steps,
         }
     }
@@ -214,6 +377,11 @@ impl Plan {
         if let Some(r) = o.runs {
             if r == 0 {
                 errs.push(self.err("--runs", "must be at least 1"));
+            } else if r as u64 > limits::MAX_RUNS {
+                errs.push(self.err(
+                    "--runs",
+                    format!("{r} runs per cell; at most {}", limits::MAX_RUNS),
+                ));
             }
             self.runs = r;
         }
@@ -284,8 +452,8 @@ fn scale_list(
             if !(positive(*step) && non_negative(*start) && stop.is_finite() && stop >= start) {
                 c.err(key, "a range needs 0 ≤ start ≤ stop and step > 0");
                 vec![default]
-            } else if (stop - start) / step > 1e6 {
-                c.err(key, "more than a million values");
+            } else if (stop - start) / step >= limits::MAX_SCALES as f64 {
+                c.err(key, format!("more than {} values", limits::MAX_SCALES));
                 vec![default]
             } else {
                 expand_range(*start, *stop, *step)
@@ -294,6 +462,13 @@ fn scale_list(
     };
     if out.is_empty() {
         c.err(key, "at least one value is required");
+    }
+    if out.len() > limits::MAX_SCALES {
+        c.err(
+            key,
+            format!("{} values; at most {}", out.len(), limits::MAX_SCALES),
+        );
+        out.truncate(1);
     }
     if let Some(bad) = out.iter().find(|x| !ok(**x)) {
         c.err(key, format!("{bad} is not {what}"));
@@ -663,6 +838,45 @@ pub fn validate(
 
     if runs == 0 {
         c.err("runs", "must be at least 1");
+    } else if runs > limits::MAX_RUNS {
+        c.err(
+            "runs",
+            format!("{runs} runs per cell; at most {}", limits::MAX_RUNS),
+        );
+    }
+    if spec.scenarios.len() > limits::MAX_ENTRIES {
+        c.err(
+            "scenarios",
+            format!(
+                "{} scenarios; at most {}",
+                spec.scenarios.len(),
+                limits::MAX_ENTRIES
+            ),
+        );
+    }
+    if filters.len() > limits::MAX_ENTRIES {
+        c.err(
+            "filters",
+            format!(
+                "{} filter variants (entries × q_scale × r_scale values); at most {}",
+                filters.len(),
+                limits::MAX_ENTRIES
+            ),
+        );
+    }
+    if let Some(sys) = &configured {
+        for (i, sc) in sys.scenarios().iter().enumerate() {
+            if sc.steps as u64 > limits::MAX_STEPS {
+                c.err(
+                    format!("scenarios[{i}]"),
+                    format!(
+                        "{} steps (duration / Δt); at most {} per run",
+                        sc.steps,
+                        limits::MAX_STEPS
+                    ),
+                );
+            }
+        }
     }
     let trace_runs = spec.trace_runs.unwrap_or(0);
     if trace_runs > runs {
@@ -676,8 +890,11 @@ pub fn validate(
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_else(|| "experiment".into())
     });
-    if name.is_empty() || name.contains(['/', '\\']) {
-        c.err("name", "must be non-empty and contain no path separators");
+    if name.is_empty() || name == "." || name == ".." || name.contains(['/', '\\']) {
+        c.err(
+            "name",
+            "must be non-empty, not `.` or `..`, and contain no path separators",
+        );
     }
     let output = spec
         .output

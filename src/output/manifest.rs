@@ -13,6 +13,10 @@ pub struct TableEntry {
     pub name: String,
     /// Rows.
     pub rows: u64,
+    /// File size in bytes.
+    pub bytes: u64,
+    /// FNV-1a 64 of the file's bytes (hex).
+    pub checksum: String,
 }
 
 /// One evaluated quantity, as the manifest records it.
@@ -79,7 +83,8 @@ pub struct Manifest {
 }
 
 impl Manifest {
-    /// Writes `manifest.toml` atomically into `dir`.
+    /// Writes `manifest.toml` atomically into `dir`. Inside a study folder this is the commit
+    /// record, written last ([`super::folder::StudyFolder::commit`]).
     pub fn write(&self, dir: &Path) -> Result<(), OutputError> {
         let text = toml::to_string(self).map_err(|e| OutputError::Format {
             path: dir.join("manifest.toml"),

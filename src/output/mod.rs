@@ -3,8 +3,10 @@
 //!
 //! Tables are written to a hidden temporary file in the output folder and renamed into place
 //! only when complete, so a crash or Ctrl-C never leaves a half-written table under a real
-//! name. Large tables are streamed in row groups, so memory does not grow with the run count.
+//! name; [`folder`] locks a study's folder and commits its tables with the manifest last.
+//! Large tables are streamed in row groups, so memory does not grow with the run count.
 
+pub mod folder;
 pub mod manifest;
 pub mod schema;
 pub mod table;

@@ -65,7 +65,7 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 7] = [
+pub const TABLES: [&str; 8] = [
     "runs",
     "steps",
     "summary",
@@ -73,6 +73,7 @@ pub const TABLES: [&str; 7] = [
     "divergence",
     "divergence_runs",
     "traces",
+    "tuning",
 ];
 
 /// `runs.parquet`: one row per scenario × noise scale × filter × run.

@@ -161,6 +161,27 @@ impl TableWriter {
         Ok(())
     }
 
+    /// Finishes the file under its temporary name, for a [`super::folder::StudyFolder`] to
+    /// move into place with the others.
+    pub fn finish(mut self) -> Result<super::folder::FinishedTable, OutputError> {
+        self.flush()?;
+        let writer = self.writer.take().expect("the writer lives until commit");
+        writer.finish().map_err(|source| OutputError::Polars {
+            action: "cannot finish",
+            path: self.tmp.clone(),
+            source,
+        })?;
+        Ok(super::folder::FinishedTable {
+            name: self
+                .path
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            tmp: std::mem::take(&mut self.tmp),
+            rows: self.rows,
+        })
+    }
+
     /// Finishes the file and renames it into place; returns its path and row count.
     pub fn commit(mut self) -> Result<(PathBuf, u64), OutputError> {
         self.flush()?;

@@ -454,6 +454,7 @@ pub struct Tables {
 impl Tables {
     /// Loads the tables of `dir`. `summary.parquet` must exist; the others are optional.
     pub fn load(dir: &Path) -> Result<Tables, PlotError> {
+        let verified = crate::output::folder::verify(dir)?;
         let spath = dir.join("summary.parquet");
         let summary = Table::read_optional(spath.clone())?.ok_or(PlotError::MissingTable {
             path: spath,
@@ -471,7 +472,7 @@ impl Tables {
         let smallest = noise_scales.first().copied();
         let steps = Table::read_where(dir.join("steps.parquet"), &|s| plotted.contains(&s))?;
         let traces = Table::read_where(dir.join("traces.parquet"), &|s| Some(s) == smallest)?;
-        let manifest = Manifest::read(dir).ok();
+        let manifest = Some(verified);
         let n_meas = traces
             .as_ref()
             .map(|t| t.names().iter().filter(|n| n.starts_with("z_")).count())

@@ -88,18 +88,42 @@ pub fn to_file(fig: &Figure, path: &Path, format: Format) -> Result<(), PlotErro
         message,
     };
     let dims = size(fig);
-    match format {
+    // Drawn under a temporary name (keeping the extension, which picks the encoder) and
+    // renamed into place, so a full disk or a kill never leaves a truncated figure.
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let ext = path
+        .extension()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{stem}.partial.{ext}"));
+    let drawn = match format {
         Format::Png => {
-            let root = BitMapBackend::new(path, dims).into_drawing_area();
-            draw(&root, fig).map_err(err)?;
-            root.present().map_err(|e| err(e.to_string()))
+            let root = BitMapBackend::new(&tmp, dims).into_drawing_area();
+            draw(&root, fig)
+                .map_err(err)
+                .and_then(|()| root.present().map_err(|e| err(e.to_string())))
         }
         Format::Svg => {
-            let root = SVGBackend::new(path, dims).into_drawing_area();
-            draw(&root, fig).map_err(err)?;
-            root.present().map_err(|e| err(e.to_string()))
+            let root = SVGBackend::new(&tmp, dims).into_drawing_area();
+            draw(&root, fig)
+                .map_err(err)
+                .and_then(|()| root.present().map_err(|e| err(e.to_string())))
         }
+    };
+    let moved = drawn.and_then(|()| {
+        std::fs::rename(&tmp, path).map_err(|source| PlotError::Io {
+            action: "cannot move the figure to",
+            path: path.to_path_buf(),
+            source,
+        })
+    });
+    if moved.is_err() {
+        let _ = std::fs::remove_file(&tmp);
     }
+    moved
 }
 
 /// Draws `fig` as SVG text (for the HTML report).

@@ -263,10 +263,12 @@ pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError
     let t = Tables::load(dir)?;
     let html = render_html(&t)?;
     let path = out.map_or_else(|| dir.join("report.html"), Path::to_path_buf);
-    std::fs::write(&path, html).map_err(|source| PlotError::Io {
-        action: "cannot write the report",
-        path: path.clone(),
-        source,
+    crate::output::folder::write_atomic(&path, html.as_bytes()).map_err(|source| {
+        PlotError::Io {
+            action: "cannot write the report",
+            path: path.clone(),
+            source,
+        }
     })?;
     Ok(path)
 }

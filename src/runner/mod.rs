@@ -23,6 +23,28 @@ pub trait RunObserver: Sync {
 pub struct NullObserver;
 impl RunObserver for NullObserver {}
 
+static INTERRUPTED: std::sync::OnceLock<std::sync::Arc<std::sync::atomic::AtomicBool>> =
+    std::sync::OnceLock::new();
+
+/// Makes SIGINT and SIGTERM request a clean stop: the executor finishes the window in flight,
+/// returns [`crate::error::OutputError::Interrupted`], and every partial file is removed as
+/// the study unwinds. A second signal while stopping still stops the process at once (the
+/// default action is restored after the first).
+pub fn stop_on_signals() {
+    let flag = INTERRUPTED.get_or_init(Default::default);
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        let _ = signal_hook::flag::register_conditional_default(sig, flag.clone());
+        let _ = signal_hook::flag::register(sig, flag.clone());
+    }
+}
+
+/// Whether a stop was requested by a signal.
+pub fn interrupted() -> bool {
+    INTERRUPTED
+        .get()
+        .is_some_and(|f| f.load(std::sync::atomic::Ordering::Relaxed))
+}
+
 /// Units per window: large enough to keep every core busy, small enough to bound memory.
 const WINDOW: usize = 256;
 
@@ -65,8 +87,13 @@ where
             }
             Ok(())
         });
+        let mut stopped = false;
         for start in (0..units).step_by(WINDOW) {
             if failed.load(std::sync::atomic::Ordering::Relaxed) {
+                break;
+            }
+            if interrupted() {
+                stopped = true;
                 break;
             }
             let window = start..(start + WINDOW).min(units);
@@ -85,9 +112,15 @@ where
             }
         }
         drop(tx);
-        consumer
+        let sunk = consumer
             .join()
-            .unwrap_or_else(|p| std::panic::resume_unwind(p))
+            .unwrap_or_else(|p| std::panic::resume_unwind(p));
+        match (sunk, stopped) {
+            (Ok(()), true) => Err(E::from(KfmcError::Output(
+                crate::error::OutputError::Interrupted,
+            ))),
+            (r, _) => r,
+        }
     });
     observer.on_finish();
     result

@@ -185,16 +185,9 @@ impl LinearQuadrotorSystem {
                 Some(v) => x0.copy_from_slice(v),
                 None => {}
             }
-            let duration_s = s.duration_s.unwrap_or(40.0);
-            if !positive(duration_s) || duration_s < dt_s {
-                c.err(
-                    format!("{key}.duration_s"),
-                    format!("{duration_s} is shorter than one sample"),
-                );
+            let Some(steps) = c.scenario_steps(&key, s.duration_s.unwrap_or(40.0), dt_s) else {
                 continue;
-            }
-            // The same rounding as the planar scenarios: K = round(duration / Δt).
-            let steps = (duration_s / dt_s).round() as usize;
+            };
             scenarios.push(Scenario::unforced(
                 &s.name,
                 Vector::<6>::from_column_slice(&x0),

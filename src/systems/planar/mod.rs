@@ -364,13 +364,10 @@ fn scenarios(tables: &[toml::Table], dt_s: f64, c: &mut Checker) -> Vec<PlanarSc
             }
         }
         if let Some(dur) = s.duration_s {
-            if !positive(dur) || dur < dt_s {
-                c.err(
-                    format!("{key}.duration_s"),
-                    format!("{dur} is shorter than one sample"),
-                );
-            }
             def.duration_s = dur;
+        }
+        if c.scenario_steps(&key, def.duration_s, dt_s).is_none() {
+            continue;
         }
         if let Some(r) = s.ripple {
             def.profile.ripple = r;
