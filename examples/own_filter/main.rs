@@ -1,0 +1,33 @@
+//! "Bring your own filter": a downstream crate's whole `kfmc` binary, using only kfmc's public
+//! API.
+//!
+//! * `model.kind = "cv_range_bearing"` — the user's own system ([`system::TargetSystem`]):
+//!   a constant-velocity target and a range-bearing sensor ([`model`]), with kfmc's common
+//!   filter kinds and the user's EKF, `kind = "user_ekf"` ([`user_ekf`]);
+//! * `model.kind = "planar_quadrotor"` — kfmc's built-in system, registered again with the
+//!   user's sequential-update EKF for sensor P1, `kind = "user_filter"` ([`sequential`]).
+//!
+//! ```sh
+//! cargo build --release --example own_filter
+//! target/release/examples/own_filter list
+//! target/release/examples/own_filter check examples/own_filter/cv_range_bearing.toml
+//! ```
+
+mod model;
+mod sequential;
+mod system;
+mod user_ekf;
+
+use std::process::ExitCode;
+
+use kfmc::system::Registry;
+use kfmc::systems::planar::PlanarSystem;
+
+fn main() -> ExitCode {
+    kfmc::cli::main_with(
+        Registry::builtin()
+            .with(system::TargetSystem::new())
+            // Same kind as the built-in planar system, so this one replaces it.
+            .with(PlanarSystem::new().with_p1_filter(sequential::SequentialKind)),
+    )
+}
