@@ -52,3 +52,7 @@ pub mod system;
 pub mod systems;
 pub mod trial;
 pub mod tune;
+
+/// The TOML crate kfmc parses specs with: a system's own tables arrive as [`toml::Table`],
+/// so a downstream crate can use this one instead of pinning its own.
+pub use toml;

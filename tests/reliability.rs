@@ -25,7 +25,10 @@ fn slow_run(out: &Path, seed: u64) -> Command {
     let mut c = kfmc();
     c.args([
         "run",
-        repo().join("experiments/planar_robustness.toml").to_str().unwrap(),
+        repo()
+            .join("experiments/planar_robustness.toml")
+            .to_str()
+            .unwrap(),
         "--runs",
         "6",
         "--quiet",
@@ -43,7 +46,10 @@ fn quick_run(out: &Path, seed: u64) -> Command {
     let mut c = kfmc();
     c.args([
         "run",
-        repo().join("experiments/planar_seed_study.toml").to_str().unwrap(),
+        repo()
+            .join("experiments/planar_seed_study.toml")
+            .to_str()
+            .unwrap(),
         "--runs",
         "3",
         "--quiet",
@@ -76,9 +82,22 @@ fn check_readers(dir: &Path) -> Result<u64, String> {
     let m = kfmc::output::folder::verify(dir).map_err(|e| e.to_string())?;
     let runs = kfmc::output::table::read(&dir.join("runs.parquet")).map_err(|e| e.to_string())?;
     let col = |n: &str| runs.column(n).map_err(|e| e.to_string());
-    let seed = col("seed")?.u64().map_err(|e| e.to_string())?.get(0).ok_or("no rows")?;
-    let scenario = col("scenario")?.str().map_err(|e| e.to_string())?.get(0).ok_or("no rows")?.to_string();
-    let run = col("run")?.i64().map_err(|e| e.to_string())?.get(0).ok_or("no rows")? as u64;
+    let seed = col("seed")?
+        .u64()
+        .map_err(|e| e.to_string())?
+        .get(0)
+        .ok_or("no rows")?;
+    let scenario = col("scenario")?
+        .str()
+        .map_err(|e| e.to_string())?
+        .get(0)
+        .ok_or("no rows")?
+        .to_string();
+    let run = col("run")?
+        .i64()
+        .map_err(|e| e.to_string())?
+        .get(0)
+        .ok_or("no rows")? as u64;
     assert_eq!(
         seed,
         kfmc::sim::seed::run_seed(m.master_seed, &scenario, run),
@@ -178,13 +197,16 @@ fn sigint_stops_cleanly_and_keeps_the_old_study() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("d");
     assert_eq!(output(&mut quick_run(&out, 3)).0, 0);
-    let child = slow_run(&out, 4)
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let child = slow_run(&out, 4).stderr(Stdio::piped()).spawn().unwrap();
     std::thread::sleep(Duration::from_millis(300));
     let pid = child.id().to_string();
-    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    assert!(
+        Command::new("kill")
+            .args(["-INT", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
     let o = child.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     if o.status.code() == Some(0) {
@@ -197,7 +219,10 @@ fn sigint_stops_cleanly_and_keeps_the_old_study() {
     assert_eq!(readers_accept(&out), Some(3));
     for e in std::fs::read_dir(&out).unwrap() {
         let n = e.unwrap().file_name().to_string_lossy().into_owned();
-        assert!(!n.ends_with(".partial") && n != ".kfmc.lock", "{n} left behind");
+        assert!(
+            !n.ends_with(".partial") && n != ".kfmc.lock",
+            "{n} left behind"
+        );
     }
 }
 
@@ -212,7 +237,10 @@ fn readers_refuse_corrupt_missing_and_foreign_tables_naming_the_file() {
         for args in readers {
             let (code, _, err) = output(kfmc().args(args));
             assert_eq!(code, 1, "{args:?}: {err}");
-            assert!(err.contains(needle), "{args:?}: missing `{needle}` in {err}");
+            assert!(
+                err.contains(needle),
+                "{args:?}: missing `{needle}` in {err}"
+            );
         }
     };
     // A corrupted table.
@@ -248,12 +276,21 @@ fn a_foreign_folder_is_refused_unless_forced_and_dot_dot_names_are_rejected() {
     std::fs::write(out.join("traces.parquet"), "not kfmc's").unwrap();
     let (code, _, err) = output(&mut quick_run(&out, 1));
     assert_eq!(code, 1);
-    assert!(err.contains("is not a kfmc result folder") && err.contains("--force"), "{err}");
-    assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "mine");
+    assert!(
+        err.contains("is not a kfmc result folder") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "mine"
+    );
     assert!(out.join("traces.parquet").exists(), "nothing was touched");
     let (code, _, err) = output(quick_run(&out, 1).arg("--force"));
     assert_eq!(code, 0, "{err}");
-    assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "mine");
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "mine"
+    );
 
     let spec = tmp.path().join("dots.toml");
     std::fs::write(
@@ -263,7 +300,10 @@ fn a_foreign_folder_is_refused_unless_forced_and_dot_dot_names_are_rejected() {
     .unwrap();
     let (code, _, err) = output(kfmc().args(["validate", spec.to_str().unwrap()]));
     assert_eq!(code, 2);
-    assert!(err.contains("name: must be non-empty, not `.` or `..`"), "{err}");
+    assert!(
+        err.contains("name: must be non-empty, not `.` or `..`"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -279,10 +319,26 @@ fn absurd_plans_are_refused_before_anything_runs() {
         p
     };
     let cases: [(&str, &str, &[&str]); 4] = [
-        ("runs = 9223372036854775807", "", &["runs:", "at most 1000000000"]),
-        ("", "duration_s = 1e9", &["scenarios[0].duration_s", "at most 10000000"]),
-        ("runs = 100000000", "", &["(plan)", "memory", "--allow-large"]),
-        ("[noise]\nscales = { start = 0.0, stop = 1e9, step = 1.0 }", "", &["noise.scales", "more than 100000"]),
+        (
+            "runs = 9223372036854775807",
+            "",
+            &["runs:", "at most 1000000000"],
+        ),
+        (
+            "",
+            "duration_s = 1e9",
+            &["scenarios[0].duration_s", "at most 10000000"],
+        ),
+        (
+            "runs = 100000000",
+            "",
+            &["(plan)", "memory", "--allow-large"],
+        ),
+        (
+            "[noise]\nscales = { start = 0.0, stop = 1e9, step = 1.0 }",
+            "",
+            &["noise.scales", "more than 100000"],
+        ),
     ];
     for (extra, scenario, needles) in cases {
         let p = spec(extra, scenario);
@@ -290,7 +346,10 @@ fn absurd_plans_are_refused_before_anything_runs() {
             let start = Instant::now();
             let (code, _, err) = output(kfmc().args([cmd, p.to_str().unwrap()]));
             assert_eq!(code, 2, "{cmd} {extra} {scenario}: {err}");
-            assert!(!err.contains("panicked") && !err.contains("memory allocation"), "{err}");
+            assert!(
+                !err.contains("panicked") && !err.contains("memory allocation"),
+                "{err}"
+            );
             for n in needles {
                 assert!(err.contains(n), "missing `{n}` in {err}");
             }

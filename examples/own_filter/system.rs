@@ -193,7 +193,6 @@ impl System for TargetSystem {
             KIND,
             &process_std,
             &measurement_std,
-            true,
             &|_| None,
             c,
         );
@@ -208,6 +207,7 @@ impl System for TargetSystem {
                 .collect(),
             inputs: Vec::new(),
             measurements: MEASUREMENTS.iter().map(|s| s.to_string()).collect(),
+            world_states: Vec::new(),
             dt_s,
         };
         let noise = TruthNoise {

@@ -30,7 +30,7 @@ pub use steady_state::SteadyState;
 /// Removes the components that did not report from H, ν and R, exactly as the EKF does: their
 /// rows of H and ν are zeroed and their block of R replaced by the identity, so every
 /// linear-Gaussian update equals one over the reporting rows alone.
-pub(crate) fn mask_rows<const NX: usize, const NZ: usize>(
+pub fn mask_rows<const NX: usize, const NZ: usize>(
     r: &Matrix<NZ, NZ>,
     available: Availability,
     h: &mut Matrix<NZ, NX>,
@@ -53,7 +53,7 @@ pub(crate) fn mask_rows<const NX: usize, const NZ: usize>(
 }
 
 /// The same non-finite check as the EKF's, for a mean and a matrix.
-pub(crate) fn check_finite<const NX: usize>(
+pub fn check_finite<const NX: usize>(
     x: &Vector<NX>,
     m: &Matrix<NX, NX>,
 ) -> Result<(), FilterError> {

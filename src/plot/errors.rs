@@ -132,7 +132,7 @@ pub fn errors_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
             panels.push(Panel {
                 title: format!("|e| of {s}"),
                 x_label: "t [s]".into(),
-                y_label: match super::unit(s) {
+                y_label: match t.unit(s) {
                     "" => "|e|".into(),
                     u => format!("|e| [{u}]"),
                 },

@@ -223,7 +223,9 @@ pub struct Figure {
 }
 
 /// The unit of a state or measurement name (`x` → `m`).
-pub fn unit(name: &str) -> &'static str {
+/// The unit of a column name that the manifest does not describe (the measurement components
+/// of the built-in systems, and folders written before quantities had units).
+pub fn fallback_unit(name: &str) -> &'static str {
     match name {
         "x" | "y" => "m",
         "xdot" | "ydot" => "m/s",
@@ -234,11 +236,21 @@ pub fn unit(name: &str) -> &'static str {
     }
 }
 
-/// `name [unit]`, or the bare name without a unit.
-pub fn with_unit(name: &str) -> String {
-    match unit(name) {
-        "" => name.to_string(),
-        u => format!("{name} [{u}]"),
+impl Tables {
+    /// The unit of a quantity, as its system declared it (the manifest), or the fallback.
+    pub fn unit<'a>(&'a self, name: &str) -> &'a str {
+        self.manifest
+            .as_ref()
+            .and_then(|m| m.quantities.iter().find(|q| q.name == name))
+            .map_or_else(|| fallback_unit(name), |q| q.unit.as_str())
+    }
+
+    /// `name [unit]`, or the bare name without a unit.
+    pub fn with_unit(&self, name: &str) -> String {
+        match self.unit(name) {
+            "" => name.to_string(),
+            u => format!("{name} [{u}]"),
+        }
     }
 }
 

@@ -1,7 +1,7 @@
 //! RMSE figures across the noise sweep (summary.parquet, divergence.parquet) and tuning
 //! curves (tuning.parquet).
 
-use super::{Bar, Figure, FigureKind, Ink, Mark, Panel, Tables, file_part, short, unit};
+use super::{Bar, Figure, FigureKind, Ink, Mark, Panel, Tables, file_part, short};
 use crate::error::PlotError;
 
 /// Above this many noise scales the bar chart is unreadable; `rmse_growth` shows the sweep.
@@ -89,7 +89,7 @@ pub fn rmse_cases_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                     Panel {
                         title: format!("RMSE of {s}"),
                         x_label: "truth-noise multiplier".into(),
-                        y_label: format!("RMSE {}", bracket(s)),
+                        y_label: format!("RMSE {}", bracket(t, s)),
                         x_categories: Some(cats.clone()),
                         marks: vec![Mark::Bars {
                             label: Some(format!("{f} mean, p5–p95")),
@@ -111,8 +111,8 @@ pub fn rmse_cases_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
     Ok(figs)
 }
 
-fn bracket(state: &str) -> String {
-    match unit(state) {
+fn bracket(t: &Tables, state: &str) -> String {
+    match t.unit(state) {
         "" => String::new(),
         u => format!("[{u}]"),
     }
@@ -184,7 +184,7 @@ pub fn rmse_growth_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
             panels.push(Panel {
                 title: format!("RMSE of {s}"),
                 x_label: "truth-noise multiplier".into(),
-                y_label: format!("RMSE {}", bracket(s)),
+                y_label: format!("RMSE {}", bracket(t, s)),
                 log_y: s == "x" || s == "xdot",
                 marks,
                 ..Panel::default()
@@ -230,7 +230,7 @@ pub fn tuning_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         if tu.has(&col) {
             metrics.push((
                 col.clone(),
-                format!("RMSE {}", bracket(s)),
+                format!("RMSE {}", bracket(t, s)),
                 tu.f64s(&col)?,
                 None,
             ));

@@ -1,7 +1,7 @@
 //! Figures of single traced runs (traces.parquet): the x–y trajectory and each state over time
 //! with the estimate's ±3σ band.
 
-use super::{Figure, FigureKind, Ink, Mark, Panel, Table, Tables, file_part, short, with_unit};
+use super::{Figure, FigureKind, Ink, Mark, Panel, Table, Tables, file_part, short};
 use crate::error::PlotError;
 
 /// The rows of the first traced run of each scenario (at the smallest noise scale, the only
@@ -96,8 +96,8 @@ pub fn trajectory_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
             ),
             panels: vec![Panel {
                 title: "x–y plane".into(),
-                x_label: with_unit("x"),
-                y_label: with_unit("y"),
+                x_label: t.with_unit("x"),
+                y_label: t.with_unit("y"),
                 marks,
                 ..Panel::default()
             }],
@@ -162,7 +162,7 @@ pub fn states_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
             panels.push(Panel {
                 title: s.clone(),
                 x_label: "t [s]".into(),
-                y_label: with_unit(s),
+                y_label: t.with_unit(s),
                 marks,
                 ..Panel::default()
             });

@@ -172,7 +172,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
 
     /// Validates every entry of `filters` whose kind is in this set; an unknown kind is an
     /// error at `filters[i].kind` listing the tags. `unknown` may explain a kind that exists
-    /// elsewhere (another sensor set) and return its message instead.
+    /// elsewhere (another sensor set) and return its message instead. `process_std` and
+    /// `measurement_std` are the truth's, the defaults of `q_std` and `r_std`.
     #[allow(clippy::too_many_arguments)]
     pub fn configure_all(
         &self,
@@ -181,10 +182,15 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
         system: &str,
         process_std: &[f64],
         measurement_std: &[f64],
-        full_q: bool,
         unknown: &dyn Fn(&str) -> Option<String>,
         c: &mut Checker,
-    ) -> Vec<Arc<dyn FilterEntry<NX, NU, NZ, M>>> {
+    ) -> Vec<Arc<dyn FilterEntry<NX, NU, NZ, M>>>
+    where
+        M: Model<NX, NU, NZ>,
+    {
+        // A model with its own full Q is what its filters assume (times q_scale), so a q_std
+        // would be silently ignored: the kinds refuse it.
+        let full_q = model.process_noise_covariance().is_some();
         let mut out = Vec::new();
         for (i, f) in filters.iter().enumerate() {
             let key = format!("filters[{i}]");
@@ -686,6 +692,8 @@ struct AdditiveTrial<'a, const NX: usize, const NU: usize, const NZ: usize, M> {
     /// The model's full discrete Q, which filters assume (times q_scale) when it exists.
     model_q: Option<Matrix<NX, NX>>,
     names: Vec<&'a str>,
+    /// The angle quantities (index, in degrees), whose errors are wrapped.
+    angles: Vec<(usize, bool)>,
     /// Per (filter variant, noise scale): the prepared filter, built on first use.
     prepared: Vec<OnceLock<Box<dyn RunFilter<NX, NU, NZ, M>>>>,
 }
@@ -701,6 +709,14 @@ where
                 .then(|| Matrix::<NX, NX>::from_diagonal(&sys.p0_std)),
             model_q: sys.model.process_noise_covariance(),
             names: sys.layout.quantity_names(),
+            angles: sys
+                .layout
+                .quantities
+                .iter()
+                .enumerate()
+                .filter(|(_, q)| q.angle)
+                .map(|(i, q)| (i, q.unit == "deg"))
+                .collect(),
             prepared: (0..plan.filters.len() * plan.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
@@ -771,7 +787,7 @@ where
             truth: &trajectory.truth,
             inputs: &scenario.controls,
             measurements: &trajectory.measurements,
-            angles: &[],
+            angles: &self.angles,
             thresholds: plan.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,

@@ -201,7 +201,6 @@ impl LinearQuadrotorSystem {
             KIND,
             &process_std,
             &measurement_std,
-            true,
             &|_| None,
             c,
         );

@@ -254,7 +254,6 @@ impl System for PlanarSystem {
                 KIND,
                 &process_std,
                 &measurement_std,
-                false,
                 &|k| {
                     self.p1.get(k).map(|_| {
                         format!("{k} reads y, θ, θ̇ directly and needs model.sensor = \"p1\"")
@@ -281,7 +280,6 @@ impl System for PlanarSystem {
                 KIND,
                 &process_std,
                 &measurement_std,
-                false,
                 &|k| {
                     self.imu
                         .get(k)
