@@ -40,6 +40,7 @@ pub mod error;
 pub mod experiment;
 pub mod filter;
 pub mod linalg;
+pub mod merge;
 pub mod metrics;
 pub mod model;
 pub mod output;

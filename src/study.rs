@@ -21,6 +21,35 @@ pub struct ExecOptions {
     pub threads: usize,
     /// Write into a non-empty folder that is not a kfmc study.
     pub force: bool,
+    /// Run only this part of the plan (`kfmc run --shard i/n`), into its part folder.
+    pub shard: Option<Shard>,
+}
+
+/// One of `count` disjoint, deterministic parts of a plan: a contiguous range of its cells
+/// ((scenario, noise scale) pairs in scenario-major order), so a part's tables are exactly
+/// the rows one process writes for those cells, and `kfmc merge` concatenates them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Shard {
+    /// 0-based index.
+    pub index: usize,
+    /// Number of parts.
+    pub count: usize,
+}
+
+impl Shard {
+    /// The cells `[first, end)` of this part out of `cells`; later parts are empty when there
+    /// are more parts than cells.
+    pub fn cells(&self, cells: usize) -> std::ops::Range<usize> {
+        let at = |i: usize| (i as u128 * cells as u128 / self.count as u128) as usize;
+        at(self.index)..at(self.index + 1)
+    }
+
+    /// The part's folder inside the study's output folder.
+    pub fn folder(&self, output: &std::path::Path) -> PathBuf {
+        output
+            .join("parts")
+            .join(format!("part-{:05}-of-{:05}", self.index, self.count))
+    }
 }
 
 /// What a finished study wrote.
@@ -306,8 +335,11 @@ pub fn run(
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
-    let dir = &plan.output;
+    let part_dir = opts.shard.map(|s| s.folder(&plan.output));
+    let dir = part_dir.as_ref().unwrap_or(&plan.output);
     let folder = StudyFolder::open(dir, opts.force)?;
+    let n_cells = plan.scenarios.len() * plan.noise_scales.len();
+    let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
     let trial = build(plan);
     let layout = plan.layout();
     let states = layout.quantity_names();
@@ -357,17 +389,20 @@ pub fn run(
         scale: i / n_runs % n_scales,
         run: i % n_runs,
     };
+    let first_unit = cells.start * n_runs;
     execute::<_, KfmcError>(
-        plan.size().runs,
+        (cells.end - cells.start) * n_runs,
         opts.threads,
-        |i| trial.run(&unit_of(i)),
+        |i| trial.run(&unit_of(first_unit + i)),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
     )?;
 
     let mut written: Vec<TableWriter> = Vec::new();
-    if let Some(thr) = &plan.rmse_thresholds {
-        let (d, dr) = divergence_tables(plan, &agg, thr)?;
+    // Divergence points look across every noise scale of a scenario: a part has only some,
+    // so `kfmc merge` computes them from the merged runs and summary.
+    if let (Some(thr), None) = (&plan.rmse_thresholds, opts.shard) {
+        let (d, dr) = divergence_tables(plan, dir, &agg.divergence, &agg.states, thr)?;
         written.extend([d, dr]);
     }
     let Aggregator {
@@ -424,23 +459,33 @@ pub fn run(
         runs_per_s: size.runs as f64 / wall_s.max(1e-9),
         // Filled in by the commit, with each table's size and checksum.
         tables: Vec::new(),
+        shard: opts.shard.map(|s| crate::output::manifest::ShardEntry {
+            index: s.index as u64,
+            count: s.count as u64,
+            first_cell: cells.start as u64,
+            end_cell: cells.end as u64,
+        }),
         spec: plan.spec_text.clone(),
     };
     let tables = folder.commit(finished, manifest)?;
+    let done = ((cells.end - cells.start) * n_runs) as u64;
     Ok(StudyReport {
         output: dir.clone(),
         tables,
         wall_s,
-        runs: size.runs as u64,
+        runs: done,
     })
 }
 
-fn divergence_tables(
+/// The divergence tables from the trackers of every (scenario, filter variant); shared with
+/// `kfmc merge`, which rebuilds the trackers from the merged runs and summary.
+pub(crate) fn divergence_tables(
     plan: &Plan,
-    agg: &Aggregator<'_>,
+    dir: &std::path::Path,
+    trackers: &[DivergenceTracker],
+    states: &[&str],
     thr: &[f64],
 ) -> Result<(TableWriter, TableWriter), OutputError> {
-    let dir = &plan.output;
     let mut d = TableWriter::create(dir, "divergence", schema::divergence())?;
     let mut dr = TableWriter::create(dir, "divergence_runs", schema::divergence_runs())?;
     let nf = plan.filters.len();
@@ -448,14 +493,14 @@ fn divergence_tables(
     let scale_of = |j: Option<usize>| j.map(|j| plan.noise_scales[j]);
     for (si, s) in plan.scenarios.iter().enumerate() {
         for (fi, f) in plan.filters.iter().enumerate() {
-            let tracker = &agg.divergence[si * nf + fi];
+            let tracker = &trackers[si * nf + fi];
             let key = [
                 Value::Str(&s.name),
                 Value::Str(&f.label),
                 Value::F64(Some(f.q_scale)),
                 Value::F64(Some(f.r_scale)),
             ];
-            for (i, state) in agg.states.iter().enumerate() {
+            for (i, state) in states.iter().enumerate() {
                 // Runs that never crossed are censored beyond the largest scale: +∞ in the
                 // ordering, so a quantile that needs them is unknown (null), not invented.
                 let mut per_run: Vec<f64> = (0..plan.runs)

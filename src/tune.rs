@@ -141,6 +141,7 @@ fn stage(
         &ExecOptions {
             threads: opts.threads,
             force: false,
+            shard: None,
         },
         observer,
     )?;

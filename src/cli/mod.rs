@@ -124,6 +124,26 @@ pub enum Command {
         /// Draw the figures (PNG) into `<out>/figures` when the run is done.
         #[arg(long)]
         plot: bool,
+        /// Run only part I of N (0-based) of the plan, into `<out>/parts/`; `kfmc merge`
+        /// combines the parts. Also read from a Slurm job array (SLURM_ARRAY_TASK_ID and
+        /// SLURM_ARRAY_TASK_COUNT) or, with --shards, a Kubernetes Indexed Job
+        /// (JOB_COMPLETION_INDEX).
+        #[arg(long, value_name = "I/N", conflicts_with = "shards")]
+        shard: Option<String>,
+        /// The number of parts when the index comes from the scheduler's environment.
+        #[arg(long, value_name = "N")]
+        shards: Option<usize>,
+    },
+    /// Combine the parts of a sharded study (`run --shard i/n`) into the tables one process
+    /// would have written, byte for byte.
+    Merge {
+        /// The study's output folder (holding `parts/`).
+        dir: PathBuf,
+    },
+    /// Show which parts of a sharded study are complete.
+    Status {
+        /// The study's output folder (holding `parts/`).
+        dir: PathBuf,
     },
     /// Run a study and evaluate its `[check]` assertions (consistency verdicts, RMSE bounds,
     /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 2 for an invalid spec.
@@ -303,7 +323,18 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             study,
             trace_runs,
             plot,
+            shard,
+            shards,
         } => {
+            let shard =
+                crate::merge::shard_from(shard.as_deref(), shards, &|k| std::env::var(k).ok())
+                    .map_err(|message| {
+                        KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
+                            file: study.spec.clone(),
+                            key_path: "--shard".into(),
+                            message,
+                        }]))
+                    })?;
             let plan = study.plan(registry, trace_runs)?;
             let threads = study.threads(study.quiet);
             let StudyArgs {
@@ -312,7 +343,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             let observer = ProgressObserver::new(!quiet);
             let report = crate::study::run(
                 &plan,
-                &crate::study::ExecOptions { threads, force },
+                &crate::study::ExecOptions {
+                    threads,
+                    force,
+                    shard,
+                },
                 &observer,
             )
             .map_err(anyhow::Error::from)
@@ -389,7 +424,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             let observer = ProgressObserver::new(!quiet);
             let report = crate::study::run(
                 &plan,
-                &crate::study::ExecOptions { threads, force },
+                &crate::study::ExecOptions {
+                    threads,
+                    force,
+                    shard: None,
+                },
                 &observer,
             )
             .map_err(anyhow::Error::from)
@@ -497,6 +536,30 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 .map_err(KfmcError::from)
                 .map_err(|e| {
                     anyhow::Error::from(e).context(format!("reading results in {}", dir.display()))
+                })?;
+            emit(&text);
+            Ok(())
+        }
+        Command::Merge { dir } => {
+            let report = crate::merge::merge(&dir, registry)
+                .map_err(anyhow::Error::from)
+                .map_err(|e| e.context(format!("merging {}", dir.display())))?;
+            outln!(
+                "{} parts merged in {:.1} s → {}",
+                report.parts,
+                report.wall_s,
+                dir.display()
+            );
+            for (name, rows) in &report.tables {
+                outln!("  {name}.parquet  {rows} rows");
+            }
+            Ok(())
+        }
+        Command::Status { dir } => {
+            let text = crate::merge::status(&dir)
+                .map_err(KfmcError::from)
+                .map_err(|e| {
+                    anyhow::Error::from(e).context(format!("reading {}", dir.display()))
                 })?;
             emit(&text);
             Ok(())

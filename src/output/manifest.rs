@@ -30,6 +30,19 @@ pub struct QuantityEntry {
     pub angle: bool,
 }
 
+/// Which part of a sharded study a folder holds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShardEntry {
+    /// 0-based part index.
+    pub index: u64,
+    /// Number of parts.
+    pub count: u64,
+    /// First cell of the part.
+    pub first_cell: u64,
+    /// One past its last cell.
+    pub end_cell: u64,
+}
+
 /// The manifest of a result folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -78,6 +91,9 @@ pub struct Manifest {
     pub runs_per_s: f64,
     /// Tables written.
     pub tables: Vec<TableEntry>,
+    /// Set in the folder of one part of a sharded study (`kfmc run --shard i/n`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<ShardEntry>,
     /// The spec text, verbatim.
     pub spec: String,
 }

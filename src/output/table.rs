@@ -200,6 +200,50 @@ impl TableWriter {
         Ok((self.path.clone(), self.rows))
     }
 
+    /// Appends every row of `df`, whose columns must be this table's (as read back from a
+    /// table kfmc wrote with the same schema). The rows pass through the same buffers and
+    /// row groups as rows pushed one by one, so the file is byte-identical.
+    pub fn append_frame(&mut self, df: &DataFrame, origin: &Path) -> Result<(), OutputError> {
+        let bad = |e: PolarsError| OutputError::Polars {
+            action: "unexpected columns in",
+            path: origin.to_path_buf(),
+            source: e,
+        };
+        enum Col<'a> {
+            Str(&'a StringChunked),
+            F64(&'a Float64Chunked),
+            I64(&'a Int64Chunked),
+            U64(&'a UInt64Chunked),
+            Bool(&'a BooleanChunked),
+        }
+        let mut cols = Vec::with_capacity(self.columns.len());
+        for c in &self.columns {
+            let col = df.column(c.name.as_str()).map_err(bad)?;
+            cols.push(match c.dtype {
+                Dtype::Str => Col::Str(col.str().map_err(bad)?),
+                Dtype::F64 => Col::F64(col.f64().map_err(bad)?),
+                Dtype::I64 => Col::I64(col.i64().map_err(bad)?),
+                Dtype::U64 => Col::U64(col.u64().map_err(bad)?),
+                Dtype::Bool => Col::Bool(col.bool().map_err(bad)?),
+            });
+        }
+        let mut row = Vec::with_capacity(cols.len());
+        for i in 0..df.height() {
+            row.clear();
+            for c in &cols {
+                row.push(match c {
+                    Col::Str(a) => Value::Str(a.get(i).unwrap_or("")),
+                    Col::F64(a) => Value::F64(a.get(i)),
+                    Col::I64(a) => Value::I64(a.get(i)),
+                    Col::U64(a) => Value::U64(a.get(i).unwrap_or(0)),
+                    Col::Bool(a) => Value::Bool(a.get(i)),
+                });
+            }
+            self.push(&row)?;
+        }
+        Ok(())
+    }
+
     /// The final path of the table.
     pub fn path(&self) -> &Path {
         &self.path
@@ -213,6 +257,35 @@ impl Drop for TableWriter {
             let _ = std::fs::remove_file(&self.tmp);
         }
     }
+}
+
+/// The column definitions of a table kfmc wrote, read back from its frame.
+pub fn columns_of(df: &DataFrame, origin: &Path) -> Result<Vec<ColumnDef>, OutputError> {
+    df.columns()
+        .iter()
+        .map(|c| {
+            let dtype = match c.dtype() {
+                DataType::String => Dtype::Str,
+                DataType::Float64 => Dtype::F64,
+                DataType::Int64 => Dtype::I64,
+                DataType::UInt64 => Dtype::U64,
+                DataType::Boolean => Dtype::Bool,
+                other => {
+                    return Err(OutputError::Format {
+                        path: origin.to_path_buf(),
+                        message: format!(
+                            "column {} has type {other}, not one kfmc writes",
+                            c.name()
+                        ),
+                    });
+                }
+            };
+            Ok(ColumnDef {
+                name: c.name().to_string(),
+                dtype,
+            })
+        })
+        .collect()
 }
 
 /// Reads a whole Parquet table.

@@ -1,0 +1,442 @@
+//! Sharded studies: `kfmc run --shard i/n` runs one of n disjoint, deterministic parts of a
+//! plan into `<out>/parts/part-i-of-n/`, and [`merge`] combines the parts into the tables one
+//! process would have written, byte for byte.
+//!
+//! A part is a contiguous range of the plan's cells ((scenario, noise scale) pairs in the
+//! order one process folds them), and every cell is folded whole inside one part, so a
+//! part's runs, steps, summary, consistency and traces rows are exactly the single process's
+//! rows for those cells, in the same order; merging concatenates them through the same
+//! writer (same row groups, same bytes). Divergence points look across all noise scales of a
+//! scenario, so the merge computes them from the merged runs and summary rows, with the same
+//! order-independent trackers a single process uses. Memory is one part's table at a time.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use crate::error::{KfmcError, OutputError};
+use crate::experiment::{self, Overrides};
+use crate::metrics::divergence::DivergenceTracker;
+use crate::output::folder::{StudyFolder, verify};
+use crate::output::manifest::Manifest;
+use crate::output::schema;
+use crate::output::table::{TableWriter, columns_of, read};
+use crate::study::{Shard, divergence_tables};
+use crate::system::Registry;
+
+/// The shard a run executes: `--shard i/n`, else a scheduler's array index from the
+/// environment (Slurm's `SLURM_ARRAY_TASK_ID` with `SLURM_ARRAY_TASK_COUNT`, `_MIN` and
+/// `_STEP`; a Kubernetes Indexed Job's `JOB_COMPLETION_INDEX` with `--shards n`).
+pub fn shard_from(
+    flag: Option<&str>,
+    shards: Option<usize>,
+    env: &dyn Fn(&str) -> Option<String>,
+) -> Result<Option<Shard>, String> {
+    let num = |what: &str, v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("{what} `{v}` is not a non-negative integer"))
+    };
+    let check = |index: usize, count: usize| {
+        if count == 0 || index >= count {
+            Err(format!("part {index} of {count}: need 0 ≤ i < n and n ≥ 1"))
+        } else {
+            Ok(Some(Shard { index, count }))
+        }
+    };
+    if let Some(f) = flag {
+        let (i, n) = f
+            .split_once('/')
+            .ok_or_else(|| format!("`{f}` is not of the form i/n (e.g. 0/4)"))?;
+        return check(num("the part index", i)?, num("the part count", n)?);
+    }
+    if let Some(id) = env("SLURM_ARRAY_TASK_ID") {
+        let id = num("SLURM_ARRAY_TASK_ID", &id)?;
+        let min = env("SLURM_ARRAY_TASK_MIN").map_or(Ok(0), |v| num("SLURM_ARRAY_TASK_MIN", &v))?;
+        let step =
+            env("SLURM_ARRAY_TASK_STEP").map_or(Ok(1), |v| num("SLURM_ARRAY_TASK_STEP", &v))?;
+        let count =
+            match (shards, env("SLURM_ARRAY_TASK_COUNT")) {
+                (Some(n), _) => n,
+                (None, Some(c)) => num("SLURM_ARRAY_TASK_COUNT", &c)?,
+                (None, None) => return Err(
+                    "SLURM_ARRAY_TASK_ID is set but not SLURM_ARRAY_TASK_COUNT; pass --shards N"
+                        .into(),
+                ),
+            };
+        if step == 0 || id < min || (id - min) % step != 0 {
+            return Err(format!(
+                "array task {id} is not min + k·step ({min} + k·{step})"
+            ));
+        }
+        return check((id - min) / step, count);
+    }
+    if let Some(idx) = env("JOB_COMPLETION_INDEX") {
+        let n =
+            shards.ok_or("JOB_COMPLETION_INDEX is set; pass --shards N (the Job's completions)")?;
+        return check(num("JOB_COMPLETION_INDEX", &idx)?, n);
+    }
+    if shards.is_some() {
+        return Err(
+            "--shards needs an index: --shard i/n, or a scheduler's array index in the environment"
+                .into(),
+        );
+    }
+    Ok(None)
+}
+
+/// What a merge wrote.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MergeReport {
+    /// Parts combined.
+    pub parts: usize,
+    /// Tables and their row counts.
+    pub tables: Vec<(String, u64)>,
+    /// Wall-clock seconds.
+    pub wall_s: f64,
+}
+
+struct Part {
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+/// The part folders under `dir/parts`, each verified, in part order; every problem is named.
+fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<String>), OutputError> {
+    let root = dir.join("parts");
+    let entries = std::fs::read_dir(&root).map_err(|source| OutputError::Io {
+        action: "cannot list the parts in",
+        path: root.clone(),
+        source,
+    })?;
+    let mut found = Vec::new();
+    let mut problems = Vec::new();
+    let mut names: Vec<PathBuf> = entries.filter_map(|e| e.ok()).map(|e| e.path()).collect();
+    names.sort();
+    for path in names {
+        if !path.is_dir() {
+            continue;
+        }
+        match verify(&path) {
+            Ok(manifest) if manifest.shard.is_some() => found.push(Part {
+                dir: path,
+                manifest,
+            }),
+            Ok(_) => problems.push(format!(
+                "{}: not a part (no shard in its manifest)",
+                path.display()
+            )),
+            Err(e) => problems.push(format!("{}: {e}", path.display())),
+        }
+    }
+    Ok((found, problems))
+}
+
+/// A human-readable list of a sharded study's parts: complete, missing or broken.
+pub fn status(dir: &Path) -> Result<String, OutputError> {
+    let (found, problems) = parts(dir)?;
+    let mut s = String::new();
+    let count = found
+        .first()
+        .and_then(|p| p.manifest.shard.as_ref())
+        .map(|s| s.count);
+    let done: Vec<u64> = found
+        .iter()
+        .filter_map(|p| p.manifest.shard.as_ref().map(|s| s.index))
+        .collect();
+    match count {
+        Some(n) => {
+            s.push_str(&format!(
+                "{}: {} of {n} parts complete\n",
+                dir.display(),
+                done.len()
+            ));
+            for i in 0..n {
+                let state = if done.contains(&i) {
+                    "complete"
+                } else {
+                    "missing"
+                };
+                s.push_str(&format!("  part {i:>5} of {n}: {state}\n"));
+            }
+        }
+        None => s.push_str(&format!("{}: no complete part\n", dir.display())),
+    }
+    for p in &problems {
+        s.push_str(&format!("  incomplete: {p}\n"));
+    }
+    if dir.join("manifest.toml").exists() && verify(dir).is_ok() {
+        s.push_str("  merged: yes (manifest.toml verified)\n");
+    }
+    Ok(s)
+}
+
+fn mismatch(dir: &Path, why: String) -> KfmcError {
+    KfmcError::Output(OutputError::Mismatch {
+        path: dir.to_path_buf(),
+        why,
+    })
+}
+
+/// Merges the parts in `dir/parts` into `dir`'s tables and manifest. Refuses parts of another
+/// spec, seed or run count, a different n, or a missing part, naming it.
+pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> {
+    let started = Instant::now();
+    let (found, problems) = parts(dir)?;
+    if let Some(p) = problems.first() {
+        return Err(mismatch(
+            dir,
+            format!("has a part that is not complete: {p}"),
+        ));
+    }
+    let Some(first) = found.first() else {
+        return Err(mismatch(
+            dir,
+            "has no parts (run `kfmc run SPEC --shard i/n` first)".into(),
+        ));
+    };
+    let m0 = &first.manifest;
+    let n = m0.shard.as_ref().map_or(0, |s| s.count);
+    for p in &found {
+        let m = &p.manifest;
+        let s = m.shard.as_ref().expect("parts() keeps shards only");
+        for (what, a, b) in [
+            ("spec (hash)", &m.spec_hash, &m0.spec_hash),
+            (
+                "master seed",
+                &m.master_seed.to_string(),
+                &m0.master_seed.to_string(),
+            ),
+            (
+                "runs per cell",
+                &m.runs_per_cell.to_string(),
+                &m0.runs_per_cell.to_string(),
+            ),
+            ("part count", &s.count.to_string(), &n.to_string()),
+        ] {
+            if a != b {
+                return Err(mismatch(
+                    &p.dir,
+                    format!("is a part of another study: its {what} is {a}, the first part's {b}"),
+                ));
+            }
+        }
+    }
+    let mut by_index: Vec<Option<&Part>> = vec![None; n as usize];
+    for p in &found {
+        let i = p.manifest.shard.as_ref().map_or(0, |s| s.index) as usize;
+        by_index[i] = Some(p);
+    }
+    if let Some(i) = by_index.iter().position(Option::is_none) {
+        return Err(mismatch(
+            dir,
+            format!("is missing part {i} of {n} (`kfmc status` lists the parts)"),
+        ));
+    }
+    let ordered: Vec<&Part> = by_index.into_iter().flatten().collect();
+    let mut next_cell = 0;
+    for p in &ordered {
+        let s = p.manifest.shard.as_ref().expect("a part");
+        if s.first_cell != next_cell {
+            return Err(mismatch(
+                &p.dir,
+                format!("starts at cell {}, expected {next_cell}", s.first_cell),
+            ));
+        }
+        next_cell = s.end_cell;
+    }
+
+    let mut plan = experiment::parse_with(&m0.spec, Path::new(&m0.spec_path), registry)?;
+    plan.apply(&Overrides {
+        runs: Some(m0.runs_per_cell as usize),
+        master_seed: Some(m0.master_seed),
+        output: Some(dir.to_path_buf()),
+        trace_runs: Some(0),
+    })?;
+    if next_cell as usize != plan.scenarios.len() * plan.noise_scales.len() {
+        return Err(mismatch(
+            dir,
+            format!(
+                "parts cover {next_cell} cells of {}",
+                plan.scenarios.len() * plan.noise_scales.len()
+            ),
+        ));
+    }
+    let folder = StudyFolder::open(dir, false)?;
+
+    let mut finished = Vec::new();
+    for name in schema::TABLES {
+        let files: Vec<PathBuf> = ordered
+            .iter()
+            .map(|p| p.dir.join(format!("{name}.parquet")))
+            .filter(|f| f.exists())
+            .collect();
+        if files.is_empty() {
+            continue;
+        }
+        let mut writer: Option<TableWriter> = None;
+        for f in &files {
+            let df = read(f)?;
+            let w = match writer.as_mut() {
+                Some(w) => w,
+                None => writer.insert(TableWriter::create(dir, name, columns_of(&df, f)?)?),
+            };
+            w.append_frame(&df, f)?;
+        }
+        finished.push(writer.expect("at least one part").finish()?);
+    }
+
+    if let Some(thr) = plan.rmse_thresholds.clone() {
+        let states = plan.quantity_names();
+        let nq = states.len();
+        let nf = plan.filters.len();
+        let mut trackers = vec![DivergenceTracker::new(plan.runs, nq); plan.scenarios.len() * nf];
+        let scenario_of: HashMap<&str, usize> = plan
+            .scenarios
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (s.name.as_str(), i))
+            .collect();
+        let scale_of = |x: f64| plan.noise_scales.iter().position(|s| *s == x);
+        let variant_of = |label: &str, q: f64, r: f64| {
+            plan.filters
+                .iter()
+                .position(|f| f.label == label && f.q_scale == q && f.r_scale == r)
+        };
+        for p in &ordered {
+            let path = p.dir.join("runs.parquet");
+            let df = read(&path)?;
+            let bad = |e| OutputError::Polars {
+                action: "unexpected columns in",
+                path: path.clone(),
+                source: e,
+            };
+            let sc = df
+                .column("scenario")
+                .and_then(|c| c.str().cloned())
+                .map_err(bad)?;
+            let ns = df
+                .column("noise_scale")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            let fl = df
+                .column("filter")
+                .and_then(|c| c.str().cloned())
+                .map_err(bad)?;
+            let qs = df
+                .column("q_scale")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            let rs = df
+                .column("r_scale")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            let run = df
+                .column("run")
+                .and_then(|c| c.i64().cloned())
+                .map_err(bad)?;
+            let rmse = states
+                .iter()
+                .map(|s| {
+                    df.column(&format!("rmse_{s}"))
+                        .and_then(|c| c.f64().cloned())
+                        .map_err(bad)
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            for i in 0..df.height() {
+                let key = (
+                    sc.get(i).and_then(|s| scenario_of.get(s).copied()),
+                    ns.get(i).and_then(scale_of),
+                    variant_of(
+                        fl.get(i).unwrap_or(""),
+                        qs.get(i).unwrap_or(f64::NAN),
+                        rs.get(i).unwrap_or(f64::NAN),
+                    ),
+                    run.get(i),
+                );
+                let (Some(si), Some(scale), Some(fi), Some(r)) = key else {
+                    return Err(mismatch(
+                        &path,
+                        format!("row {i} names a cell the spec does not have"),
+                    ));
+                };
+                // A null RMSE (a failed run) is NaN, as the single process feeds it.
+                let v: Vec<f64> = rmse.iter().map(|c| c.get(i).unwrap_or(f64::NAN)).collect();
+                trackers[si * nf + fi].observe_run(r as usize, scale, &v, &thr);
+            }
+            let path = p.dir.join("summary.parquet");
+            let df = read(&path)?;
+            let bad = |e| OutputError::Polars {
+                action: "unexpected columns in",
+                path: path.clone(),
+                source: e,
+            };
+            let sc = df
+                .column("scenario")
+                .and_then(|c| c.str().cloned())
+                .map_err(bad)?;
+            let ns = df
+                .column("noise_scale")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            let fl = df
+                .column("filter")
+                .and_then(|c| c.str().cloned())
+                .map_err(bad)?;
+            let qs = df
+                .column("q_scale")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            let rs = df
+                .column("r_scale")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            let mean = df
+                .column("rmse_mean")
+                .and_then(|c| c.f64().cloned())
+                .map_err(bad)?;
+            // The summary has one row per state, in state order, per (cell, filter).
+            for start in (0..df.height()).step_by(nq.max(1)) {
+                let key = (
+                    sc.get(start).and_then(|s| scenario_of.get(s).copied()),
+                    ns.get(start).and_then(scale_of),
+                    variant_of(
+                        fl.get(start).unwrap_or(""),
+                        qs.get(start).unwrap_or(f64::NAN),
+                        rs.get(start).unwrap_or(f64::NAN),
+                    ),
+                );
+                let (Some(si), Some(scale), Some(fi)) = key else {
+                    return Err(mismatch(
+                        &path,
+                        format!("row {start} names a cell the spec does not have"),
+                    ));
+                };
+                let means: Vec<f64> = (start..start + nq)
+                    .map(|i| mean.get(i).unwrap_or(f64::NAN))
+                    .collect();
+                trackers[si * nf + fi].observe_mean(scale, &means, &thr);
+            }
+        }
+        let (d, dr) = divergence_tables(&plan, dir, &trackers, &states, &thr)?;
+        finished.push(d.finish()?);
+        finished.push(dr.finish()?);
+    }
+
+    let mut manifest = m0.clone();
+    manifest.shard = None;
+    let size = plan.size();
+    manifest.cells = size.cells as u64;
+    manifest.runs = size.runs as u64;
+    manifest.filter_runs = size.filter_runs as u64;
+    manifest.filter_steps = size.filter_steps;
+    manifest.wall_s = ordered.iter().map(|p| p.manifest.wall_s).sum();
+    manifest.runs_per_s = size.runs as f64 / manifest.wall_s.max(1e-9);
+    manifest.tables.clear();
+    let tables = folder.commit(finished, manifest)?;
+    Ok(MergeReport {
+        parts: ordered.len(),
+        tables,
+        wall_s: started.elapsed().as_secs_f64(),
+    })
+}
