@@ -440,3 +440,87 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         wall_s: started.elapsed().as_secs_f64(),
     })
 }
+
+/// Options of `kfmc slurm`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SlurmOptions {
+    /// Number of array tasks (parts).
+    pub shards: usize,
+    /// `--partition`, when given.
+    pub partition: Option<String>,
+    /// `--time` per task (Slurm's format, e.g. `01:00:00`).
+    pub time: Option<String>,
+    /// CPUs per task (and kfmc's `--threads`).
+    pub cpus: usize,
+    /// `--runs` override passed to every task.
+    pub runs: Option<usize>,
+    /// `--seed` override passed to every task.
+    pub seed: Option<u64>,
+}
+
+/// The job scripts of a sharded study on Slurm: an array job (one task per part) and a merge
+/// job meant to run `--dependency=afterok` on it, plus `submit.sh`, which submits both. Paths
+/// are made absolute so the scripts run from any directory on a shared file system. Returns
+/// (file name, contents).
+pub fn slurm_scripts(
+    kfmc: &Path,
+    spec: &Path,
+    output: &Path,
+    name: &str,
+    o: &SlurmOptions,
+) -> Vec<(String, String)> {
+    let q = |p: &Path| format!("'{}'", p.display().to_string().replace('\'', "'\\''"));
+    let logs = output.join("slurm");
+    let mut common = format!(
+        "#SBATCH --job-name=kfmc-{name}\n#SBATCH --cpus-per-task={}\n",
+        o.cpus.max(1)
+    );
+    if let Some(p) = &o.partition {
+        common.push_str(&format!("#SBATCH --partition={p}\n"));
+    }
+    if let Some(t) = &o.time {
+        common.push_str(&format!("#SBATCH --time={t}\n"));
+    }
+    let mut overrides = String::new();
+    if let Some(r) = o.runs {
+        overrides.push_str(&format!(" --runs {r}"));
+    }
+    if let Some(s) = o.seed {
+        overrides.push_str(&format!(" --seed {s}"));
+    }
+    let array = format!(
+        "#!/bin/bash\n# One part of {name} per array task: kfmc reads SLURM_ARRAY_TASK_ID (and the\n# array's min and step) and writes {out}/parts/part-<i>-of-{n:05}/.\n{common}#SBATCH --array=0-{last}\n#SBATCH --output={logs}/%x-%A_%a.out\nset -euo pipefail\nexec {kfmc} run {spec} --out {out_q} --shards {n} --quiet --threads \"${{SLURM_CPUS_PER_TASK:-1}}\"{overrides}\n",
+        out = output.display(),
+        n = o.shards,
+        last = o.shards.saturating_sub(1),
+        logs = logs.display(),
+        kfmc = q(kfmc),
+        spec = q(spec),
+        out_q = q(output),
+    );
+    let merge = format!(
+        "#!/bin/bash\n# Merges the parts of {name} into {out}: run it with --dependency=afterok on the array.\n#SBATCH --job-name=kfmc-{name}-merge\n#SBATCH --cpus-per-task=1\n{part}{time}#SBATCH --output={logs}/%x-%j.out\nset -euo pipefail\nexec {kfmc} merge {out_q}\n",
+        out = output.display(),
+        part = o
+            .partition
+            .as_ref()
+            .map_or(String::new(), |p| format!("#SBATCH --partition={p}\n")),
+        time = o
+            .time
+            .as_ref()
+            .map_or(String::new(), |t| format!("#SBATCH --time={t}\n")),
+        logs = logs.display(),
+        kfmc = q(kfmc),
+        out_q = q(output),
+    );
+    let submit = format!(
+        "#!/bin/bash\n# Submits the array, then the merge once every task succeeded. Extra arguments go to both\n# sbatch calls (e.g. --wait to block until the merge is done).\nset -euo pipefail\ncd \"$(dirname \"$0\")\"\nmkdir -p {logs}\narray=$(sbatch --parsable \"$@\" array.sbatch)\narray=${{array%%;*}}\necho \"array job $array ({n} tasks)\"\nsbatch --parsable --dependency=afterok:$array \"$@\" merge.sbatch\n",
+        logs = q(&logs),
+        n = o.shards,
+    );
+    vec![
+        ("array.sbatch".into(), array),
+        ("merge.sbatch".into(), merge),
+        ("submit.sh".into(), submit),
+    ]
+}

@@ -140,6 +140,33 @@ pub enum Command {
         /// The study's output folder (holding `parts/`).
         dir: PathBuf,
     },
+    /// Write Slurm job scripts for a sharded study: an array job (one part per task), a merge
+    /// job to run after it (`--dependency=afterok`), and `submit.sh` that submits both.
+    Slurm {
+        /// The experiment spec (TOML).
+        spec: PathBuf,
+        /// Number of array tasks (parts).
+        #[arg(long)]
+        shards: usize,
+        /// Output folder (overrides the spec's `output`); the scripts go to `<out>/slurm/`.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Slurm partition.
+        #[arg(long)]
+        partition: Option<String>,
+        /// Time limit per task, in Slurm's format (e.g. 01:00:00).
+        #[arg(long)]
+        time: Option<String>,
+        /// CPUs per task (kfmc uses them all).
+        #[arg(long, default_value_t = 1)]
+        cpus: usize,
+        /// Runs per cell (overrides `runs`) in every task.
+        #[arg(long)]
+        runs: Option<usize>,
+        /// Master seed (overrides `master_seed`) in every task.
+        #[arg(long)]
+        seed: Option<u64>,
+    },
     /// Show which parts of a sharded study are complete.
     Status {
         /// The study's output folder (holding `parts/`).
@@ -552,6 +579,63 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             );
             for (name, rows) in &report.tables {
                 outln!("  {name}.parquet  {rows} rows");
+            }
+            Ok(())
+        }
+        Command::Slurm {
+            spec,
+            shards,
+            out,
+            partition,
+            time,
+            cpus,
+            runs,
+            seed,
+        } => {
+            let mut plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
+            plan.apply(&Overrides {
+                runs,
+                master_seed: seed,
+                output: out,
+                trace_runs: None,
+            })
+            .map_err(KfmcError::from)?;
+            plan.check_limits(false).map_err(KfmcError::from)?;
+            if shards == 0 {
+                anyhow::bail!("--shards must be at least 1");
+            }
+            let abs =
+                |p: &std::path::Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+            let output = abs(&plan.output);
+            let dir = output.join("slurm");
+            std::fs::create_dir_all(&dir).map_err(|e| {
+                anyhow::Error::from(e).context(format!("creating {}", dir.display()))
+            })?;
+            let exe = std::env::current_exe().map_err(anyhow::Error::from)?;
+            let files = crate::merge::slurm_scripts(
+                &exe,
+                &abs(&spec),
+                &output,
+                &plan.name,
+                &crate::merge::SlurmOptions {
+                    shards,
+                    partition,
+                    time,
+                    cpus,
+                    runs,
+                    seed,
+                },
+            );
+            for (name, text) in files {
+                let path = dir.join(&name);
+                crate::output::folder::write_atomic(&path, text.as_bytes()).map_err(|e| {
+                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
+                })?;
+                if name.ends_with(".sh") {
+                    use std::os::unix::fs::PermissionsExt;
+                    let _ = std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755));
+                }
+                outln!("{}", path.display());
             }
             Ok(())
         }

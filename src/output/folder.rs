@@ -64,6 +64,7 @@ fn is_kfmc_file(name: &str) -> bool {
         || name == "report.html"
         || name.starts_with("tune_")
         || name == "parts"
+        || name == "slurm"
         || name == "tuning.parquet"
         || (name.starts_with('.') && name.ends_with(".partial"))
         || schema::TABLES
