@@ -206,3 +206,126 @@ fn the_shard_comes_from_slurm_or_kubernetes_environments() {
     assert!(shard_from(Some("4/4"), None, &env(&[])).is_err());
     assert_eq!(shard_from(None, None, &env(&[])), Ok(None));
 }
+
+#[test]
+fn a_resumed_run_reuses_committed_cells_and_equals_an_uninterrupted_one() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = tmp.path().join("s.toml");
+    std::fs::write(&spec, SPEC).unwrap();
+    let spec = spec.to_str().unwrap();
+    let single = tmp.path().join("single");
+    assert_eq!(
+        run(&[
+            "run",
+            spec,
+            "-q",
+            "--runs",
+            "60",
+            "--out",
+            single.to_str().unwrap()
+        ])
+        .0,
+        0
+    );
+    let want = tables(&single);
+
+    // Killed for real, at a moment inside the study, then resumed.
+    let out = tmp.path().join("resumed");
+    let o = out.to_str().unwrap();
+    let mut child = kfmc()
+        .args([
+            "run",
+            spec,
+            "-q",
+            "--runs",
+            "60",
+            "--resume",
+            "--threads",
+            "1",
+            "--out",
+            o,
+        ])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(400));
+    let _ = child.kill();
+    let _ = child.wait();
+    let (code, stdout, err) = run(&["run", spec, "--runs", "60", "--resume", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    eprintln!(
+        "after SIGKILL at 0.4 s: {}",
+        stdout.lines().next().unwrap_or("")
+    );
+    assert_eq!(tables(&out), want, "resumed after SIGKILL");
+
+    // Only the cells without a committed part are recomputed.
+    for i in [1, 4] {
+        std::fs::remove_dir_all(out.join(format!("parts/part-{i:05}-of-00006"))).unwrap();
+    }
+    let (code, stdout, err) = run(&["run", spec, "--runs", "60", "--resume", "--out", o]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("2 cells run, 4 reused"), "{stdout}");
+    assert_eq!(tables(&out), want, "resumed after losing two cells");
+
+    // A checkpoint of another run count is refused, naming what changed.
+    let (code, _, err) = run(&["run", spec, "--runs", "61", "--resume", "--out", o]);
+    assert_eq!(code, 1);
+    assert!(err.contains("runs per cell changed (60 → 61)"), "{err}");
+    let changed = tmp.path().join("changed.toml");
+    std::fs::write(
+        &changed,
+        SPEC.replace("master_seed = 9", "master_seed = 9 # edited"),
+    )
+    .unwrap();
+    let (code, _, err) = run(&[
+        "run",
+        changed.to_str().unwrap(),
+        "--runs",
+        "60",
+        "--resume",
+        "--out",
+        o,
+    ]);
+    assert_eq!(code, 1);
+    assert!(
+        err.contains("the spec changed since the checkpoint"),
+        "{err}"
+    );
+}
+
+#[test]
+fn slurm_scripts_run_every_part_and_merge_after_the_array() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = tmp.path().join("s.toml");
+    std::fs::write(&spec, SPEC).unwrap();
+    let out = tmp.path().join("d");
+    let (code, _, err) = run(&[
+        "slurm",
+        spec.to_str().unwrap(),
+        "--shards",
+        "4",
+        "--partition",
+        "batch",
+        "--time",
+        "01:00:00",
+        "--cpus",
+        "8",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let read = |f: &str| std::fs::read_to_string(out.join("slurm").join(f)).unwrap();
+    let array = read("array.sbatch");
+    for needle in [
+        "#SBATCH --array=0-3",
+        "#SBATCH --partition=batch",
+        "#SBATCH --time=01:00:00",
+        "#SBATCH --cpus-per-task=8",
+        "--shards 4",
+        " run ",
+    ] {
+        assert!(array.contains(needle), "missing `{needle}` in\n{array}");
+    }
+    assert!(read("merge.sbatch").contains(" merge "));
+    assert!(read("submit.sh").contains("--dependency=afterok:$array"));
+}

@@ -133,6 +133,11 @@ pub enum Command {
         /// The number of parts when the index comes from the scheduler's environment.
         #[arg(long, value_name = "N")]
         shards: Option<usize>,
+        /// Run resumably: every cell is committed as a checkpoint and the study merged at the
+        /// end (byte-identical). After a kill or Ctrl-C, the same command continues from the
+        /// committed cells; a checkpoint of a changed spec is refused.
+        #[arg(long, conflicts_with_all = ["shard", "shards"])]
+        resume: bool,
     },
     /// Combine the parts of a sharded study (`run --shard i/n`) into the tables one process
     /// would have written, byte for byte.
@@ -352,7 +357,31 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             plot,
             shard,
             shards,
+            resume,
         } => {
+            if resume {
+                let plan = study.plan(registry, trace_runs)?;
+                let threads = study.threads(study.quiet);
+                let observer = ProgressObserver::new(!study.quiet);
+                let r = crate::merge::run_resumable(&plan, threads, &observer, registry)
+                    .map_err(anyhow::Error::from)
+                    .map_err(|e| e.context(format!("running {}", study.spec.display())))?;
+                if !study.quiet {
+                    outln!(
+                        "{} cells run, {} reused from the checkpoint, merged → {}",
+                        r.cells_run,
+                        r.cells_reused,
+                        plan.output.display()
+                    );
+                    for (name, rows) in &r.merge.tables {
+                        outln!("  {name}.parquet  {rows} rows");
+                    }
+                }
+                if plot {
+                    plot_dir(&plan.output, &PlotOptions::default())?;
+                }
+                return Ok(());
+            }
             let shard =
                 crate::merge::shard_from(shard.as_deref(), shards, &|k| std::env::var(k).ok())
                     .map_err(|message| {
