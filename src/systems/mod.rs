@@ -2,6 +2,7 @@
 //! ([`crate::system::System`] and [`crate::system::Registry`]); nothing outside its own module
 //! names a system, its parameters or its filter kinds.
 
+pub mod linear;
 pub mod linear_quadrotor;
 pub mod planar;
 

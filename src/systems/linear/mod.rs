@@ -1,0 +1,3 @@
+//! Linear-Gaussian systems: the discretisation every continuous linear model shares.
+
+pub mod discretise;
