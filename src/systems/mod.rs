@@ -13,4 +13,5 @@ pub fn register(registry: Registry) -> Registry {
     registry
         .with(planar::PlanarSystem::new())
         .with(linear_quadrotor::LinearQuadrotorSystem::new())
+        .with(linear::LinearSystem::new())
 }
