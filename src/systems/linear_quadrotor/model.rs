@@ -21,8 +21,9 @@
 //! u = 0: it is driven by process noise alone, which is what the seed's NEES/NIS tests
 //! exercise. F and G are still exact, so a control profile can be added later.
 
-use crate::linalg::{Matrix, Vector, expm, numerical_rank};
+use crate::linalg::{Matrix, Vector, numerical_rank};
 use crate::model::Model;
+use crate::systems::linear::discretise::zoh_van_loan;
 
 /// State names (`rmse_<state>` columns).
 pub const LINEAR_STATES: [&str; 6] = ["x", "xdot", "y", "ydot", "z", "zdot"];
@@ -85,28 +86,16 @@ impl ContinuousLinear {
         }
     }
 
-    /// F, G and Q at sample time `dt_s` (zero-order hold and Van Loan).
+    /// F, G and Q at sample time `dt_s` (zero-order hold and Van Loan, by the same function
+    /// as every continuous `kind = "linear"` system).
     pub fn discretise(&self, dt_s: f64) -> Discrete {
-        // Zero-order hold: e^{[[A, B], [0, 0]]Δt} = [[F, G], [0, I]].
-        let mut m = Matrix::<10, 10>::zeros();
-        m.fixed_view_mut::<6, 6>(0, 0).copy_from(&(self.a * dt_s));
-        m.fixed_view_mut::<6, 4>(0, 6).copy_from(&(self.b * dt_s));
-        let e = expm(&m);
-        let f: Matrix<6, 6> = e.fixed_view::<6, 6>(0, 0).into_owned();
-        let g: Matrix<6, 4> = e.fixed_view::<6, 4>(0, 6).into_owned();
-        // Van Loan (1978): e^{[[−A, ΓQ̃Γᵀ], [0, Aᵀ]]Δt} = [[·, F⁻¹Q], [0, Fᵀ]], so Q = F·(F⁻¹Q).
         let w = self.gamma * self.q_tilde * self.gamma.transpose();
-        let mut v = Matrix::<12, 12>::zeros();
-        v.fixed_view_mut::<6, 6>(0, 0).copy_from(&(-self.a * dt_s));
-        v.fixed_view_mut::<6, 6>(0, 6).copy_from(&(w * dt_s));
-        v.fixed_view_mut::<6, 6>(6, 6)
-            .copy_from(&(self.a.transpose() * dt_s));
-        let ev = expm(&v);
-        let f_vl: Matrix<6, 6> = ev.fixed_view::<6, 6>(6, 6).transpose();
-        let q = f_vl * ev.fixed_view::<6, 6>(0, 6);
-        // Q is symmetric in exact arithmetic; remove the round-off asymmetry once, here.
-        let q = (q + q.transpose()) * 0.5;
-        Discrete { f, g, q }
+        let d = zoh_van_loan::<6, 4, 10, 12>(&self.a, &self.b, &w, dt_s);
+        Discrete {
+            f: d.f,
+            g: d.g,
+            q: d.q,
+        }
     }
 }
 
