@@ -28,7 +28,15 @@ fn run_plan(mut plan: Plan, out: &Path, runs: usize, trace: usize) {
         trace_runs: Some(trace),
     })
     .expect("overrides");
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).expect("study runs");
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .expect("study runs");
 }
 
 fn parse(text: &str) -> Plan {
@@ -316,7 +324,15 @@ fn kf_information_and_sqrt_agree_on_a_three_state_system() {
     let sys = linear::<3, 2>(&plan);
     assert!(sys.additive.model.process_noise_covariance().is_some());
     let out = plan.output.clone();
-    run(&plan, &ExecOptions { threads: 2 }, &NullObserver).unwrap();
+    run(
+        &plan,
+        &ExecOptions {
+            threads: 2,
+            ..Default::default()
+        },
+        &NullObserver,
+    )
+    .unwrap();
 
     let tr = read(&out.join("traces.parquet")).unwrap();
     let label = strings(&tr, "filter");

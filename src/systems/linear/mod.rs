@@ -250,7 +250,6 @@ fn build<const NX: usize, const NZ: usize, const NA: usize, const NV: usize>(
         KIND,
         &process_std,
         &measurement_std,
-        full_q,
         &|_| None,
         c,
     );
@@ -305,6 +304,7 @@ fn build<const NX: usize, const NZ: usize, const NA: usize, const NV: usize>(
             .collect(),
         inputs: lin.inputs.clone(),
         measurements: lin.measurements.clone(),
+        world_states: Vec::new(),
         dt_s,
     };
     let noise = TruthNoise {
