@@ -229,34 +229,42 @@ fn a_resumed_run_reuses_committed_cells_and_equals_an_uninterrupted_one() {
     );
     let want = tables(&single);
 
-    // Killed for real, at a moment inside the study, then resumed.
+    // Killed for real at several moments of the study, then resumed.
+    for (k, ms) in [150u64, 400, 700, 1000].into_iter().enumerate() {
+        let out = tmp.path().join(format!("killed{k}"));
+        let o = out.to_str().unwrap();
+        let mut child = kfmc()
+            .args([
+                "run",
+                spec,
+                "-q",
+                "--runs",
+                "60",
+                "--resume",
+                "--threads",
+                "1",
+                "--out",
+                o,
+            ])
+            .spawn()
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+        let _ = child.kill();
+        let _ = child.wait();
+        let (code, stdout, err) = run(&["run", spec, "--runs", "60", "--resume", "--out", o]);
+        assert_eq!(code, 0, "{err}");
+        eprintln!(
+            "SIGKILL at {ms} ms, then resumed: {}",
+            stdout.lines().next().unwrap_or("")
+        );
+        assert_eq!(tables(&out), want, "resumed after SIGKILL at {ms} ms");
+    }
     let out = tmp.path().join("resumed");
     let o = out.to_str().unwrap();
-    let mut child = kfmc()
-        .args([
-            "run",
-            spec,
-            "-q",
-            "--runs",
-            "60",
-            "--resume",
-            "--threads",
-            "1",
-            "--out",
-            o,
-        ])
-        .spawn()
-        .unwrap();
-    std::thread::sleep(std::time::Duration::from_millis(400));
-    let _ = child.kill();
-    let _ = child.wait();
-    let (code, stdout, err) = run(&["run", spec, "--runs", "60", "--resume", "--out", o]);
-    assert_eq!(code, 0, "{err}");
-    eprintln!(
-        "after SIGKILL at 0.4 s: {}",
-        stdout.lines().next().unwrap_or("")
+    assert_eq!(
+        run(&["run", spec, "-q", "--runs", "60", "--resume", "--out", o]).0,
+        0
     );
-    assert_eq!(tables(&out), want, "resumed after SIGKILL");
 
     // Only the cells without a committed part are recomputed.
     for i in [1, 4] {
