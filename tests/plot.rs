@@ -6,7 +6,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{EKF_AND_MEAN, kfmc, small_spec, spec_in_tempdir};
+use common::{EKF_AND_MEAN, kfmc, repo, small_spec, spec_in_tempdir};
 use kfmc::plot::{Figure, FigureKind, Mark, Tables};
 use polars::prelude::*;
 
@@ -400,6 +400,76 @@ fn a_folder_without_tables_is_a_clear_error() {
         assert!(
             err.contains("not a complete kfmc result folder") && err.contains("manifest.toml"),
             "{cmd}: {err}"
+        );
+    }
+}
+
+#[test]
+fn filter_variants_sharing_a_label_are_separate_series_in_every_figure() {
+    // linear_q_scaling: one label `kf` with eight q_scale values.
+    let tmp = tempfile::tempdir().unwrap();
+    let res = tmp.path().join("q");
+    let o = kfmc()
+        .args([
+            "run",
+            repo()
+                .join("experiments/linear_q_scaling.toml")
+                .to_str()
+                .unwrap(),
+            "--runs",
+            "8",
+            "--trace-runs",
+            "1",
+            "--quiet",
+            "--out",
+        ])
+        .arg(&res)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let t = Tables::load(&res).unwrap();
+    let want: Vec<String> = [0.1, 0.5, 1.0, 2.0, 10.0, 100.0, 2500.0, 5000.0]
+        .iter()
+        .map(|q| format!("kf Q×{q}"))
+        .collect();
+    let mut seen = std::collections::BTreeSet::new();
+    for kind in FigureKind::ALL {
+        for fig in kind.series(&t).unwrap() {
+            for panel in &fig.panels {
+                // Within a panel, no two lines or bands share a label: each variant is its
+                // own series (one legend entry, one colour), never one line joined across.
+                let mut labels: Vec<&str> = panel
+                    .marks
+                    .iter()
+                    .filter_map(|m| match m {
+                        Mark::Line { label: Some(l), .. } | Mark::Band { label: Some(l), .. } => {
+                            Some(l.as_str())
+                        }
+                        _ => None,
+                    })
+                    .collect();
+                let n = labels.len();
+                labels.sort();
+                labels.dedup();
+                assert_eq!(
+                    labels.len(),
+                    n,
+                    "{}: {} repeats a series label",
+                    fig.name,
+                    panel.title
+                );
+                for l in labels {
+                    if l.starts_with("kf") {
+                        seen.insert(l.to_string());
+                    }
+                }
+            }
+        }
+    }
+    for w in &want {
+        assert!(
+            seen.iter().any(|s| s.starts_with(w.as_str())),
+            "no series labelled `{w}`; seen {seen:?}"
         );
     }
 }

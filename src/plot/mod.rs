@@ -376,7 +376,54 @@ impl Table {
     }
 
     /// A string column, nulls as "".
+    ///
+    /// The `filter` column comes back as the *variant*: a label with several Q/R scales in
+    /// the table (or a scale other than 1) is keyed and labelled per scale, `kf Q×2`,
+    /// `kf Q×2 R×0.5`, so every figure draws each variant as its own series. (The tuning
+    /// table keeps the bare label: its scales are the figure's axis.)
     pub fn strs(&self, name: &str) -> Result<Vec<String>, PlotError> {
+        if name == "filter"
+            && self.has("q_scale")
+            && self.has("r_scale")
+            && !self.path.ends_with("tuning.parquet")
+        {
+            return self.variant_labels();
+        }
+        self.raw_strs(name)
+    }
+
+    fn variant_labels(&self) -> Result<Vec<String>, PlotError> {
+        let labels = self.raw_strs("filter")?;
+        let (q, r) = (self.f64s("q_scale")?, self.f64s("r_scale")?);
+        let mut scales: std::collections::BTreeMap<&str, (Vec<u64>, Vec<u64>)> = Default::default();
+        for (i, l) in labels.iter().enumerate() {
+            let e = scales.entry(l.as_str()).or_default();
+            for (v, set) in [(q[i], &mut e.0), (r[i], &mut e.1)] {
+                let bits = v.unwrap_or(1.0).to_bits();
+                if !set.contains(&bits) {
+                    set.push(bits);
+                }
+            }
+        }
+        let one = 1.0f64.to_bits();
+        Ok(labels
+            .iter()
+            .enumerate()
+            .map(|(i, l)| {
+                let (qs, rs) = &scales[l.as_str()];
+                let mut out = l.clone();
+                if qs.len() > 1 || qs[0] != one {
+                    out.push_str(&format!(" Q×{}", short(q[i].unwrap_or(1.0))));
+                }
+                if rs.len() > 1 || rs[0] != one {
+                    out.push_str(&format!(" R×{}", short(r[i].unwrap_or(1.0))));
+                }
+                out
+            })
+            .collect())
+    }
+
+    fn raw_strs(&self, name: &str) -> Result<Vec<String>, PlotError> {
         let c = self.column(name)?;
         Ok(c.str()
             .map_err(|e| PlotError::Columns {
