@@ -529,7 +529,7 @@ fn figure_name_clashes(
             if !names.contains(short) {
                 continue;
             }
-            // `short` + `_` + (rest_f2) == `long` + `_` + f2 when a label is rest + `_` + f2.
+            // With long = short_rest: short_f1 and long_f2 are one string iff f1 = rest_f2.
             let prefix = format!("{rest}_");
             for f1 in labels.range(prefix.clone()..) {
                 let Some(f2) = f1.strip_prefix(&prefix) else {
