@@ -565,30 +565,34 @@ pub fn validate(
 
     // The system.
     let mut model = spec.model.clone();
-    let kind = match model.remove("kind") {
-        Some(toml::Value::String(k)) => k,
+    // `None` when kind is absent or not a string, which is reported here.
+    let given = match model.remove("kind") {
+        Some(toml::Value::String(k)) => Some(k),
         Some(other) => {
             c.err(
                 "model.kind",
                 format!("expected a string, got {}", other.type_str()),
             );
-            String::new()
+            None
         }
         None => {
             c.err("model.kind", "missing; `kfmc list` shows the systems");
-            String::new()
+            None
         }
     };
-    let system = registry.get(&kind);
-    if system.is_none() && !kind.is_empty() {
+    let system = given.as_deref().and_then(|k| registry.get(k));
+    if let Some(k) = &given
+        && system.is_none()
+    {
         c.err(
             "model.kind",
             format!(
-                "unknown model `{kind}`; expected one of: {}",
+                "unknown model `{k}`; expected one of: {}",
                 registry.kinds().join(", ")
             ),
         );
     }
+    let kind = given.unwrap_or_default();
 
     // Scenario names (the rest of each table is the system's).
     if spec.scenarios.is_empty() {
@@ -1068,7 +1072,17 @@ pub fn validate(
 
     let system = match configured {
         Some(s) if c.is_clean() => s,
-        _ => return Err(SpecErrors(c.into_errors())),
+        _ => {
+            // A system that refuses a spec without saying why would otherwise make an error
+            // with no problem in it ("invalid spec (0 problems)").
+            if c.is_clean() {
+                c.err(
+                    "model.kind",
+                    format!("the {kind} system refused the spec without naming a problem (a bug in the system)"),
+                );
+            }
+            return Err(SpecErrors(c.into_errors()));
+        }
     };
     Ok(Plan {
         name,
