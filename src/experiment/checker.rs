@@ -95,6 +95,11 @@ impl Checker {
     }
 
     /// Expands a scalar-or-list to `n` components, checking each with `ok`.
+    ///
+    /// `None` gives `default` unchecked: the key is not in the file, so an error here would
+    /// name a key the user never wrote; a caller whose default comes from elsewhere in the
+    /// spec checks it and reports it at a key that exists. After an error the result is
+    /// `default`, so a value derived from this one never repeats the error elsewhere.
     pub fn vector(
         &mut self,
         key: &str,
@@ -105,11 +110,19 @@ impl Checker {
         what: &str,
     ) -> Vec<f64> {
         let out = match v {
-            None => default.to_vec(),
+            None => return default.to_vec(),
             Some(OneOrMany::One(x)) => vec![*x; n],
             Some(OneOrMany::Many(xs)) if xs.len() == n => xs.clone(),
             Some(OneOrMany::Many(xs)) => {
-                self.err(key, format!("expected 1 or {n} values, got {}", xs.len()));
+                let got = match xs.len() {
+                    0 => "an empty list".to_string(),
+                    1 => "a list of 1".to_string(),
+                    k => format!("a list of {k}"),
+                };
+                self.err(
+                    key,
+                    format!("expected a number or a list of {n} numbers, got {got}"),
+                );
                 return default.to_vec();
             }
         };
@@ -121,30 +134,85 @@ impl Checker {
                     key.to_string()
                 };
                 self.err(k, format!("{x} is not {what}"));
-                break;
+                return default.to_vec();
             }
         }
         out
+    }
+
+    /// Checks one number read at `key` with `ok`, recording "`x` is not `what`"; returns
+    /// whether it passed.
+    pub fn number(&mut self, key: &str, x: f64, ok: fn(f64) -> bool, what: &str) -> bool {
+        let pass = ok(x);
+        if !pass {
+            self.err(key, format!("{x} is not {what}"));
+        }
+        pass
+    }
+
+    /// Whether the spec text holds a value at `key_path` (`scenarios[0].duration_s`), so a
+    /// problem with a default can be reported at a key the user wrote.
+    pub fn has(&self, key_path: &str) -> bool {
+        key_span(&self.text, key_path, true).is_some()
+    }
+
+    /// Reports each of `foreign` present in `table` (at `prefix`) with `message` and returns
+    /// the table without them: a key of another system then says so, instead of the generic
+    /// "unknown field" of the table's own parser.
+    pub fn reject_foreign(
+        &mut self,
+        prefix: &str,
+        table: &toml::Table,
+        foreign: &[&str],
+        message: &str,
+    ) -> toml::Table {
+        let mut rest = table.clone();
+        for k in foreign {
+            if rest.remove(*k).is_some() {
+                self.err(format!("{prefix}.{k}"), message);
+            }
+        }
+        rest
     }
 
     /// The transitions K = round(duration / Δt) of a scenario at key path `key` (reported at
     /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`].
     /// Systems call this before expanding a scenario, so an absurd duration is an error,
     /// never an allocation failure.
+    ///
+    /// When the scenario has no `duration_s` of its own, `duration_s` is its default and a
+    /// problem is reported at `key` (the scenario), saying so.
     pub fn scenario_steps(&mut self, key: &str, duration_s: f64, dt_s: f64) -> Option<usize> {
         let max = super::plan::limits::MAX_STEPS;
-        if !positive(duration_s) || !positive(dt_s) || duration_s < dt_s {
+        let own = format!("{key}.duration_s");
+        let (at, what) = if self.has(&own) {
+            (own, format!("{duration_s}"))
+        } else {
+            (
+                key.to_string(),
+                format!("the default duration_s = {duration_s}"),
+            )
+        };
+        if !positive(duration_s) {
+            self.err(at, format!("{what} is not a positive number of seconds"));
+            return None;
+        }
+        if !positive(dt_s) {
+            // Δt is the model's; its own key reports it.
+            return None;
+        }
+        if duration_s < dt_s {
             self.err(
-                format!("{key}.duration_s"),
-                format!("{duration_s} is shorter than one sample"),
+                at,
+                format!("{what} s is shorter than one sample (model Δt = {dt_s} s)"),
             );
             return None;
         }
         let steps = (duration_s / dt_s).round();
         if steps > max as f64 {
             self.err(
-                format!("{key}.duration_s"),
-                format!("{duration_s} s is {steps} steps of {dt_s} s; at most {max} per run"),
+                at,
+                format!("{what} s is {steps} steps of {dt_s} s; at most {max} per run"),
             );
             return None;
         }
@@ -186,37 +254,40 @@ pub fn non_negative(x: f64) -> bool {
 /// The 1-based line of the value at `key_path` (`filters[1].q_std`, `model.dt_s`) in a TOML
 /// document, or of the deepest enclosing key that exists.
 pub fn line_of(text: &str, key_path: &str) -> Option<usize> {
+    let start = key_span(text, key_path, false)?.start.min(text.len());
+    Some(text[..start].matches('\n').count() + 1)
+}
+
+/// The span of the value at `key_path` in a TOML document. `exact`: only when every part of
+/// the path exists; otherwise the deepest enclosing key that does.
+fn key_span(text: &str, key_path: &str, exact: bool) -> Option<std::ops::Range<usize>> {
     let doc = toml::de::DeTable::parse(text).ok()?;
     let mut span: Option<std::ops::Range<usize>> = None;
     let mut table = Some(doc.get_ref());
-    let mut value: Option<&toml::de::DeValue<'_>> = None;
     for part in key_path.split('.') {
         let (name, indices) = match part.find('[') {
             Some(i) => (&part[..i], &part[i..]),
             None => (part, ""),
         };
-        let entry = table?.iter().find(|(k, _)| k.get_ref() == name)?;
+        let found = table.and_then(|t| t.iter().find(|(k, _)| k.get_ref() == name));
+        let Some(entry) = found else {
+            return if exact { None } else { span };
+        };
         span = Some(entry.0.span());
         let mut v = entry.1;
-        for idx in indices
-            .split(['[', ']'])
-            .filter(|s| !s.is_empty())
-            .filter_map(|s| s.parse::<usize>().ok())
-        {
-            match v.get_ref().get(idx) {
+        for idx in indices.split(['[', ']']).filter(|s| !s.is_empty()) {
+            match idx.parse::<usize>().ok().and_then(|i| v.get_ref().get(i)) {
                 Some(next) => {
                     v = next;
                     span = Some(v.span());
                 }
-                None => break,
+                None if exact => return None,
+                None => return span,
             }
         }
-        value = Some(v.get_ref());
-        table = value.and_then(|v| v.as_table());
+        table = v.get_ref().as_table();
     }
-    let _ = value;
-    let start = span?.start.min(text.len());
-    Some(text[..start].matches('\n').count() + 1)
+    span
 }
 
 #[cfg(test)]
@@ -231,5 +302,13 @@ mod tests {
         assert_eq!(line_of(text, "filters[1].q_std"), Some(9));
         assert_eq!(line_of(text, "filters[0].label"), Some(6));
         assert_eq!(line_of(text, "nothing"), None);
+    }
+
+    #[test]
+    fn has_needs_every_part_of_the_path() {
+        let text = "[model]\ndt_s = 0.1\n[[scenarios]]\nname = \"a\"\n";
+        let c = Checker::new(Path::new("t.toml"), text);
+        assert!(c.has("model.dt_s") && c.has("scenarios[0].name") && c.has("scenarios[0]"));
+        assert!(!c.has("model.mass_kg") && !c.has("scenarios[1]") && !c.has("scenarios[0].x0"));
     }
 }

@@ -74,13 +74,20 @@ pub fn parse_with(text: &str, path: &Path, registry: &Registry) -> Result<Plan, 
     plan::validate(spec, path, text, registry)
 }
 
-/// The TOML error's message with its line number.
+/// The TOML error's message with its line and column (1-based; the column counts characters).
+/// A syntax error stops everything else, so the position is all the help there is.
 fn with_line(text: &str, e: toml::de::Error) -> String {
     let msg = e.message().trim().to_string();
     match e.span() {
         Some(span) => {
-            let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
-            format!("{msg} (line {line})")
+            let mut at = span.start.min(text.len());
+            while !text.is_char_boundary(at) {
+                at -= 1;
+            }
+            let before = &text[..at];
+            let line = before.matches('\n').count() + 1;
+            let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+            format!("{msg} (line {line}, column {column})")
         }
         None => msg,
     }

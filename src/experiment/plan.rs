@@ -159,6 +159,11 @@ pub mod limits {
     pub const MAX_ENTRIES: usize = 10_000;
     /// Spec file size in bytes.
     pub const MAX_SPEC_BYTES: u64 = 1 << 20;
+    /// Characters of a scenario name or a filter label (they are parts of figure file names,
+    /// which most file systems cap at 255 bytes).
+    pub const MAX_NAME_CHARS: usize = 64;
+    /// Innovation-whiteness lags.
+    pub const MAX_WHITENESS_LAGS: u64 = 50;
     /// Estimated peak memory, bytes (lifted by `--allow-large`).
     pub const MAX_MEMORY_BYTES: u128 = 8 << 30;
     /// Estimated disk use of the tables, bytes (lifted by `--allow-large`).
@@ -426,14 +431,42 @@ pub fn expand_range(start: f64, stop: f64, step: f64) -> Vec<f64> {
     (0..n)
         .map(|i| {
             let v = start + i as f64 * step;
-            let mag = 10f64.powi(11 - v.abs().log10().floor() as i32);
-            if v == 0.0 {
-                0.0
-            } else {
-                (v * mag).round() / mag
+            if v == 0.0 || !v.is_finite() {
+                return v;
             }
+            // log10 of a subnormal is about −324, so the exponent stays far from overflow.
+            let mag = 10f64.powi(11 - v.abs().log10().floor() as i32);
+            let r = (v * mag).round() / mag;
+            if r.is_finite() { r } else { v }
         })
         .collect()
+}
+
+/// Why a scenario name or filter label cannot be used, if it cannot. They are parts of
+/// figure file names (`rmse_cases_<scenario>_<filter>.png`) and table keys, so only
+/// `[A-Za-z0-9_.-]` is allowed: the name is then its own file-name part, with no path
+/// separator, no `..`, nothing a file system changes, and no two names that map to one file.
+pub fn name_problem(name: &str) -> Option<String> {
+    let max = limits::MAX_NAME_CHARS;
+    if name.is_empty() {
+        return Some("must not be empty".into());
+    }
+    if let Some(bad) = name
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '_' | '.' | '-')))
+    {
+        return Some(format!(
+            "`{}` contains {bad:?}; use only letters A-Z a-z, digits, `_`, `.` and `-` (names become file names)",
+            name.escape_debug()
+        ));
+    }
+    if name.starts_with('.') {
+        return Some(format!(
+            "`{name}` starts with `.`; names become file names, which would be hidden or `..`"
+        ));
+    }
+    let n = name.chars().count();
+    (n > max).then(|| format!("{n} characters; at most {max} (names become file names)"))
 }
 
 /// Expands a list or range of multipliers, checking each is `ok`; `None` gives `default`.
@@ -480,6 +513,47 @@ fn scale_list(
     out
 }
 
+/// Reports (scenario, filter) pairs whose figure `rmse_cases_<scenario>_<filter>` would be the
+/// same file as another pair's: `a` with `b_c` and `a_b` with `c`. Names are only
+/// `[A-Za-z0-9_.-]`, so `_` inside a name is the one way two pairs can meet.
+fn figure_name_clashes(
+    c: &mut Checker,
+    spec: &Spec,
+    names: &BTreeSet<String>,
+    labels: &BTreeSet<String>,
+) {
+    let mut reported = BTreeSet::new();
+    for long in names {
+        for (at, _) in long.match_indices('_') {
+            let (short, rest) = (&long[..at], &long[at + 1..]);
+            if !names.contains(short) {
+                continue;
+            }
+            // With long = short_rest: short_f1 and long_f2 are one string iff f1 = rest_f2.
+            let prefix = format!("{rest}_");
+            for f1 in labels.range(prefix.clone()..) {
+                let Some(f2) = f1.strip_prefix(&prefix) else {
+                    break;
+                };
+                if !labels.contains(f2) || !reported.insert(f1.clone()) {
+                    continue;
+                }
+                let i = spec
+                    .filters
+                    .iter()
+                    .position(|f| &f.label == f1)
+                    .unwrap_or(0);
+                c.err(
+                    format!("filters[{i}].label"),
+                    format!(
+                        "scenario `{short}` with filter `{f1}` and scenario `{long}` with filter `{f2}` would share the figure rmse_cases_{short}_{f1}; rename one"
+                    ),
+                );
+            }
+        }
+    }
+}
+
 /// Validates a parsed spec into a plan; `registry` supplies the system `model.kind` names.
 pub fn validate(
     spec: Spec,
@@ -491,44 +565,54 @@ pub fn validate(
 
     // The system.
     let mut model = spec.model.clone();
-    let kind = match model.remove("kind") {
-        Some(toml::Value::String(k)) => k,
+    // `None` when kind is absent or not a string, which is reported here.
+    let given = match model.remove("kind") {
+        Some(toml::Value::String(k)) => Some(k),
         Some(other) => {
             c.err(
                 "model.kind",
                 format!("expected a string, got {}", other.type_str()),
             );
-            String::new()
+            None
         }
         None => {
             c.err("model.kind", "missing; `kfmc list` shows the systems");
-            String::new()
+            None
         }
     };
-    let system = registry.get(&kind);
-    if system.is_none() && !kind.is_empty() {
+    let system = given.as_deref().and_then(|k| registry.get(k));
+    if let Some(k) = &given
+        && system.is_none()
+    {
         c.err(
             "model.kind",
             format!(
-                "unknown model `{kind}`; expected one of: {}",
+                "unknown model `{k}`; expected one of: {}",
                 registry.kinds().join(", ")
             ),
         );
     }
+    let kind = given.unwrap_or_default();
 
     // Scenario names (the rest of each table is the system's).
     if spec.scenarios.is_empty() {
         c.err("scenarios", "at least one [[scenarios]] entry is required");
     }
     let mut names = BTreeSet::new();
+    let mut folded = BTreeSet::new();
     for (i, s) in spec.scenarios.iter().enumerate() {
         let key = format!("scenarios[{i}].name");
         match s.get("name") {
             Some(toml::Value::String(n)) => {
-                if n.is_empty() || n.contains(['/', '\\']) {
-                    c.err(key, "must be non-empty and contain no path separators");
+                if let Some(msg) = name_problem(n) {
+                    c.err(key, msg);
                 } else if !names.insert(n.clone()) {
                     c.err(key, format!("duplicate scenario name `{n}`"));
+                } else if !folded.insert(n.to_ascii_lowercase()) {
+                    c.err(
+                        key,
+                        format!("`{n}` differs from another scenario name only by case; their figures would be one file on case-insensitive file systems"),
+                    );
                 }
             }
             Some(_) => c.err(key, "expected a string"),
@@ -541,21 +625,21 @@ pub fn validate(
         c.err("filters", "at least one [[filters]] entry is required");
     }
     let mut labels = BTreeSet::new();
+    let mut folded = BTreeSet::new();
     for (i, f) in spec.filters.iter().enumerate() {
-        let key = format!("filters[{i}]");
-        if f.label.trim().is_empty() || f.label.contains(char::is_whitespace) {
+        let key = format!("filters[{i}].label");
+        if let Some(msg) = name_problem(&f.label) {
+            c.err(key, msg);
+        } else if !labels.insert(f.label.clone()) {
+            c.err(key, format!("duplicate filter label `{}`", f.label));
+        } else if !folded.insert(f.label.to_ascii_lowercase()) {
             c.err(
-                format!("{key}.label"),
-                "must be non-empty and contain no spaces",
-            );
-        }
-        if !labels.insert(f.label.clone()) {
-            c.err(
-                format!("{key}.label"),
-                format!("duplicate filter label `{}`", f.label),
+                key,
+                format!("`{}` differs from another filter label only by case; their figures would be one file on case-insensitive file systems", f.label),
             );
         }
     }
+    figure_name_clashes(&mut c, &spec, &names, &labels);
     let filter_tables: Vec<FilterTable> = spec
         .filters
         .iter()
@@ -567,7 +651,7 @@ pub fn validate(
         .collect();
 
     // Initial estimate: the mode is generic, P0 and any initialiser are the system's.
-    let ie = spec.initial_estimate.as_ref();
+    let ie = spec.initial_estimate.as_deref();
     let imode = c.choice(
         "initial_estimate.mode",
         ie.and_then(|i| i.mode.as_deref()),
@@ -647,7 +731,7 @@ pub fn validate(
     }
 
     // Noise sweep.
-    let noise = spec.noise.as_ref();
+    let noise = spec.noise.as_deref();
     let noise_scales = scale_list(
         &mut c,
         "noise.scales",
@@ -681,27 +765,40 @@ pub fn validate(
     let nq = states.len();
     let rmse_thresholds = spec
         .divergence
-        .as_ref()
+        .as_deref()
         .and_then(|d| d.rmse_thresholds.as_ref())
         .map(|t| {
+            // Without a configured system the dimension is unknown; the values can still be
+            // checked, so a second run of validate does not bring up a new error.
+            let n = match (configured.is_some(), t) {
+                (false, super::spec::OneOrMany::Many(v)) => v.len(),
+                (false, _) => 1,
+                _ => nq,
+            };
             c.vector(
                 "divergence.rmse_thresholds",
                 Some(t),
-                nq,
-                &vec![f64::INFINITY; nq],
+                n,
+                &vec![f64::INFINITY; n],
                 positive,
                 "a positive number",
             )
         });
 
-    let cs = spec.consistency.as_ref();
+    let cs = spec.consistency.as_deref();
     let alpha = cs.and_then(|c| c.alpha).unwrap_or(0.05);
     if !(alpha > 0.0 && alpha < 1.0) {
         c.err("consistency.alpha", format!("{alpha} is not in (0, 1)"));
     }
     let whiteness_lags = cs.and_then(|c| c.whiteness_lags).unwrap_or(5);
-    if whiteness_lags > 50 {
-        c.err("consistency.whiteness_lags", "at most 50 lags");
+    if whiteness_lags > limits::MAX_WHITENESS_LAGS {
+        c.err(
+            "consistency.whiteness_lags",
+            format!(
+                "{whiteness_lags} lags; at most {}",
+                limits::MAX_WHITENESS_LAGS
+            ),
+        );
     }
     let runs = spec.runs.unwrap_or(100);
     let mut subsets = Vec::new();
@@ -732,6 +829,14 @@ pub fn validate(
         subsets,
     });
 
+    // The consistency tests this system's filters can produce; `test = "…"` must be one.
+    let state_refs: Vec<&str> = states.iter().map(String::as_str).collect();
+    let test_names = crate::metrics::consistency::test_names(&state_refs);
+    let covariance = |label: &str| -> Option<(bool, String)> {
+        let i = spec.filters.iter().position(|f| f.label == label)?;
+        let info = configured.as_ref()?.filters().get(i)?.clone();
+        Some((info.has_covariance, info.kind))
+    };
     let mut assertions = Vec::new();
     for (i, a) in spec.check.iter().flat_map(|c| c.asserts.iter()).enumerate() {
         let key = format!("check.assert[{i}]");
@@ -739,6 +844,45 @@ pub fn validate(
             && !labels.contains(f)
         {
             c.err(format!("{key}.filter"), format!("no filter labelled `{f}`"));
+        }
+        // A consistency test needs a covariance; without one, `kfmc check` would only find
+        // no matching rows after the whole study ran.
+        let is_test = matches!(
+            a.kind.as_str(),
+            "consistent" | "white" | "unbiased" | "test_passes"
+        );
+        if is_test {
+            match &a.filter {
+                Some(f) => {
+                    if let Some((false, kind)) = covariance(f) {
+                        c.err(
+                            format!("{key}.filter"),
+                            format!("`{f}` is a {kind} filter, which carries no covariance and so has no consistency tests"),
+                        );
+                    }
+                }
+                None if configured.is_some()
+                    && !spec.filters.is_empty()
+                    && spec
+                        .filters
+                        .iter()
+                        .all(|f| covariance(&f.label).is_some_and(|(cov, _)| !cov)) =>
+                {
+                    c.err(
+                        format!("{key}.kind"),
+                        "no filter of this spec carries a covariance, so there are no consistency tests to assert",
+                    );
+                }
+                None => {}
+            }
+        }
+        let whiteness = a.kind == "white"
+            || (a.kind == "test_passes" && a.test.as_deref() == Some("innovation_whiteness"));
+        if whiteness && cs.is_some() && whiteness_lags == 0 {
+            c.err(
+                key.clone(),
+                "asserts innovation whiteness, but consistency.whiteness_lags = 0 computes no whiteness test; set whiteness_lags ≥ 1",
+            );
         }
         if let Some(sc) = &a.scenario
             && !names.contains(sc)
@@ -800,11 +944,21 @@ pub fn validate(
                     &[("state", a.state.is_some()), ("max", a.max.is_some())],
                 );
                 match &a.test {
+                    Some(t) if configured.is_some() && !test_names.contains(t) => {
+                        c.err(
+                            format!("{key}.test"),
+                            format!(
+                                "unknown test `{t}`; the tests of this system: {}",
+                                test_names.join(", ")
+                            ),
+                        );
+                        None
+                    }
                     Some(t) => Some(tests(vec![t.clone()])),
                     None => {
                         c.err(
                             format!("{key}.test"),
-                            "kind = \"test_passes\" needs a test name",
+                            "missing: kind = \"test_passes\" needs a test name of consistency.parquet",
                         );
                         None
                     }
@@ -813,14 +967,17 @@ pub fn validate(
             "rmse_below" => {
                 unused(&mut c, &[("test", a.test.is_some())]);
                 match (&a.state, a.max) {
-                    (Some(state), Some(max)) if max > 0.0 => Some(Assertion::RmseBelow {
+                    (Some(state), Some(max)) if positive(max) => Some(Assertion::RmseBelow {
                         filter: a.filter.clone(),
                         scenario: a.scenario.clone(),
                         state: state.clone(),
                         max,
                     }),
                     _ => {
-                        c.err(key.clone(), "kind = \"rmse_below\" needs state and max > 0");
+                        c.err(
+                            key.clone(),
+                            "kind = \"rmse_below\" needs state and a finite max > 0",
+                        );
                         None
                     }
                 }
@@ -891,9 +1048,20 @@ pub fn validate(
             .unwrap_or_else(|| "experiment".into())
     });
     if name.is_empty() || name == "." || name == ".." || name.contains(['/', '\\']) {
+        // Without a `name` key the file's own name stands in: say so, at the file.
+        let (key, what) = if spec.name.is_some() {
+            ("name", String::new())
+        } else {
+            (
+                "",
+                format!("the experiment name (from the file name, `{name}`) "),
+            )
+        };
         c.err(
-            "name",
-            "must be non-empty, not `.` or `..`, and contain no path separators",
+            key,
+            format!(
+                "{what}must be non-empty, not `.` or `..`, and contain no path separators; set name"
+            ),
         );
     }
     let output = spec
@@ -904,7 +1072,17 @@ pub fn validate(
 
     let system = match configured {
         Some(s) if c.is_clean() => s,
-        _ => return Err(SpecErrors(c.into_errors())),
+        _ => {
+            // A system that refuses a spec without saying why would otherwise make an error
+            // with no problem in it ("invalid spec (0 problems)").
+            if c.is_clean() {
+                c.err(
+                    "model.kind",
+                    format!("the {kind} system refused the spec without naming a problem (a bug in the system)"),
+                );
+            }
+            return Err(SpecErrors(c.into_errors()));
+        }
     };
     Ok(Plan {
         name,

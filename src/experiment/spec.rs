@@ -4,6 +4,39 @@
 use serde::Deserialize;
 use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
 use std::fmt;
+use std::marker::PhantomData;
+use std::ops::Deref;
+
+/// A TOML table read into `T`. A derived struct also accepts an array (its fields in order),
+/// so `noise = [1.0]` would pass as `[noise] scales = 1.0` and an error would then name
+/// `noise.scales`, a key that is not in the file; this wrapper refuses anything but a table.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TableOf<T>(pub T);
+
+impl<T> Deref for TableOf<T> {
+    type Target = T;
+    fn deref(&self) -> &T {
+        &self.0
+    }
+}
+
+struct TableVisitor<T>(PhantomData<T>);
+
+impl<'de, T: Deserialize<'de>> Visitor<'de> for TableVisitor<T> {
+    type Value = T;
+    fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        f.write_str("a table")
+    }
+    fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<T, A::Error> {
+        T::deserialize(de::value::MapAccessDeserializer::new(map))
+    }
+}
+
+impl<'de, T: Deserialize<'de>> Deserialize<'de> for TableOf<T> {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_map(TableVisitor(PhantomData)).map(TableOf)
+    }
+}
 
 /// The whole experiment spec.
 #[derive(Debug, Deserialize)]
@@ -30,15 +63,15 @@ pub struct Spec {
     #[serde(default)]
     pub filters: Vec<FilterSpec>,
     /// The truth-noise sweep.
-    pub noise: Option<NoiseSpec>,
+    pub noise: Option<TableOf<NoiseSpec>>,
     /// How the initial estimate is formed.
-    pub initial_estimate: Option<InitialEstimateSpec>,
+    pub initial_estimate: Option<TableOf<InitialEstimateSpec>>,
     /// Divergence thresholds.
-    pub divergence: Option<DivergenceSpec>,
+    pub divergence: Option<TableOf<DivergenceSpec>>,
     /// Consistency tests (NEES/NIS χ², whiteness, bias) and their significance level.
-    pub consistency: Option<ConsistencySpec>,
+    pub consistency: Option<TableOf<ConsistencySpec>>,
     /// Assertions for `kfmc check`.
-    pub check: Option<CheckSpec>,
+    pub check: Option<TableOf<CheckSpec>>,
 }
 
 /// `[check]`
@@ -47,7 +80,7 @@ pub struct Spec {
 pub struct CheckSpec {
     /// The assertions (`[[check.assert]]`).
     #[serde(default, rename = "assert")]
-    pub asserts: Vec<AssertSpec>,
+    pub asserts: Vec<TableOf<AssertSpec>>,
 }
 
 /// `[[check.assert]]`
@@ -78,7 +111,7 @@ pub struct ConsistencySpec {
     pub whiteness_lags: Option<u64>,
     /// The same tests again on the first `runs` runs at their own α (`[[consistency.subsets]]`).
     #[serde(default)]
-    pub subsets: Vec<ConsistencySubsetSpec>,
+    pub subsets: Vec<TableOf<ConsistencySubsetSpec>>,
 }
 
 /// `[[consistency.subsets]]`: runs are seeded by their index, so the first N runs of a study

@@ -225,6 +225,25 @@ pub fn t_test(
 /// The name of the combined test row.
 pub const VERDICT: &str = "verdict";
 
+/// Every test name [`cell_tests`] can produce for these quantities (the `test` column of
+/// consistency.parquet), so a spec's `test = "…"` can be checked before anything runs.
+pub fn test_names(state_names: &[&str]) -> Vec<String> {
+    let mut out: Vec<String> = [
+        "nees_time_average",
+        "nis_time_average",
+        "initial_nees",
+        "nees_run_average_t",
+        "anees_steps_inside",
+        "anis_steps_inside",
+        "innovation_whiteness",
+    ]
+    .map(String::from)
+    .to_vec();
+    out.extend(state_names.iter().map(|s| format!("bias_{s}")));
+    out.push(VERDICT.into());
+    out
+}
+
 /// Every test of one cell and filter from its runs' sums, the verdict last.
 ///
 /// `steps_inside` are the fractions of steps whose ANEES / ANIS lie in their per-step bands
@@ -439,6 +458,36 @@ mod tests {
         assert!(r.pass);
         let r = scaled_chi2_test("x", 6.5, 6.0, 1.2e6, 0.05).unwrap();
         assert_eq!(r.direction, Some(Direction::Optimistic));
+    }
+
+    #[test]
+    fn test_names_cover_every_test_a_cell_produces() {
+        let states = ["a", "b"];
+        let run = |i: f64| RunConsistency {
+            first_step: Some(1),
+            nees_sum: 20.0 + i,
+            nees_n: 10,
+            rho_sum: Some(1.0),
+            nis_sum: 10.0 + i,
+            nis_dof: 10,
+            nis_n: 10,
+            nme_sum: vec![0.1 * i, -0.2 * i],
+            lag_prod: vec![0.1 * i, -0.1],
+            lag_pairs: vec![9, 8],
+            w_sq: 10.0,
+            initial_nees: Some(2.0 + i),
+        };
+        let runs: Vec<_> = (0..25).map(|i| run(i as f64 / 10.0)).collect();
+        let names = test_names(&states);
+        let tests = cell_tests(&runs, 2, &states, 0.05, (Some(0.9), Some(0.95)));
+        assert!(tests.len() >= 10, "{tests:?}");
+        for t in tests {
+            assert!(
+                names.contains(&t.test),
+                "{} missing from test_names",
+                t.test
+            );
+        }
     }
 
     #[test]

@@ -84,6 +84,24 @@ pub trait FilterEntry<const NX: usize, const NU: usize, const NZ: usize, M>:
     /// cell and cached, so a Riccati solution or a pole placement is computed once.
     fn prepare(&self, model: &M, noise: &AssumedNoise<NX, NZ>)
     -> Box<dyn RunFilter<NX, NU, NZ, M>>;
+    /// Checks the entry at `key` (`filters[i]`) against the scenarios, once they are known:
+    /// `samples` is K + 1 of the longest one. A kind whose keys count samples (a window)
+    /// refuses what no scenario can fill; the default accepts everything.
+    fn check_scenarios(&self, key: &str, samples: usize, checker: &mut Checker) {
+        let _ = (key, samples, checker);
+    }
+}
+
+/// Runs [`FilterEntry::check_scenarios`] on every entry; `entries` must be the spec's filters
+/// in order (as [`FilterKinds::configure_all`] returns them when no entry failed).
+pub fn check_scenarios<const NX: usize, const NU: usize, const NZ: usize, M>(
+    entries: &[Arc<dyn FilterEntry<NX, NU, NZ, M>>],
+    samples: usize,
+    c: &mut Checker,
+) {
+    for (i, e) in entries.iter().enumerate() {
+        e.check_scenarios(&format!("filters[{i}]"), samples, c);
+    }
 }
 
 /// What a filter kind is given to validate one entry.
@@ -240,12 +258,48 @@ pub struct AssumedStd {
 
 impl AssumedStd {
     /// Reads `q_std` and `r_std` (defaults: the truth's) from an entry.
+    ///
+    /// A default the filter cannot use (a truth with no measurement noise gives R = 0) is
+    /// reported at the entry, `filters[i]`, since its `r_std` is not in the file.
     pub fn read<const NX: usize, const NZ: usize, M>(
         cx: &FilterContext<'_, NX, NZ, M>,
         q_std: Option<&OneOrMany>,
         r_std: Option<&OneOrMany>,
         c: &mut Checker,
     ) -> Self {
+        Self::read_with(cx, q_std, r_std, true, c)
+    }
+
+    /// [`AssumedStd::read`]; `uses_r`: whether the filter updates, so that R must be
+    /// positive definite even when it is the default.
+    fn read_with<const NX: usize, const NZ: usize, M>(
+        cx: &FilterContext<'_, NX, NZ, M>,
+        q_std: Option<&OneOrMany>,
+        r_std: Option<&OneOrMany>,
+        uses_r: bool,
+        c: &mut Checker,
+    ) -> Self {
+        let bad_default = |given: bool, d: &[f64], ok: fn(f64) -> bool| {
+            (!given).then(|| d.iter().position(|x| !ok(*x))).flatten()
+        };
+        if let Some(i) = bad_default(q_std.is_some(), cx.process_std, non_negative) {
+            c.err(
+                cx.key.clone(),
+                format!(
+                    "q_std is not set and defaults to the truth's process noise std, whose component {i} is {}, not a non-negative number; set q_std",
+                    cx.process_std[i]
+                ),
+            );
+        }
+        if uses_r && let Some(i) = bad_default(r_std.is_some(), cx.measurement_std, positive) {
+            c.err(
+                cx.key.clone(),
+                format!(
+                    "r_std is not set and defaults to the truth's measurement noise std, whose component {i} is {}; R must be positive definite: set r_std",
+                    cx.measurement_std[i]
+                ),
+            );
+        }
         if cx.full_q && q_std.is_some() {
             c.err(
                 format!("{}.q_std", cx.key),
@@ -393,7 +447,13 @@ where
         if let Some(msg) = self.requires.and_then(|f| f(cx.model as &dyn Any)) {
             c.err(format!("{}.kind", cx.key), msg);
         }
-        let noise = AssumedStd::read(cx, keys.q_std.as_ref(), keys.r_std.as_ref(), c);
+        let noise = AssumedStd::read_with(
+            cx,
+            keys.q_std.as_ref(),
+            keys.r_std.as_ref(),
+            which != Kalman::OpenLoop,
+            c,
+        );
         Some(Arc::new(KalmanEntry { which, noise }))
     }
 }
@@ -521,7 +581,13 @@ where
         match Luenberger::<NX, NZ>::from_poles(cx.model, &poles?) {
             Ok(observer) => Some(Arc::new(PoleEntry { observer })),
             Err(e) => {
-                c.err(format!("{}.poles", cx.key), e.to_string());
+                // The seed's list has no `poles` in the file: its scale is what was asked.
+                let k = if keys.poles.is_some() {
+                    "poles"
+                } else {
+                    "pole_scale"
+                };
+                c.err(format!("{}.{k}", cx.key), e.to_string());
                 None
             }
         }

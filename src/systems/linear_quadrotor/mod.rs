@@ -115,7 +115,14 @@ impl System for LinearQuadrotorSystem {
     }
 
     fn configure(&self, spec: &SystemSpec<'_>, c: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
-        let m: ModelKeys = c.parse("model", spec.model).unwrap_or_default();
+        // A planar spec switched to this kind keeps its planar keys: name the mix-up.
+        let model = c.reject_foreign(
+            "model",
+            spec.model,
+            &["mass_kg", "arm_m", "inertia_kg_m2", "gravity_m_s2"],
+            "a planar_quadrotor key, not used by linear_quadrotor (its model is seed 002's; `kfmc list` shows its keys)",
+        );
+        let m: ModelKeys = c.parse("model", &model).unwrap_or_default();
         let sensor = match c.choice(
             "model.sensor",
             m.sensor.as_deref(),
@@ -173,7 +180,13 @@ impl LinearQuadrotorSystem {
         let mut scenarios = Vec::new();
         for (i, t) in spec.scenarios.iter().enumerate() {
             let key = format!("scenarios[{i}]");
-            let Some(s) = c.parse::<ScenarioKeys>(&key, t) else {
+            let t = c.reject_foreign(
+                &key,
+                t,
+                &["base", "stages", "ripple", "ripple_rad_s"],
+                "a planar_quadrotor scenario key, not used by linear_quadrotor (its scenarios are x0 and duration_s, unforced)",
+            );
+            let Some(s) = c.parse::<ScenarioKeys>(&key, &t) else {
                 continue;
             };
             let mut x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0];

@@ -15,13 +15,13 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 
-use crate::experiment::spec::OneOrMany;
+use crate::experiment::spec::{OneOrMany, TableOf};
 use crate::experiment::{Checker, InitialMode, non_negative, positive};
 use crate::linalg::Vector;
 use crate::sim::TruthNoise;
 use crate::system::additive::{
     AdditivePlan, AssumedNoise, FilterContext, FilterEntry, FilterKind, FilterKinds, RunFilter,
-    common_kinds,
+    check_scenarios, common_kinds,
 };
 use crate::system::{Catalogue, FilterInfo, Layout, Quantity, System, SystemPlan, SystemSpec};
 use model::PlanarParams;
@@ -54,7 +54,7 @@ struct ScenarioKeys {
     base: Option<String>,
     x0: Option<Vec<f64>>,
     duration_s: Option<f64>,
-    stages: Option<Vec<StageKeys>>,
+    stages: Option<Vec<TableOf<StageKeys>>>,
     ripple: Option<f64>,
     ripple_rad_s: Option<f64>,
 }
@@ -245,6 +245,11 @@ impl System for PlanarSystem {
             dt_s: params.dt_s,
         };
         let p0 = Vector::<6>::from_column_slice(&p0_std);
+        let samples = scenarios
+            .iter()
+            .map(|s| s.steps(params.dt_s) + 1)
+            .max()
+            .unwrap_or(0);
         let expanded = |dt| scenarios.iter().map(|s| s.expand(dt)).collect::<Vec<_>>();
         if imu {
             let model = Planar::<4>::new(params);
@@ -261,6 +266,9 @@ impl System for PlanarSystem {
                 },
                 c,
             );
+            if entries.len() == spec.filters.len() && samples > 0 {
+                check_scenarios(&entries, samples, c);
+            }
             let noise = truth_noise::<4>(&process_std, &measurement_std);
             (c.is_clean()).then(|| {
                 Arc::new(AdditivePlan::new(
@@ -287,6 +295,9 @@ impl System for PlanarSystem {
                 },
                 c,
             );
+            if entries.len() == spec.filters.len() && samples > 0 {
+                check_scenarios(&entries, samples, c);
+            }
             let noise = truth_noise::<3>(&process_std, &measurement_std);
             (c.is_clean()).then(|| {
                 Arc::new(AdditivePlan::new(
@@ -364,21 +375,42 @@ fn scenarios(tables: &[toml::Table], dt_s: f64, c: &mut Checker) -> Vec<PlanarSc
         if let Some(dur) = s.duration_s {
             def.duration_s = dur;
         }
-        if c.scenario_steps(&key, def.duration_s, dt_s).is_none() {
+        let Some(k_max) = c.scenario_steps(&key, def.duration_s, dt_s) else {
             continue;
-        }
-        if let Some(r) = s.ripple {
+        };
+        // u = stage ⊙ (1 + a·[cos ωt, sin ωt]): beyond a = 1 a thrust turns negative.
+        if let Some(r) = s.ripple
+            && c.number(
+                &format!("{key}.ripple"),
+                r,
+                |a| (0.0..=1.0).contains(&a),
+                "a relative amplitude in [0, 1]",
+            )
+        {
             def.profile.ripple = r;
         }
-        if let Some(w) = s.ripple_rad_s {
+        if let Some(w) = s.ripple_rad_s
+            && c.number(
+                &format!("{key}.ripple_rad_s"),
+                w,
+                non_negative,
+                "a non-negative frequency",
+            )
+        {
             def.profile.ripple_rad_s = w;
         }
         if let Some(stages) = &s.stages {
             def.profile.stages.clear();
             for (j, st) in stages.iter().enumerate() {
                 let skey = format!("{key}.stages[{j}]");
-                if st.thrust_n.len() != 2 || !st.thrust_n.iter().all(|v| v.is_finite()) {
-                    c.err(format!("{skey}.thrust_n"), "expected [u1, u2] in N");
+                if st.thrust_n.len() != 2 || !st.thrust_n.iter().all(|v| non_negative(*v)) {
+                    c.err(
+                        format!("{skey}.thrust_n"),
+                        format!(
+                            "expected [u1, u2]: two finite thrusts ≥ 0 in N (rotors push, they do not pull), got {:?}",
+                            st.thrust_n
+                        ),
+                    );
                     continue;
                 }
                 let prev = def.profile.stages.last().map(|p: &ThrustStage| p.from_step);
@@ -387,6 +419,14 @@ fn scenarios(tables: &[toml::Table], dt_s: f64, c: &mut Checker) -> Vec<PlanarSc
                     c.err(
                         format!("{skey}.from_step"),
                         "stages must start at step 0 and increase strictly",
+                    );
+                } else if st.from_step > k_max as u64 {
+                    c.err(
+                        format!("{skey}.from_step"),
+                        format!(
+                            "{} lies beyond the scenario's last step K = {k_max} (duration_s / dt_s), so the stage would never act",
+                            st.from_step
+                        ),
                     );
                 }
                 def.profile.stages.push(ThrustStage {
@@ -413,7 +453,11 @@ struct RunningMeanKeys {
 }
 
 #[derive(Debug)]
-struct RunningMeanEntry(RunningMean);
+struct RunningMeanEntry {
+    filter: RunningMean,
+    /// Whether `window` is in the file (else it is the default), for the error's key.
+    window_given: bool,
+}
 
 impl FilterEntry<6, 2, 3, PlanarP1> for RunningMeanEntry {
     fn info(&self) -> FilterInfo {
@@ -432,7 +476,27 @@ impl FilterEntry<6, 2, 3, PlanarP1> for RunningMeanEntry {
         _model: &PlanarP1,
         _noise: &AssumedNoise<6, 3>,
     ) -> Box<dyn RunFilter<6, 2, 3, PlanarP1>> {
-        Box::new(self.0.clone())
+        Box::new(self.filter.clone())
+    }
+    fn check_scenarios(&self, key: &str, samples: usize, c: &mut Checker) {
+        let w = self.filter.window;
+        if w <= samples {
+            return;
+        }
+        let msg = format!(
+            "longer than the longest scenario ({samples} samples = K + 1), so it never fills"
+        );
+        if self.window_given {
+            c.err(
+                format!("{key}.window"),
+                format!("{w} samples is {msg}; at most {samples}"),
+            );
+        } else {
+            c.err(
+                key,
+                format!("the default window = {w} samples is {msg}; set window ≤ {samples}"),
+            );
+        }
     }
 }
 
@@ -453,8 +517,12 @@ impl FilterKind<6, 2, 3, PlanarP1> for RunningMeanKind {
         if w == 0 {
             c.err(format!("{}.window", cx.key), "must be at least 1");
         }
-        Some(Arc::new(RunningMeanEntry(RunningMean {
-            window: w as usize,
-        })))
+        Some(Arc::new(RunningMeanEntry {
+            filter: RunningMean {
+                // Saturating: an absurd window is refused against the scenarios, never wrapped.
+                window: usize::try_from(w).unwrap_or(usize::MAX),
+            },
+            window_given: keys.window.is_some(),
+        }))
     }
 }
