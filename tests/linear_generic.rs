@@ -672,12 +672,12 @@ fn the_fixed_gain_kinds_need_a_detectable_or_observable_model() {
         "kind = \"pole_placement\"\npoles = [[0.5], [0.4]]",
     );
     assert_eq!(first_error(&placed).0, "filters[0].poles");
-    // The seed's pole list is for six states.
+    // The seed's pole list is for six states; the error is at the key the spec has.
     let seed_list = kind(&base, "pole_placement").replace(
         "kind = \"pole_placement\"",
         "kind = \"pole_placement\"\npole_scale = 0.5",
     );
-    assert_eq!(first_error(&seed_list).0, "filters[0].poles");
+    assert_eq!(first_error(&seed_list).0, "filters[0].pole_scale");
 }
 
 #[test]
