@@ -17,6 +17,8 @@ pub struct Checker {
     file: PathBuf,
     text: String,
     errors: Vec<SpecError>,
+    /// Samples (K + 1) of the scenarios counted by [`Checker::scenario_steps`] so far.
+    samples: u64,
 }
 
 impl Checker {
@@ -26,6 +28,7 @@ impl Checker {
             file: file.to_path_buf(),
             text: text.to_string(),
             errors: Vec::new(),
+            samples: 0,
         }
     }
 
@@ -176,7 +179,9 @@ impl Checker {
     }
 
     /// The transitions K = round(duration / Δt) of a scenario at key path `key` (reported at
-    /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`].
+    /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`], and
+    /// with the scenarios counted before it at most
+    /// [`super::plan::limits::MAX_TOTAL_SAMPLES`] samples, as systems expand them in memory.
     /// Systems call this before expanding a scenario, so an absurd duration is an error,
     /// never an allocation failure.
     ///
@@ -213,6 +218,18 @@ impl Checker {
             self.err(
                 at,
                 format!("{what} s is {steps} steps of {dt_s} s; at most {max} per run"),
+            );
+            return None;
+        }
+        let total = super::plan::limits::MAX_TOTAL_SAMPLES;
+        self.samples += steps as u64 + 1;
+        if self.samples > total {
+            self.err(
+                at,
+                format!(
+                    "the scenarios up to this one hold {} samples (K + 1 each); at most {total} in one spec, as they are expanded in memory to validate it",
+                    self.samples
+                ),
             );
             return None;
         }
