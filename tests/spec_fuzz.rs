@@ -17,6 +17,7 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::Path;
 use std::time::Instant;
 
+use kfmc::experiment::checker::{key_path_parts, path_key};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use toml::Value;
@@ -463,22 +464,19 @@ impl Mutator {
     }
 }
 
-/// Whether `key_path` (`filters[1].q_std`, `check.assert[0]`) names a value of `doc`. The
-/// document is read lazily (as the spec's own parser does), so a value the full parser
-/// refuses, like an integer out of range, still has its key.
-fn resolves(doc: &toml::de::DeTable<'_>, key_path: &str) -> bool {
+/// Whether the key path `parts` (as [`key_path_parts`] splits `filters[1].q_std`) names a
+/// value of `doc`. The document is read lazily, as the spec's own parser does, so a value
+/// the full parser refuses, like an integer out of range, still has its key.
+fn resolves(doc: &toml::de::DeTable<'_>, parts: &[(String, Vec<usize>)]) -> bool {
     let mut table = Some(doc);
-    for part in key_path.split('.') {
-        let (name, indices) = match part.find('[') {
-            Some(i) => (&part[..i], &part[i..]),
-            None => (part, ""),
-        };
-        let Some((_, v)) = table.and_then(|t| t.iter().find(|(k, _)| k.get_ref() == name)) else {
+    for (name, indices) in parts {
+        let found = table.and_then(|t| t.iter().find(|(k, _)| &path_key(k.get_ref()) == name));
+        let Some((_, v)) = found else {
             return false;
         };
         let mut cur = v.get_ref();
-        for idx in indices.split(['[', ']']).filter(|s| !s.is_empty()) {
-            match idx.parse::<usize>().ok().and_then(|i| cur.get(i)) {
+        for &i in indices {
+            match cur.get(i) {
                 Some(next) => cur = next.get_ref(),
                 None => return false,
             }
@@ -529,16 +527,20 @@ fn violation(text: &str) -> Option<String> {
             return Some(format!("key path on a document that does not parse: {e}"));
         };
         let doc = doc.get_ref();
-        if resolves(doc, &e.key_path) {
+        let Some(mut parts) = key_path_parts(&e.key_path) else {
+            return Some(format!("malformed key path: {e}"));
+        };
+        if resolves(doc, &parts) {
             continue;
         }
         // A required key that is absent is named at its own path, below a parent that exists.
         let absent = e.message.contains("missing") || e.message.contains("required");
-        let parent = match e.key_path.rfind(['.', '[']) {
-            Some(i) => resolves(doc, &e.key_path[..i]),
-            None => true,
-        };
-        if !(absent && parent) {
+        if let Some(last) = parts.last_mut()
+            && last.1.pop().is_none()
+        {
+            parts.pop();
+        }
+        if !(absent && resolves(doc, &parts)) {
             return Some(format!("key path not in the document: {e}"));
         }
     }

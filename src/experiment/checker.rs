@@ -17,6 +17,8 @@ pub struct Checker {
     file: PathBuf,
     text: String,
     errors: Vec<SpecError>,
+    /// Samples (K + 1) of the scenarios counted by [`Checker::scenario_steps`] so far.
+    samples: u64,
 }
 
 impl Checker {
@@ -26,6 +28,7 @@ impl Checker {
             file: file.to_path_buf(),
             text: text.to_string(),
             errors: Vec::new(),
+            samples: 0,
         }
     }
 
@@ -66,9 +69,9 @@ impl Checker {
         match serde_path_to_error::deserialize::<_, T>(value) {
             Ok(v) => Some(v),
             Err(e) => {
-                let inner = e.path().to_string();
+                let inner = format_path(e.path());
                 let key = match (prefix.is_empty(), inner.as_str()) {
-                    (_, "." | "") => prefix.to_string(),
+                    (_, "") => prefix.to_string(),
                     (true, p) => p.to_string(),
                     (false, p) if p.starts_with('[') => format!("{prefix}{p}"),
                     (false, p) => format!("{prefix}.{p}"),
@@ -176,7 +179,9 @@ impl Checker {
     }
 
     /// The transitions K = round(duration / Δt) of a scenario at key path `key` (reported at
-    /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`].
+    /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`], and
+    /// with the scenarios counted before it at most
+    /// [`super::plan::limits::MAX_TOTAL_SAMPLES`] samples, as systems expand them in memory.
     /// Systems call this before expanding a scenario, so an absurd duration is an error,
     /// never an allocation failure.
     ///
@@ -216,6 +221,18 @@ impl Checker {
             );
             return None;
         }
+        let total = super::plan::limits::MAX_TOTAL_SAMPLES;
+        self.samples += steps as u64 + 1;
+        if self.samples > total {
+            self.err(
+                at,
+                format!(
+                    "the scenarios up to this one hold {} samples (K + 1 each); at most {total} in one spec, as they are expanded in memory to validate it",
+                    self.samples
+                ),
+            );
+            return None;
+        }
         Some(steps as usize)
     }
 
@@ -238,6 +255,92 @@ impl Checker {
             );
         }
         s
+    }
+}
+
+/// A key as it stands in a key path: bare when TOML would write it bare (`q_std`), quoted
+/// otherwise (`"r_std[θ"`), so a hostile key cannot pass for a path with an index.
+pub fn path_key(key: &str) -> String {
+    let bare = !key.is_empty()
+        && key
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-');
+    if bare {
+        key.to_string()
+    } else {
+        format!("\"{}\"", key.escape_debug())
+    }
+}
+
+/// The key path of a deserialization error (`filters[0].q_std`). The path stops before a
+/// segment serde cannot name, so it is always the value's own key or an enclosing one.
+pub fn format_path(path: &serde_path_to_error::Path) -> String {
+    use serde_path_to_error::Segment;
+    let mut out = String::new();
+    for seg in path.iter() {
+        match seg {
+            Segment::Seq { index } => out.push_str(&format!("[{index}]")),
+            Segment::Map { key } | Segment::Enum { variant: key } => {
+                if !out.is_empty() {
+                    out.push('.');
+                }
+                out.push_str(&path_key(key));
+            }
+            Segment::Unknown => break,
+        }
+    }
+    out
+}
+
+/// Splits a key path into its keys (as [`path_key`] writes them) and each key's array
+/// indices: `filters[1].q_std` → `[("filters", [1]), ("q_std", [])]`. `None` when the path
+/// is not one kfmc writes.
+pub fn key_path_parts(path: &str) -> Option<Vec<(String, Vec<usize>)>> {
+    let mut parts = Vec::new();
+    let mut chars = path.chars().peekable();
+    loop {
+        let mut key = String::new();
+        if chars.peek() == Some(&'"') {
+            key.push(chars.next()?);
+            loop {
+                let c = chars.next()?;
+                key.push(c);
+                match c {
+                    '\\' => key.push(chars.next()?),
+                    '"' => break,
+                    _ => {}
+                }
+            }
+        } else {
+            while let Some(&c) = chars.peek() {
+                if c == '.' || c == '[' {
+                    break;
+                }
+                key.push(c);
+                chars.next();
+            }
+        }
+        if key.is_empty() {
+            return None;
+        }
+        let mut indices = Vec::new();
+        while chars.peek() == Some(&'[') {
+            chars.next();
+            let mut digits = String::new();
+            loop {
+                match chars.next()? {
+                    ']' => break,
+                    c => digits.push(c),
+                }
+            }
+            indices.push(digits.parse().ok()?);
+        }
+        parts.push((key, indices));
+        match chars.next() {
+            None => return Some(parts),
+            Some('.') => {}
+            Some(_) => return None,
+        }
     }
 }
 
@@ -264,19 +367,15 @@ fn key_span(text: &str, key_path: &str, exact: bool) -> Option<std::ops::Range<u
     let doc = toml::de::DeTable::parse(text).ok()?;
     let mut span: Option<std::ops::Range<usize>> = None;
     let mut table = Some(doc.get_ref());
-    for part in key_path.split('.') {
-        let (name, indices) = match part.find('[') {
-            Some(i) => (&part[..i], &part[i..]),
-            None => (part, ""),
-        };
-        let found = table.and_then(|t| t.iter().find(|(k, _)| k.get_ref() == name));
+    for (name, indices) in key_path_parts(key_path)? {
+        let found = table.and_then(|t| t.iter().find(|(k, _)| path_key(k.get_ref()) == name));
         let Some(entry) = found else {
             return if exact { None } else { span };
         };
         span = Some(entry.0.span());
         let mut v = entry.1;
-        for idx in indices.split(['[', ']']).filter(|s| !s.is_empty()) {
-            match idx.parse::<usize>().ok().and_then(|i| v.get_ref().get(i)) {
+        for idx in indices {
+            match v.get_ref().get(idx) {
                 Some(next) => {
                     v = next;
                     span = Some(v.span());
@@ -302,6 +401,25 @@ mod tests {
         assert_eq!(line_of(text, "filters[1].q_std"), Some(9));
         assert_eq!(line_of(text, "filters[0].label"), Some(6));
         assert_eq!(line_of(text, "nothing"), None);
+    }
+
+    #[test]
+    fn odd_keys_are_quoted_in_key_paths() {
+        assert_eq!(path_key("q_std"), "q_std");
+        assert_eq!(path_key("r_std[θ"), "\"r_std[θ\"");
+        let parts = key_path_parts("filters[0].\"r_std[θ\".x[2][3]").unwrap();
+        assert_eq!(
+            parts,
+            [
+                ("filters".to_string(), vec![0]),
+                ("\"r_std[θ\"".to_string(), vec![]),
+                ("x".to_string(), vec![2, 3]),
+            ]
+        );
+        let text = "[[filters]]\n\"r_std[θ\" = 1\n";
+        let c = Checker::new(Path::new("t.toml"), text);
+        assert!(c.has("filters[0].\"r_std[θ\""));
+        assert!(!c.has("filters[0].r_std"));
     }
 
     #[test]

@@ -64,12 +64,8 @@ pub fn parse_with(text: &str, path: &Path, registry: &Registry) -> Result<Plan, 
     let de =
         toml::de::Deserializer::parse(text).map_err(|e| one(String::new(), with_line(text, e)))?;
     let spec: spec::Spec = serde_path_to_error::deserialize(de).map_err(|e| {
-        let path = e.path().to_string();
-        let inner = e.into_inner();
-        one(
-            if path == "." { String::new() } else { path },
-            with_line(text, inner),
-        )
+        let path = checker::format_path(e.path());
+        one(path, with_line(text, e.into_inner()))
     })?;
     plan::validate(spec, path, text, registry)
 }

@@ -162,6 +162,12 @@ pub mod limits {
     /// Characters of a scenario name or a filter label (they are parts of figure file names,
     /// which most file systems cap at 255 bytes).
     pub const MAX_NAME_CHARS: usize = 64;
+    /// Samples (K + 1) of all scenarios of a spec together: systems expand the scenarios
+    /// (their inputs per step) while validating, before the resource estimate can refuse.
+    pub const MAX_TOTAL_SAMPLES: u64 = 20_000_000;
+    /// Measurement rows K·n_z of one batch least-squares fit: its covariance is a dense
+    /// matrix of that many rows squared, factorised while validating.
+    pub const MAX_BATCH_LS_ROWS: usize = 5_000;
     /// Innovation-whiteness lags.
     pub const MAX_WHITENESS_LAGS: u64 = 50;
     /// Estimated peak memory, bytes (lifted by `--allow-large`).

@@ -252,7 +252,19 @@ impl LinearQuadrotorSystem {
                 }
             });
             let mut all = Vec::new();
+            let max_rows = crate::experiment::plan::limits::MAX_BATCH_LS_ROWS;
             for (i, sc) in scenarios.iter().enumerate() {
+                let rows = sc.steps() * NZ;
+                if rows > max_rows {
+                    c.err(
+                        "initial_estimate.mode",
+                        format!(
+                            "batch_ls for scenarios[{i}] (`{}`) stacks K·n_z = {rows} measurements; at most {max_rows} (the fit's covariance is dense, {rows}² numbers): shorten duration_s or use mode = \"sampled\"",
+                            sc.name
+                        ),
+                    );
+                    continue;
+                }
                 match BatchInitial::new(&model, &sc.controls, &model.discrete().q, &r) {
                     Ok(b) => all.push(b),
                     Err(e) => c.err(
