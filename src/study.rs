@@ -86,6 +86,8 @@ struct CellState {
     /// Per filter: RMSE rows of the runs that completed (failures excluded).
     rmse: Vec<Vec<Vec<f64>>>,
     failed: Vec<u64>,
+    /// Per world metric: its value in each run so far.
+    world: Vec<Vec<f64>>,
 }
 
 struct Aggregator<'a> {
@@ -97,6 +99,7 @@ struct Aggregator<'a> {
     summary: TableWriter,
     traces: Option<TableWriter>,
     consistency: Option<TableWriter>,
+    sensors: Option<TableWriter>,
     bands: BandCache,
     /// Per (scenario, filter).
     divergence: Vec<DivergenceTracker>,
@@ -128,12 +131,16 @@ impl Aggregator<'_> {
                     consistency: vec![Vec::new(); nf],
                     consistency_runs: vec![Vec::new(); nf],
                     failed: vec![0; nf],
+                    world: vec![Vec::with_capacity(plan.runs); self.trial.world_metrics().len()],
                 },
             ));
         }
         let sname = plan.scenarios[scenario].name.as_str();
         let noise = plan.noise_scales[scale];
         let (_, _, cell) = self.cell.as_mut().expect("set above");
+        for (values, v) in cell.world.iter_mut().zip(&r.world_metrics) {
+            values.push(*v);
+        }
         for (fi, fr) in r.filters.iter().enumerate() {
             let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
             let mut row = cell_key(sname, noise, &plan.filters[fi]).to_vec();
@@ -216,6 +223,24 @@ impl Aggregator<'_> {
         let dt = plan.dt_s();
         let nf = plan.filters.len();
         let n = self.states.len() as u64;
+        if let Some(w) = self.sensors.as_mut() {
+            for (name, values) in self.trial.world_metrics().iter().zip(&cell.world) {
+                let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+                let (mean, std) = mean_std(&v);
+                v.sort_by(f64::total_cmp);
+                w.push(&[
+                    Value::Str(sname),
+                    Value::F64(Some(noise)),
+                    Value::Str(name),
+                    Value::I64(Some(v.len() as i64)),
+                    Value::F64(mean),
+                    Value::F64(std),
+                    Value::F64(quantile_sorted(&v, 0.05)),
+                    Value::F64(quantile_sorted(&v, 0.50)),
+                    Value::F64(quantile_sorted(&v, 0.95)),
+                ])?;
+            }
+        }
         for (fi, f) in plan.filters.iter().enumerate() {
             let acc = &cell.acc[fi];
             let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
@@ -373,6 +398,11 @@ pub fn run(
         } else {
             None
         },
+        sensors: if trial.world_metrics().is_empty() {
+            None
+        } else {
+            Some(TableWriter::create(dir, "sensors", schema::sensors())?)
+        },
         bands: BandCache::new(plan.alpha),
         divergence: vec![
             DivergenceTracker::new(plan.runs, states.len());
@@ -411,9 +441,11 @@ pub fn run(
         summary,
         traces,
         consistency,
+        sensors,
         ..
     } = agg;
     written.extend([runs, steps, summary]);
+    written.extend(sensors);
     written.extend(consistency);
     written.extend(traces);
 

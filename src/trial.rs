@@ -52,6 +52,8 @@ pub struct UnitResult {
     pub filters: Vec<FilterRun>,
     /// Present for traced runs.
     pub trace: Option<RunTrace>,
+    /// The world's per-run metrics ([`Trial::world_metrics`] order; empty without).
+    pub world_metrics: Vec<f64>,
 }
 
 /// A study that can execute units: what a [`crate::system::SystemPlan`] builds.
@@ -62,6 +64,12 @@ pub trait Trial: Sync {
     fn steps(&self, scenario: usize) -> usize;
     /// Column names.
     fn layout(&self) -> &Layout;
+    /// Names of the per-run numbers a world reports about its own sensors
+    /// ([`UnitResult::world_metrics`]), summarised per cell in the `sensors` table; none by
+    /// default.
+    fn world_metrics(&self) -> &[String] {
+        &[]
+    }
 }
 
 /// Binds a plan to its system's executor.

@@ -65,10 +65,11 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 8] = [
+pub const TABLES: [&str; 9] = [
     "runs",
     "steps",
     "summary",
+    "sensors",
     "consistency",
     "divergence",
     "divergence_runs",
@@ -156,6 +157,23 @@ pub fn summary() -> Vec<ColumnDef> {
         col("rmse_p95", Dtype::F64),
     ]);
     c
+}
+
+/// `sensors.parquet` (worlds that report metrics of their own sensors): one row per
+/// (scenario, noise scale) × metric, over the cell's runs — e.g. each raw sensor's RMSE
+/// against the truth, to set beside the filters' RMSE in `summary`.
+pub fn sensors() -> Vec<ColumnDef> {
+    vec![
+        col("scenario", Dtype::Str),
+        col("noise_scale", Dtype::F64),
+        col("metric", Dtype::Str),
+        col("runs", Dtype::I64),
+        col("mean", Dtype::F64),
+        col("std", Dtype::F64),
+        col("p05", Dtype::F64),
+        col("p50", Dtype::F64),
+        col("p95", Dtype::F64),
+    ]
 }
 
 /// `divergence.parquet`: one row per scenario × filter × state.

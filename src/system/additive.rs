@@ -901,6 +901,7 @@ where
             seed,
             filters,
             trace,
+            world_metrics: Vec::new(),
         }
     }
 

@@ -40,6 +40,12 @@ pub struct Realisation<const NQ: usize, const NU: usize, const NZ: usize> {
     /// Standard normals drawn once per run for the filters' priors (shared by every filter
     /// of the run, so their initial errors are paired); as many as the world declares.
     pub prior_draws: Vec<f64>,
+    /// The index of the system's scenario this is a run of, for filters whose settings
+    /// depend on the scenario (a paper's filter tuned per route).
+    pub scenario: usize,
+    /// The world's own per-run numbers about its sensors (each raw sensor's RMSE against the
+    /// truth, …), one per [`WorldPlan::world_metrics`] name; they fill the `sensors` table.
+    pub metrics: Vec<f64>,
 }
 
 /// The truth and sensors of a system.
@@ -99,6 +105,8 @@ pub struct WorldPlan<const NQ: usize, const NU: usize, const NZ: usize> {
     pub entries: Vec<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>>,
     /// Their infos.
     pub filter_info: Vec<FilterInfo>,
+    /// Names of the world's per-run metrics ([`Realisation::metrics`]); empty for none.
+    pub world_metrics: Vec<String>,
 }
 
 impl<const NQ: usize, const NU: usize, const NZ: usize> WorldPlan<NQ, NU, NZ> {
@@ -115,7 +123,14 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> WorldPlan<NQ, NU, NZ> {
             layout,
             scenario_info,
             entries,
+            world_metrics: Vec::new(),
         }
+    }
+
+    /// The plan with per-run world metrics named `names` (the `sensors` table).
+    pub fn with_world_metrics(mut self, names: Vec<String>) -> Self {
+        self.world_metrics = names;
+        self
     }
 }
 
@@ -226,7 +241,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
                     (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
                 })
                 .collect(),
-            world: real.world.clone(),
+            world: real.world,
             est,
             cov,
         });
@@ -235,6 +250,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
             seed,
             filters,
             trace,
+            world_metrics: real.metrics,
         }
     }
 
@@ -244,6 +260,10 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
 
     fn layout(&self) -> &Layout {
         &self.sys.layout
+    }
+
+    fn world_metrics(&self) -> &[String] {
+        &self.sys.world_metrics
     }
 }
 

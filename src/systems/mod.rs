@@ -2,6 +2,7 @@
 //! ([`crate::system::System`] and [`crate::system::Registry`]); nothing outside its own module
 //! names a system, its parameters or its filter kinds.
 
+pub mod drone;
 pub mod linear;
 pub mod linear_quadrotor;
 pub mod planar;
@@ -14,4 +15,5 @@ pub fn register(registry: Registry) -> Registry {
         .with(planar::PlanarSystem::new())
         .with(linear_quadrotor::LinearQuadrotorSystem::new())
         .with(linear::LinearSystem::new())
+        .with(drone::DroneSystem::new())
 }

@@ -382,4 +382,7 @@ impl Trial for LinearTrial<'_> {
     fn layout(&self) -> &Layout {
         self.inner.layout()
     }
+    fn world_metrics(&self) -> &[String] {
+        self.inner.world_metrics()
+    }
 }
