@@ -533,7 +533,7 @@ mod tests {
         assert!((a.p - b.p).amax() < 1e-12);
         assert!((inn.nis - inn_b.nis).abs() < 1e-10);
         assert_eq!(inn.dof, zm.available.count());
-        let ea = seq.error_transition(&a).unwrap();
+        let ea = Filter::<9, NU, NZ, PaperModel>::error_transition(&seq, &a).unwrap();
         let eb = Filter::<9, NU, NZ, PaperModel>::error_transition(&joint, &b).unwrap();
         assert!((ea - eb).amax() < 1e-12);
     }
