@@ -484,7 +484,7 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
         ("gps_position_std", p.gps_position_std),
         ("gps_velocity_std", p.gps_velocity_std),
     ] {
-        if v.iter().any(|x| *x == 0.0) {
+        if v.contains(&0.0) {
             c.err(
                 format!("model.{key}"),
                 "must be positive on every axis (a filter's R or Q would be singular)",
