@@ -241,6 +241,14 @@ fn the_sensor_table_reproduces_the_seeds_sensor_rmse() {
         "{grid} / {native}"
     );
 
+    // `kfmc summary` shows the table beside the filters' RMSE.
+    let text = kfmc::cli::summary::render(dir.path(), None).unwrap();
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("ramp") && l.contains("baro_pz_grid"))
+        .unwrap_or_else(|| panic!("no sensors line in:\n{text}"));
+    assert!(line.contains(&format!("{:.4}", find(&rows, "ramp", "baro_pz_grid"))));
+
     // Every paper-filter run completes, with a covariance that stayed positive definite.
     let runs = read(&dir.path().join("runs.parquet")).unwrap();
     let status = runs.column("status").unwrap().str().unwrap().clone();

@@ -133,6 +133,11 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
         out.push_str(&consistency_section(&cpath, noise_scale)?);
     }
 
+    let spath = dir.join("sensors.parquet");
+    if spath.exists() {
+        out.push_str(&sensors_section(&spath, noise_scale)?);
+    }
+
     let dpath = dir.join("divergence.parquet");
     if dpath.exists() {
         let d = read(&dpath)?;
@@ -159,6 +164,42 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
                 num(p50[i])
             );
         }
+    }
+    Ok(out)
+}
+
+/// The world's own sensor metrics (e.g. each raw sensor's RMSE against the truth), one line
+/// per cell × metric.
+fn sensors_section(path: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
+    let df = read(path)?;
+    let scen = strs(&df, "scenario", path)?;
+    let metric = strs(&df, "metric", path)?;
+    let noise = f64s(&df, "noise_scale", path)?;
+    let (mean, p05, p95) = (
+        f64s(&df, "mean", path)?,
+        f64s(&df, "p05", path)?,
+        f64s(&df, "p95", path)?,
+    );
+    let sw = scen.iter().map(|s| s.len()).max().unwrap_or(8).max(8);
+    let mw = metric.iter().map(|s| s.len()).max().unwrap_or(6).max(6);
+    let mut out = format!(
+        "\nSensors (the world's metrics: mean [p5, p95] over runs)\n{:<sw$}  {:>11}  {:<mw$}  {:>10}  {:>21}\n",
+        "scenario", "noise_scale", "metric", "mean", "[p5, p95]"
+    );
+    for i in 0..df.height() {
+        let nz = noise[i].unwrap_or(f64::NAN);
+        if noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0)) {
+            continue;
+        }
+        let _ = writeln!(
+            out,
+            "{:<sw$}  {:>11}  {:<mw$}  {:>10}  {:>21}",
+            scen[i],
+            format!("{nz}"),
+            metric[i],
+            num(mean[i]),
+            format!("[{}, {}]", num(p05[i]), num(p95[i]))
+        );
     }
     Ok(out)
 }
