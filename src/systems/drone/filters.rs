@@ -92,9 +92,17 @@ impl<const NX: usize, M: Nav<NX>> Filter<NX, NU, NZ, M> for SeqEkf {
             let mut residual = Vector::<NZ>::zeros();
             let mut whitened = Vector::<NZ>::zeros();
             let mut a = Matrix::<NX, NX>::identity();
+            // h and H once per step at the prior mean; after each scalar update the predicted
+            // measurement moves with the correction, h(x) ≈ h(x⁻) + H (x − x⁻), which is exact
+            // for the linear sensors here and first order for the compensated barometer.
+            let x_prior = b.x;
+            let h_prior = model.measure(&b.x, u);
+            let h_all = model.measurement_jacobian(&b.x, u);
+            let resid = model.residual(&zm.z, &h_prior);
             for i in (0..NZ).filter(|&i| used.has(i)) {
-                let h = model.measurement_jacobian(&b.x, u).row(i).into_owned();
-                let nu = model.residual(&zm.z, &model.measure(&b.x, u))[i];
+                let h = h_all.row(i).into_owned();
+                let moved = (h * (b.x - x_prior))[(0, 0)];
+                let nu = resid[i] - moved;
                 let ph = b.p * h.transpose();
                 let s = (h * ph)[(0, 0)] + var[i];
                 if !(s > 0.0 && s.is_finite()) {
