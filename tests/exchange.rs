@@ -157,9 +157,24 @@ fn exported_kf_scored_as_external_gives_the_run_tables() {
             "{c} differs"
         );
     }
-    // The simulation's truth is the run's: the traces of kfmc's own runs see the same world.
     let truth = read(&s.dir.join("sim/truth.parquet"));
     assert_eq!(truth.height(), 12 * 2 * (51 + 31));
+
+    // A sharded simulation merges into the single process's tables, byte for byte, and
+    // scores like it (4 cells in 3 parts).
+    let sharded = s.dir.join("sharded");
+    for i in 0..3 {
+        ok(kfmc()
+            .args(["simulate", "-q", "--shard", &format!("{i}/3"), "--out"])
+            .arg(&sharded)
+            .arg(&s.ext_spec));
+    }
+    ok(kfmc().arg("merge").arg(&sharded));
+    for t in ["truth", "measurements", "initial"] {
+        let a = fs::read(s.dir.join(format!("sim/{t}.parquet"))).unwrap();
+        let b = fs::read(sharded.join(format!("{t}.parquet"))).unwrap();
+        assert!(a == b, "{t}.parquet of the merged shards differs");
+    }
 }
 
 #[test]
