@@ -7,7 +7,7 @@
 //!   seeds' P = (I − KH)P⁻ is not exactly symmetric (ρ's recursion sees the difference).
 //! * Bad files are refused naming the file, the column and the first offending key; trouble in
 //!   a row becomes that run's status and the batch completes.
-//! * FilterPy's KalmanFilter (examples/python/filterpy_l1.py) equals kfmc's KF, and a
+//! * FilterPy's KalmanFilter (examples/python/filterpy_estimates.py) equals kfmc's KF, and a
 //!   negative control proves the gate rejects it mistuned (Q × 4). The Python packages are
 //!   installed by `.ci/run`, which sets KFMC_REQUIRE_INTEROP=1; elsewhere the test skips.
 
@@ -384,7 +384,7 @@ fn filterpy_kf_equals_kfmc_kf_and_the_negative_control_catches_q_times_4() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let spec = repo().join("experiments/external_filterpy_l1.toml");
-    let script = repo().join("examples/python/filterpy_l1.py");
+    let script = repo().join("examples/python/filterpy_estimates.py");
     ok(kfmc()
         .args(["simulate", "-q", "--runs", "30", "--out"])
         .arg(dir.join("sim"))
@@ -392,6 +392,7 @@ fn filterpy_kf_equals_kfmc_kf_and_the_negative_control_catches_q_times_4() {
     let py = |out: &str, label: &str, q: &str| {
         ok(std::process::Command::new("python3")
             .arg(&script)
+            .arg("l1")
             .arg(dir.join("sim"))
             .arg(dir.join(out))
             .args(["--label", label, "--q-scale", q]));
@@ -486,4 +487,54 @@ fn filterpy_kf_equals_kfmc_kf_and_the_negative_control_catches_q_times_4() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("kfmc.master_seed = 2016"), "{err}");
+}
+
+#[test]
+fn filterpy_ekf_on_p1_equals_kfmc_ekf() {
+    if !python_has("filterpy, pyarrow, numpy") {
+        assert!(
+            std::env::var("KFMC_REQUIRE_INTEROP").is_err(),
+            "KFMC_REQUIRE_INTEROP is set but filterpy, pyarrow or numpy is missing"
+        );
+        eprintln!("skipped: pip install filterpy pyarrow numpy to run it");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let spec = repo().join("experiments/external_filterpy_p1.toml");
+    ok(kfmc()
+        .args(["simulate", "-q", "--runs", "6", "--out"])
+        .arg(dir.join("sim"))
+        .arg(&spec));
+    ok(std::process::Command::new("python3")
+        .arg(repo().join("examples/python/filterpy_estimates.py"))
+        .arg("p1")
+        .arg(dir.join("sim"))
+        .arg(dir.join("ekf.parquet"))
+        .args(["--label", "filterpy_ekf"]));
+    ok(kfmc()
+        .args(["score", "-q"])
+        .arg(dir.join("sim"))
+        .arg("--estimates")
+        .arg(dir.join("ekf.parquet")));
+    let runs = read(&dir.join("sim/score/runs.parquet"));
+    let of = |label: &str, c: &str| -> Vec<f64> {
+        let m = runs.column("filter").unwrap().str().unwrap().equal(label);
+        let r = runs.filter(&m).unwrap();
+        r.column(c)
+            .unwrap()
+            .f64()
+            .unwrap()
+            .into_no_null_iter()
+            .collect()
+    };
+    // FilterPy updates in Joseph form, kfmc (as the seeds) in the standard form, and numpy's
+    // sin/cos are not Rust's: they agree at round-off, amplified over 1,000 steps.
+    for c in ["rmse_x", "rmse_ydot", "rmse_theta", "nees_mean", "nis_mean"] {
+        let (a, b) = (of("ekf", c), of("filterpy_ekf", c));
+        assert_eq!(a.len(), 4 * 6, "{c}");
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() <= 1e-9 * x.abs(), "{c}: {x} vs {y}");
+        }
+    }
 }
