@@ -361,16 +361,8 @@ impl EstimateSet {
             let value_names = cols.value_columns();
             let width = cols.width();
             let mut offset = 0usize;
-            for rg in &meta.row_groups {
-                let height = rg.num_rows();
-                let file = File::open(path).map_err(|source| OutputError::Io {
-                    action: "cannot open",
-                    path: path.clone(),
-                    source,
-                })?;
-                let mut r = ParquetReader::new(file).with_slice(Some((offset, height)));
-                r.set_metadata(meta.clone());
-                let df = r.finish().map_err(|e| polars_err(path, e))?;
+            crate::output::table::for_each_row_group(path, |df| {
+                let height = df.height();
                 offset += height;
                 let col_err =
                     |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
@@ -541,7 +533,8 @@ impl EstimateSet {
                 if let Some((pe, start, data)) = pending.take() {
                     write_rows(&externals[pe], start, &data, width)?;
                 }
-            }
+                Ok(())
+            })?;
         }
         if let Some(f) = plan
             .filters
