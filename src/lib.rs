@@ -45,6 +45,7 @@ pub mod metrics;
 pub mod model;
 pub mod output;
 pub mod plot;
+pub mod power;
 pub mod runner;
 pub mod scenario;
 pub mod score;

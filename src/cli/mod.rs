@@ -180,6 +180,19 @@ pub enum Command {
         #[arg(long)]
         force: bool,
     },
+    /// Run the study R times with independent master seeds and write power.parquet: per
+    /// (cell, filter variant, test) the rejection rate with its 95 % interval and the
+    /// statistic's distribution — the false-alarm rate at the true Q and R, the power against
+    /// every q_scale/r_scale variant.
+    Power {
+        /// The spec and the shared overrides (`--seed` is the base seed of the replications;
+        /// `--out` the folder of power.parquet, default `<output>/power`).
+        #[command(flatten)]
+        study: StudyArgs,
+        /// Independent replications of the whole study.
+        #[arg(long, short = 'R')]
+        replications: usize,
+    },
     /// Print the columns of an exchange table for a spec.
     Schema {
         /// Which table.
@@ -687,6 +700,53 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             if !quiet {
                 outln!(
                     "{} runs scored in {:.1} s → {}",
+                    report.runs,
+                    report.wall_s,
+                    report.output.display()
+                );
+                for (name, rows) in &report.tables {
+                    outln!("  {name}.parquet  {rows} rows");
+                }
+            }
+            Ok(())
+        }
+        Command::Power {
+            study,
+            replications,
+        } => {
+            if replications == 0 {
+                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+                    crate::error::SpecError {
+                        file: study.spec.clone(),
+                        key_path: "--replications".into(),
+                        message: "must be at least 1".into(),
+                    },
+                ]))
+                .into());
+            }
+            let out_given = study.out.clone();
+            let mut plan = study.plan(registry, Some(0))?;
+            let out = out_given.unwrap_or_else(|| plan.output.join("power"));
+            plan.output = out.clone();
+            let threads = study.threads(study.quiet);
+            let observer = ProgressObserver::new(!study.quiet);
+            let report = crate::power::power(
+                &plan,
+                replications,
+                plan.master_seed,
+                &out,
+                &crate::study::ExecOptions {
+                    threads,
+                    force: study.force,
+                    shard: None,
+                },
+                &observer,
+            )
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
+            if !study.quiet {
+                outln!(
+                    "{replications} replications ({} runs) in {:.1} s → {}",
                     report.runs,
                     report.wall_s,
                     report.output.display()

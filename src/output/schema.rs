@@ -65,7 +65,7 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 12] = [
+pub const TABLES: [&str; 13] = [
     "runs",
     "steps",
     "summary",
@@ -78,6 +78,7 @@ pub const TABLES: [&str; 12] = [
     "truth",
     "measurements",
     "initial",
+    "power",
 ];
 
 /// `runs.parquet`: one row per scenario × noise scale × filter × run.
