@@ -474,7 +474,7 @@ where
                     ("kappa", keys.kappa.is_some()),
                 ],
                 &format!(
-                    "not used by a {} filter (only ukf has sigma-point parameters)",
+                    "not used by kind = \"{}\" (only ukf has sigma-point parameters)",
                     other.tag()
                 ),
             ),
