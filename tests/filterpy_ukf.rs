@@ -3,7 +3,7 @@
 //!
 //! `tests/golden/filterpy_ukf_p1_input.csv` holds P1's parameters, Q, R, x̂_0, P_0, two sets of
 //! (α, β, κ) — kfmc's defaults (1, 2, 0) and (0.5, 2, 3 − n), whose centre weight is −7 — and
-//! 1,000 steps of the `roll` scenario (θ passes π twice) with the controls, the measurements
+//! 1,000 steps of the `roll` scenario (θ passes π) with the controls, the measurements
 //! and which components report: every 10th step none (predict only), every 3rd only y, every
 //! 4th only θ and θ̇. The θ measurement is written on [−π, π) while the state θ is continuous,
 //! so every wrap the filter needs happens. It is written by this file with
