@@ -9,7 +9,7 @@
 use kfmc::filter::{CovarianceUpdate, Ekf, Filter, SigmaPointKalman, SigmaPoints};
 use kfmc::linalg::{Matrix, Vector};
 use kfmc::model::{Measurement, Model, wrap_angle};
-use kfmc::sim::{NoiseDraws, TruthNoise, Trajectory, seed::run_seed, simulate};
+use kfmc::sim::{NoiseDraws, Trajectory, TruthNoise, seed::run_seed, simulate};
 use kfmc::systems::planar::model::{PlanarP1, PlanarParams};
 use kfmc::systems::planar::scenario::builtin;
 
@@ -49,8 +49,11 @@ impl Model<6, 2, 3> for PrincipalP1 {
 const Q_STD: f64 = 0.003;
 const R_STD: f64 = 0.01;
 
+/// Runs one filter through a [`Runner`].
+type RunWith = Box<dyn Fn(&dyn Runner) -> [f64; 6]>;
+
 /// The filters compared, by name.
-fn filters() -> Vec<(&'static str, Box<dyn Fn(&dyn Runner) -> [f64; 6]>)> {
+fn filters() -> Vec<(&'static str, RunWith)> {
     let q = Matrix::<6, 6>::identity() * Q_STD * Q_STD;
     let r = Matrix::<3, 3>::identity() * R_STD * R_STD;
     vec![
@@ -225,7 +228,10 @@ fn the_state_angle_branch_does_not_change_the_rmse() {
             for (name, f) in filters() {
                 let (a, b) = (f(&continuous), f(&wrapped));
                 let gap = relative_gap(&a, &b);
-                println!("{name}, θ0 = {theta0}, seed {seed}: RMSE θ {:.6e}, gap {gap:.1e}", a[4]);
+                println!(
+                    "{name}, θ0 = {theta0}, seed {seed}: RMSE θ {:.6e}, gap {gap:.1e}",
+                    a[4]
+                );
                 assert!(
                     gap < 1e-9,
                     "{name}, θ0 = {theta0}, seed {seed}: θ kept on [−π, π) changes the RMSE by {gap:e}: {a:?} vs {b:?}"
@@ -264,9 +270,12 @@ fn an_undeclared_angle_state_breaks_the_sigma_point_filters() {
     for (name, f) in filters().into_iter().skip(1) {
         let (a, b) = (f(&base), f(&broken));
         let gap = relative_gap(&a, &b);
-        println!("{name}: RMSE θ {:.3e} declared, {:.3e} undeclared", a[4], b[4]);
+        println!(
+            "{name}: RMSE θ {:.3e} declared, {:.3e} undeclared",
+            a[4], b[4]
+        );
         assert!(
-            !(gap <= 1e-3),
+            gap.is_nan() || gap > 1e-3,
             "{name}: {a:?} vs {b:?} (the comparison cannot tell)"
         );
     }

@@ -134,7 +134,11 @@ fn steps(text: &str) -> Vec<(Vector<2>, Measurement<3>)> {
 
 fn x0(text: &str) -> Vector<6> {
     let line = text.lines().find(|l| l.starts_with("x0,")).unwrap();
-    let v: Vec<f64> = line.split(',').skip(3).map(|c| c.parse().unwrap()).collect();
+    let v: Vec<f64> = line
+        .split(',')
+        .skip(3)
+        .map(|c| c.parse().unwrap())
+        .collect();
     Vector::<6>::from_column_slice(&v)
 }
 
@@ -161,13 +165,7 @@ fn ukf_matches_filterpy_to_1e_9() {
     for (ci, &(alpha, beta, kappa)) in CONFIGS.iter().enumerate() {
         let ukf =
             SigmaPointKalman::new(q(), r(), SigmaPoints::Unscented { alpha, beta, kappa }).unwrap();
-        let mut b = Filter::<6, 2, 3, PlanarP1>::init(
-            &ukf,
-            &model,
-            &x0(&text),
-            &p0(),
-            &steps[0].1,
-        );
+        let mut b = Filter::<6, 2, 3, PlanarP1>::init(&ukf, &model, &x0(&text), &p0(), &steps[0].1);
         let (mut worst, mut worst_nis) = (0.0f64, 0.0f64);
         for k in 0..n {
             let row = ci * n + k;

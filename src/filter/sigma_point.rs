@@ -249,8 +249,8 @@ impl<const M: usize, const NX: usize> Cloud<M, NX> {
     /// Σ w_{c,i} d_i d_iᵀ.
     #[inline]
     pub fn covariance(&self, w: &Weights) -> Matrix<M, M> {
-        let mut c = (self.plus * self.plus.transpose() + self.minus * self.minus.transpose())
-            * w.pair;
+        let mut c =
+            (self.plus * self.plus.transpose() + self.minus * self.minus.transpose()) * w.pair;
         if let Some((_, wc0)) = w.centre {
             c += self.centre * self.centre.transpose() * wc0;
         }
@@ -324,7 +324,11 @@ fn times_l_inverse<const R: usize, const NX: usize>(
     m: &Matrix<R, NX>,
     l: &Matrix<NX, NX>,
 ) -> Option<Matrix<R, NX>> {
-    Some(l.transpose().solve_upper_triangular(&m.transpose())?.transpose())
+    Some(
+        l.transpose()
+            .solve_upper_triangular(&m.transpose())?
+            .transpose(),
+    )
 }
 
 /// The Cholesky factor of `p`, repairing (and counting) a failed factorisation.
@@ -501,7 +505,10 @@ mod tests {
     fn unusable_parameters_are_refused() {
         let ukf = |alpha, beta, kappa| SigmaPoints::Unscented { alpha, beta, kappa }.weights(6);
         assert_eq!(ukf(0.0, 2.0, 0.0), Err(SigmaPointError::Alpha(0.0)));
-        assert!(matches!(ukf(f64::NAN, 2.0, 0.0), Err(SigmaPointError::Alpha(_))));
+        assert!(matches!(
+            ukf(f64::NAN, 2.0, 0.0),
+            Err(SigmaPointError::Alpha(_))
+        ));
         assert_eq!(ukf(1.5, 2.0, 0.0), Err(SigmaPointError::Alpha(1.5)));
         assert_eq!(ukf(1.0, -1.0, 0.0), Err(SigmaPointError::Beta(-1.0)));
         assert_eq!(
@@ -589,7 +596,10 @@ mod tests {
             );
             assert!((c.covariance(&w)[(0, 0)] - 0.04).abs() < 1e-12, "{pts:?}");
             let arithmetic = sigma_cloud(&w, &x, &l, wrapped, &[], plain);
-            assert!(wrap_angle(arithmetic.mean[0] - theta).abs() > 1.0, "{pts:?}");
+            assert!(
+                wrap_angle(arithmetic.mean[0] - theta).abs() > 1.0,
+                "{pts:?}"
+            );
         }
     }
 
@@ -627,7 +637,10 @@ mod tests {
             let k = p.column(5) / s;
             let nu = 0.25 - x[5];
             assert!((b.x - (x + k * nu)).amax() < 1e-14, "{pts:?}");
-            assert!((b.p - (p - k * k.transpose() * s)).amax() < 1e-14, "{pts:?}");
+            assert!(
+                (b.p - (p - k * k.transpose() * s)).amax() < 1e-14,
+                "{pts:?}"
+            );
             assert!((inn.nis - nu * nu / s).abs() < 1e-12);
             assert_eq!(inn.dof, 1);
             assert_eq!(inn.residual[0], 0.0);
