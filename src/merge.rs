@@ -262,6 +262,12 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
             ),
         ));
     }
+    // A sharded `kfmc simulate`: its tables concatenate, and there is nothing to fold.
+    let simulation = m0.exchange.is_some();
+    if simulation {
+        plan.filters.clear();
+        plan.rmse_thresholds = None;
+    }
     let folder = StudyFolder::open(dir, false)?;
 
     let mut finished = Vec::new();

@@ -99,6 +99,9 @@ pub struct AssertSpec {
     pub max: Option<f64>,
     /// A test name of consistency.parquet (`test_passes`).
     pub test: Option<String>,
+    /// `pass` (default) or `fail`: a negative control, whose every case must fail, so a
+    /// pipeline proves its gate catches a deliberately mistuned filter.
+    pub expect: Option<String>,
 }
 
 /// `[consistency]`

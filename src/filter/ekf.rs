@@ -134,7 +134,9 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         };
         b.i_kh = i_kh;
         check_finite(b)?;
-        Ok(Some(Innovation::new(nu, whitened, z.available)))
+        Ok(Some(
+            Innovation::new(nu, whitened, z.available).with_covariance(s),
+        ))
     }
 
     fn mean(&self, b: &Gaussian<NX>) -> Vector<NX> {

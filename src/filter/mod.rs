@@ -86,6 +86,10 @@ pub struct Innovation<const NZ: usize> {
     pub whitened: Vector<NZ>,
     /// The components that reported.
     pub available: Availability,
+    /// S, the innovation covariance (identity rows and columns where a component did not
+    /// report), when the filter forms it. Only `kfmc run --export-estimates` reads it, to
+    /// write the `S_<i>_<j>` columns that let `kfmc score` recompute the NIS and whiteness.
+    pub covariance: Option<Matrix<NZ, NZ>>,
 }
 
 impl<const NZ: usize> Innovation<NZ> {
@@ -98,7 +102,14 @@ impl<const NZ: usize> Innovation<NZ> {
             dof: available.count(),
             whitened,
             available,
+            covariance: None,
         }
+    }
+
+    /// The same innovation, also carrying its covariance S.
+    pub fn with_covariance(mut self, s: Matrix<NZ, NZ>) -> Self {
+        self.covariance = Some(s);
+        self
     }
 }
 
@@ -120,6 +131,10 @@ pub enum FilterError {
     /// The Riccati recursion did not converge: the model is not detectable with this sensor.
     #[error("the discrete algebraic Riccati equation has no steady state (not detectable)")]
     NoSteadyState,
+    /// An external filter's estimates file cannot give this step (a missing row, a null
+    /// estimate): that run's status, as numerical trouble is.
+    #[error("{0}")]
+    Estimates(String),
     /// The estimate or covariance contains NaN or ±∞.
     #[error("non-finite {what}")]
     NonFinite {

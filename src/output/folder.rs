@@ -65,6 +65,7 @@ fn is_kfmc_file(name: &str) -> bool {
         || name.starts_with("tune_")
         || name == "parts"
         || name == "slurm"
+        || name == "score"
         || name == "tuning.parquet"
         || (name.starts_with('.') && name.ends_with(".partial"))
         || schema::TABLES

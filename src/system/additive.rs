@@ -33,7 +33,7 @@ use crate::sim::seed::run_seed;
 use crate::sim::{NoiseDraws, TruthNoise, simulate};
 use crate::trial::{
     ConsistencyOptions, FilterOutput, Identity, Prior, RunContext, RunTrace, Trial, Unit,
-    UnitResult, run_filter,
+    UnitResult, lower_triangle, run_filter,
 };
 
 /// The filter's assumed noise for one cell: Q and R after every scale is applied.
@@ -211,8 +211,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
         // would be silently ignored: the kinds refuse it.
         let full_q = model.process_noise_covariance().is_some();
         let mut out = Vec::new();
-        for (i, f) in filters.iter().enumerate() {
-            let key = format!("filters[{i}]");
+        for f in filters {
+            let key = f.key.clone();
             let Some(kind) = self.get(&f.kind) else {
                 let msg = unknown(&f.kind).unwrap_or_else(|| {
                     format!(
@@ -943,45 +943,37 @@ where
             thresholds: plan.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,
+            export: plan.export_estimates,
             consistency: ConsistencyOptions::of(plan),
+            unit: *unit,
         };
+        let keep = traced || plan.export_estimates;
+        let mut trace = keep.then(|| {
+            let mut t = RunTrace::of_world(
+                &scenario.controls,
+                &trajectory.truth,
+                &trajectory.measurements,
+                Vec::new(),
+            );
+            t.initial = Some((trajectory.x0_hat.as_slice().to_vec(), lower_triangle(&p0)));
+            t
+        });
         let mut filters = Vec::with_capacity(plan.filters.len());
-        let mut est = Vec::new();
-        let mut cov = Vec::new();
         for (fi, f) in plan.filters.iter().enumerate() {
-            let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
-            let filter = slot.get_or_init(|| {
-                sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, filter_scale))
-            });
-            let out = filter.run(&sys.model, &prior, &ctx);
-            if let Some((e, c)) = out.trace {
-                est.push(e);
-                cov.push(c);
+            let mut out = if f.external {
+                crate::score::replay(plan, fi, &sys.model, &ctx)
+            } else {
+                let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
+                let filter = slot.get_or_init(|| {
+                    sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, filter_scale))
+                });
+                filter.run(&sys.model, &prior, &ctx)
+            };
+            if let Some(t) = trace.as_mut() {
+                t.push_filter(&mut out, NX);
             }
             filters.push(out.run);
         }
-        let trace = traced.then(|| RunTrace {
-            u: scenario
-                .controls
-                .iter()
-                .flat_map(|u| u.iter().copied())
-                .collect(),
-            truth: trajectory
-                .truth
-                .iter()
-                .flat_map(|x| x.iter().copied())
-                .collect(),
-            z: trajectory
-                .measurements
-                .iter()
-                .flat_map(|m| {
-                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
-                })
-                .collect(),
-            world: Vec::new(),
-            est,
-            cov,
-        });
         UnitResult {
             unit: *unit,
             seed,
