@@ -422,7 +422,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         }
         // P_xzᵀ = Σ w_c e_i (χ_i − x̂⁻)ᵀ = (H̃ L⁻) L⁻ᵀ, since χ_{j±} − x̂⁻ = ±c L⁻ e_j.
         let pxz_t = h_l * l.transpose();
-        let chol = SmallCholesky::new(&(pzz + r)).ok_or(FilterError::NotPositiveDefinite {
+        let s = pzz + r;
+        let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
             which: "innovation covariance S",
         })?;
         let k = chol.solve(&pxz_t).transpose();
@@ -432,7 +433,9 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         b.p = symmetrize(&(b.p - k * pxz_t));
         b.gain = Some((k, h_l, l));
         check_finite(&b.x, &b.p)?;
-        Ok(Some(Innovation::new(nu, whitened, z.available)))
+        Ok(Some(
+            Innovation::new(nu, whitened, z.available).with_covariance(s),
+        ))
     }
 
     fn mean(&self, b: &SigmaBelief<NX, NZ>) -> Vector<NX> {
