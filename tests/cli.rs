@@ -206,6 +206,8 @@ fn list_names_the_models_scenarios_and_filters() {
         "ekf",
         "running_mean",
         "open_loop",
+        "ukf",
+        "ckf",
         "pole_placement",
         "batch_ls",
     ] {
