@@ -14,7 +14,8 @@
 //! θ measurement, wrapped residuals for both; a partial measurement is an update with the
 //! reporting rows of h and R. It writes `tests/golden/filterpy_ukf_p1.csv` (x̂_k, P_k and the
 //! NIS per step). The test replays the same steps through kfmc's `SigmaPointKalman` and
-//! requires agreement to 1e-9.
+//! requires agreement to 1e-9. Where FilterPy is installed (CI), a second test reruns the
+//! script into a scratch file and requires the committed golden to match it to 1e-12.
 
 mod common;
 
@@ -140,6 +141,51 @@ fn x0(text: &str) -> Vector<6> {
         .map(|c| c.parse().unwrap())
         .collect();
     Vector::<6>::from_column_slice(&v)
+}
+
+#[test]
+fn the_committed_golden_is_what_filterpy_computes() {
+    // CI installs FilterPy (`.ci/run` sets KFMC_REQUIRE_INTEROP); elsewhere this skips.
+    let has = std::process::Command::new("python3")
+        .args(["-c", "import filterpy, numpy"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !has {
+        assert!(
+            std::env::var("KFMC_REQUIRE_INTEROP").is_err(),
+            "KFMC_REQUIRE_INTEROP is set but filterpy or numpy is missing"
+        );
+        println!("skipped: filterpy not installed");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let fresh = tmp.path().join("filterpy_ukf_p1.csv");
+    let o = std::process::Command::new("python3")
+        .arg(repo().join("tests/reference/filterpy_ukf_p1.py"))
+        .arg(&fresh)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (a, b) = (
+        Csv::read(&repo().join("tests/golden/filterpy_ukf_p1.csv")),
+        Csv::read(&fresh),
+    );
+    assert_eq!(a.header, b.header);
+    assert_eq!(a.rows.len(), b.rows.len());
+    let mut worst = 0.0f64;
+    for (ra, rb) in a.rows.iter().zip(&b.rows) {
+        for (x, y) in ra.iter().zip(rb) {
+            let (x, y): (f64, f64) = (x.parse().unwrap(), y.parse().unwrap());
+            if !(x.is_nan() && y.is_nan()) {
+                worst = worst.max((x - y).abs() / x.abs().max(1.0));
+            }
+        }
+    }
+    // numpy's and the machine's libm may round differently: agreement, not identity.
+    assert!(
+        worst <= 1e-12,
+        "FilterPy now gives {worst:e} away from the golden"
+    );
 }
 
 #[test]

@@ -14,11 +14,15 @@ and their residuals are wrapped to [−π, π) as MATLAB's mod(d + π, 2π) − 
 only some components report is an update with those rows of h and R.
 
     pip install filterpy numpy
-    python3 tests/reference/filterpy_ukf_p1.py
+    python3 tests/reference/filterpy_ukf_p1.py [OUTPUT]
+
+OUTPUT defaults to the golden file; tests/filterpy_ukf.rs passes a scratch path to check that
+the committed golden is still what FilterPy computes.
 """
 
 import math
 import os
+import sys
 
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
@@ -128,7 +132,8 @@ def main():
         + [f"p{i}{j}" for i in range(6) for j in range(6)]
         + ["nis"]
     )
-    with open(os.path.join(GOLDEN, "filterpy_ukf_p1.csv"), "w") as f:
+    out = sys.argv[1] if len(sys.argv) > 1 else os.path.join(GOLDEN, "filterpy_ukf_p1.csv")
+    with open(out, "w") as f:
         f.write(",".join(header) + "\n")
         for r in rows:
             f.write(",".join([str(r[0]), str(r[1])] + [repr(float(v)) for v in r[2:]]) + "\n")
