@@ -493,6 +493,7 @@ where
         values.nis[k] = nis;
         values.completed = k + 1;
     }
+    repairs += filter.internal_repairs(&belief);
     let nees0 = values.nees[0];
     let mut run = values.finish(failure, ctx.thresholds, ctx.quantity_names, repairs);
     run.consistency = match (after_burn_in, from_start) {

@@ -5,6 +5,8 @@
 //!   the run's tables byte for byte (runs, steps, summary, divergence); the consistency table
 //!   agrees to 1e-12 relative, because the exchange carries P's lower triangle only and the
 //!   seeds' P = (I − KH)P⁻ is not exactly symmetric (ρ's recursion sees the difference).
+//!   The UKF and CKF (kfmc's sigma-point filters, with S and their statistical-linearisation
+//!   A_k) round-trip the same way on L1.
 //! * Bad files are refused naming the file, the column and the first offending key; trouble in
 //!   a row becomes that run's status and the batch completes.
 //! * FilterPy's KalmanFilter (examples/python/filterpy_estimates.py) equals kfmc's KF, and a
@@ -71,11 +73,16 @@ fn ok(cmd: &mut std::process::Command) -> std::process::Output {
 /// Runs kfmc's KF with its estimates exported, keeps the KF's rows as an external filter's
 /// file, and simulates the spec in which `kf` is external.
 fn study() -> Study {
+    study_of("ekf")
+}
+
+/// [`study`] with the `kf` entry of another kind.
+fn study_of(kind: &str) -> Study {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().to_path_buf();
     let run_spec = dir.join("run.toml");
     let ext_spec = dir.join("ext.toml");
-    fs::write(&run_spec, RUN_SPEC.replace("KIND", "ekf")).unwrap();
+    fs::write(&run_spec, RUN_SPEC.replace("KIND", kind)).unwrap();
     fs::write(&ext_spec, RUN_SPEC.replace("KIND", "external")).unwrap();
     ok(kfmc()
         .args(["run", "-q", "--export-estimates", "--out"])
@@ -121,10 +128,9 @@ fn score(s: &Study, files: &[&Path], out: &str) -> std::process::Output {
     c.output().unwrap()
 }
 
-#[test]
-fn exported_kf_scored_as_external_gives_the_run_tables() {
-    let s = study();
-    let o = score(&s, &[&s.dir.join("kf.parquet")], "score");
+/// Scores the exported `kf` rows and checks that the tables equal the run's.
+fn scored_equals_run(s: &Study) {
+    let o = score(s, &[&s.dir.join("kf.parquet")], "score");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for t in ["runs", "steps", "summary", "divergence", "divergence_runs"] {
         let a = fs::read(s.dir.join(format!("run/{t}.parquet"))).unwrap();
@@ -157,6 +163,12 @@ fn exported_kf_scored_as_external_gives_the_run_tables() {
             "{c} differs"
         );
     }
+}
+
+#[test]
+fn exported_kf_scored_as_external_gives_the_run_tables() {
+    let s = study();
+    scored_equals_run(&s);
     let truth = read(&s.dir.join("sim/truth.parquet"));
     assert_eq!(truth.height(), 12 * 2 * (51 + 31));
 
@@ -174,6 +186,15 @@ fn exported_kf_scored_as_external_gives_the_run_tables() {
         let a = fs::read(s.dir.join(format!("sim/{t}.parquet"))).unwrap();
         let b = fs::read(sharded.join(format!("{t}.parquet"))).unwrap();
         assert!(a == b, "{t}.parquet of the merged shards differs");
+    }
+}
+
+#[test]
+fn exported_sigma_point_filters_scored_as_external_give_the_run_tables() {
+    // The exchange carries the UKF's and CKF's S and statistical-linearisation A_k, so their
+    // NIS, whiteness and calibrated NEES verdict survive the round trip.
+    for kind in ["ukf", "ckf"] {
+        scored_equals_run(&study_of(kind));
     }
 }
 

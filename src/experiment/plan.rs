@@ -679,7 +679,7 @@ pub fn validate(
             system_index.push(None);
             for k in f.keys.keys() {
                 c.err(
-                    format!("filters[{i}].{k}"),
+                    format!("filters[{i}].{}", super::checker::path_key(k)),
                     "an external filter has no keys besides label and kind (its settings are its own)",
                 );
             }

@@ -11,10 +11,11 @@ pub mod ekf;
 pub mod information;
 pub mod luenberger;
 pub mod open_loop;
+pub mod sigma_point;
 pub mod sqrt;
 pub mod steady_state;
 
-use crate::linalg::{Matrix, Vector};
+use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
 use crate::model::{Availability, Measurement, Model};
 
 pub use batch_ls::{BatchInitial, BatchLsError};
@@ -24,6 +25,7 @@ pub use luenberger::{
     Luenberger, PlacementError, SeedPoleReading, place_observer_poles, seed_poles,
 };
 pub use open_loop::OpenLoop;
+pub use sigma_point::{SigmaPointKalman, SigmaPoints};
 pub use sqrt::SquareRoot;
 pub use steady_state::SteadyState;
 
@@ -193,4 +195,30 @@ pub trait Filter<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX,
     fn repair_covariance(&self, _belief: &mut Self::Belief) -> bool {
         false
     }
+
+    /// Repairs the filter made inside its own steps so far: a sigma-point filter factors its
+    /// predicted covariance to draw points and repairs it as [`repair_spd`] does. They are
+    /// counted per run with those of [`Filter::repair_covariance`].
+    fn internal_repairs(&self, _belief: &Self::Belief) -> u32 {
+        0
+    }
+}
+
+/// The covariance repair every filter shares: symmetrise, then add the smallest jitter
+/// (10⁻¹², 10⁻¹⁰, … 10² times the mean variance) that makes the matrix factorable. Returns the
+/// factor, or `None` (and leaves `p` alone) when no jitter helps.
+pub fn repair_spd<const NX: usize>(p: &mut Matrix<NX, NX>) -> Option<SmallCholesky<NX>> {
+    let sym = symmetrize(p);
+    // Jitter relative to the covariance's own scale, so units do not matter.
+    let scale = (sym.trace() / NX as f64).abs().max(f64::MIN_POSITIVE);
+    let mut jitter = 1e-12 * scale;
+    for _ in 0..8 {
+        let candidate = sym + Matrix::<NX, NX>::identity() * jitter;
+        if let Some(chol) = SmallCholesky::new(&candidate) {
+            *p = candidate;
+            return Some(chol);
+        }
+        jitter *= 100.0;
+    }
+    None
 }
