@@ -602,20 +602,29 @@ pub(crate) fn divergence_tables(
             for (i, state) in states.iter().enumerate() {
                 // Runs that never crossed are censored beyond the largest scale: +∞ in the
                 // ordering, so a quantile that needs them is unknown (null), not invented.
-                let mut per_run: Vec<f64> = (0..plan.runs)
-                    .map(|r| scale_of(tracker.run_crossing(r, i)).unwrap_or(f64::INFINITY))
+                // robustness.m records the largest multiplier tried for a state that never
+                // crossed; by default such a run is censored instead.
+                let never = if plan.never_crossed_largest {
+                    max_scale.unwrap_or(f64::INFINITY)
+                } else {
+                    f64::INFINITY
+                };
+                let crossing: Vec<Option<f64>> = (0..plan.runs)
+                    .map(|r| scale_of(tracker.run_crossing(r, i)))
                     .collect();
+                let mut per_run: Vec<f64> = crossing.iter().map(|c| c.unwrap_or(never)).collect();
                 for (r, v) in per_run.iter().enumerate() {
                     let mut row = key.to_vec();
                     row.extend([
                         Value::I64(Some(r as i64)),
                         Value::Str(state),
                         Value::F64(v.is_finite().then_some(*v)),
+                        Value::Bool(Some(crossing[r].is_none())),
                     ]);
                     dr.push(&row)?;
                 }
                 per_run.sort_by(f64::total_cmp);
-                let diverged = per_run.iter().filter(|v| v.is_finite()).count();
+                let diverged = crossing.iter().filter(|c| c.is_some()).count();
                 let mut row = key.to_vec();
                 row.extend([
                     Value::Str(state),

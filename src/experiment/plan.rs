@@ -168,6 +168,23 @@ pub struct Plan {
     /// The estimates of the external filters, once read (`kfmc score`, `kfmc check
     /// --estimates`).
     pub estimates: Option<Arc<crate::score::EstimateSet>>,
+    /// How the runs' random numbers relate across noise multipliers (`noise.draws`).
+    pub draws: Draws,
+    /// Whether a run that never crosses its divergence threshold records the largest
+    /// multiplier (`divergence.never_crossed = "largest_scale"`) instead of null.
+    pub never_crossed_largest: bool,
+}
+
+/// How a run's random numbers relate across the noise multipliers (`[noise] draws`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Draws {
+    /// A run sees the same standard normals at every multiplier (common random numbers):
+    /// smooth, paired curves, and a run's divergence point is where its own errors, scaled,
+    /// cross the threshold.
+    Common,
+    /// Every (run, multiplier) has its own streams, as `robustness.m` draws fresh noise at
+    /// each multiplier: a run's first crossing is the first of many independent chances.
+    Fresh,
 }
 
 /// Documented caps on a plan. Beyond them a spec is refused before anything runs (the
@@ -265,6 +282,18 @@ pub struct PlanSize {
 }
 
 impl Plan {
+    /// The seed of run `run` of scenario `scenario` at noise multiplier index `scale`: every
+    /// random stream of that run derives from it.
+    pub fn run_seed(&self, scenario: &str, scale: usize, run: usize) -> u64 {
+        let common = crate::sim::seed::run_seed(self.master_seed, scenario, run as u64);
+        match self.draws {
+            Draws::Common => common,
+            Draws::Fresh => crate::sim::seed::mix64(
+                common ^ crate::sim::seed::mix64(0x6672_6573_6800_0000 ^ scale as u64),
+            ),
+        }
+    }
+
     /// The system's names and Δt.
     pub fn layout(&self) -> &Layout {
         self.system.layout()
@@ -815,6 +844,25 @@ pub fn validate(
     } else {
         FilterNoiseMode::Nominal
     };
+    let draws = if c.choice(
+        "noise.draws",
+        noise.and_then(|n| n.draws.as_deref()),
+        "common",
+        &["common", "fresh"],
+    ) == "fresh"
+    {
+        Draws::Fresh
+    } else {
+        Draws::Common
+    };
+    let never_crossed_largest = c.choice(
+        "divergence.never_crossed",
+        spec.divergence
+            .as_deref()
+            .and_then(|d| d.never_crossed.as_deref()),
+        "null",
+        &["null", "largest_scale"],
+    ) == "largest_scale";
 
     let states: Vec<String> = configured
         .as_ref()
@@ -1193,6 +1241,8 @@ pub fn validate(
         assertions,
         export_estimates: false,
         estimates: None,
+        draws,
+        never_crossed_largest,
     })
 }
 

@@ -187,6 +187,9 @@ pub fn divergence_runs() -> Vec<ColumnDef> {
         col("run", Dtype::I64),
         col("state", Dtype::Str),
         col("divergence_scale", Dtype::F64),
+        // The run never crossed at any multiplier tried (its divergence_scale is null, or the
+        // largest multiplier with `divergence.never_crossed = "largest_scale"`).
+        col("never_crossed", Dtype::Bool),
     ]);
     c
 }

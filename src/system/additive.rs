@@ -29,7 +29,6 @@ use crate::filter::{
 use crate::linalg::{Matrix, Vector, diag_from_std};
 use crate::model::Model;
 use crate::scenario::Scenario;
-use crate::sim::seed::run_seed;
 use crate::sim::{NoiseDraws, TruthNoise, simulate};
 use crate::trial::{
     ConsistencyOptions, FilterOutput, Identity, Prior, RunContext, RunTrace, Trial, Unit,
@@ -908,7 +907,7 @@ where
         let si = plan.scenarios[unit.scenario].index;
         let scenario = &sys.scenarios[si];
         let noise_scale = plan.noise_scales[unit.scale];
-        let seed = run_seed(plan.master_seed, &scenario.name, unit.run as u64);
+        let seed = plan.run_seed(&scenario.name, unit.scale, unit.run);
         let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
         let mut trajectory = simulate(
             &sys.model,

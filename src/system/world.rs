@@ -20,7 +20,6 @@ use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
 use crate::experiment::{FilterNoiseMode, Plan};
 use crate::linalg::Vector;
 use crate::model::Measurement;
-use crate::sim::seed::run_seed;
 use crate::trial::{
     ConsistencyOptions, FilterOutput, RunContext, RunTrace, Trial, Unit, UnitResult,
 };
@@ -176,7 +175,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
         let si = plan.scenarios[unit.scenario].index;
         let name = &self.sys.scenario_info[si].name;
         let noise_scale = plan.noise_scales[unit.scale];
-        let seed = run_seed(plan.master_seed, name, unit.run as u64);
+        let seed = plan.run_seed(name, unit.scale, unit.run);
         let real = self.sys.world.simulate(si, noise_scale, seed);
         let traced = unit.run < plan.trace_runs;
         let ctx = RunContext {
