@@ -1,10 +1,12 @@
 //! Measures the false-alarm rate and the power of kfmc's consistency verdict.
 //!
 //! ```text
-//! cargo run --release --example calibration [-- SEEDS STEPS]
+//! cargo run --release --example calibration [-- SEEDS STEPS [KIND]]
 //! ```
 //!
-//! For each of SEEDS independent master seeds (default 200), the planar EKF runs N = 200
+//! For each of SEEDS independent master seeds (default 200), the planar filter of kind KIND
+//! (default `ekf`; `ukf` and `ckf` test the sigma-point filters' statistical linearisation A_k,
+//! which the calibrated NEES test uses) runs N = 200
 //! Monte Carlo runs of the `basic` scenario (STEPS steps, default 300) with matched noise and
 //! a sampled initial error: a correctly tuned filter. The filter's Q is also mistuned by
 //! q_scale ∈ {0.5, 0.8, 1.25, 2, 10, 2500}. The verdict is evaluated on the first N = 50, 100
@@ -21,7 +23,7 @@ use std::path::Path;
 const Q_SCALES: [f64; 7] = [1.0, 0.5, 0.8, 1.25, 2.0, 10.0, 2500.0];
 const NS: [usize; 3] = [50, 100, 200];
 
-fn spec(seed: u64, steps: usize) -> String {
+fn spec(seed: u64, steps: usize, kind: &str) -> String {
     format!(
         r#"
 master_seed = {seed}
@@ -32,8 +34,8 @@ kind = "planar_quadrotor"
 name = "basic"
 duration_s = {duration}
 [[filters]]
-label = "ekf"
-kind = "ekf"
+label = "{kind}"
+kind = "{kind}"
 q_scale = {q:?}
 [noise]
 filter_noise = "matched"
@@ -56,13 +58,17 @@ fn main() {
         .collect();
     let seeds = args.first().copied().unwrap_or(200);
     let steps = args.get(1).copied().unwrap_or(300);
+    let kind = std::env::args()
+        .skip(1)
+        .find(|a| a.parse::<usize>().is_err())
+        .unwrap_or_else(|| "ekf".to_string());
     let alpha = 0.05;
     let started = std::time::Instant::now();
     // rejections[q][n] over seeds, and the NEES/NIS tests' own rejections at q = 1.
     let per_seed: Vec<(Vec<Vec<bool>>, [bool; 2])> = (1..=seeds as u64)
         .into_par_iter()
         .map(|seed| {
-            let plan = experiment::parse(&spec(seed, steps), Path::new("calibration.toml"))
+            let plan = experiment::parse(&spec(seed, steps, &kind), Path::new("calibration.toml"))
                 .expect("valid spec");
             let trial = build(&plan);
             let runs: Vec<_> = (0..plan.runs)
@@ -109,7 +115,7 @@ fn main() {
     };
     let tol = 3.0 * (alpha * (1.0 - alpha) / seeds as f64).sqrt();
     println!(
-        "Verdict rejection rate over {seeds} master seeds, planar EKF, {steps} steps, α = {alpha}"
+        "Verdict rejection rate over {seeds} master seeds, planar {kind}, {steps} steps, α = {alpha}"
     );
     println!("(q_scale = 1 is the false-alarm rate; binomial 3σ tolerance around α: ±{tol:.3})\n");
     print!("{:>10}", "q_scale");

@@ -231,6 +231,18 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                 detail: "no table row matches this assertion (does the filter carry a covariance?)"
                     .into(),
             });
+        } else if a.expect_fail() {
+            // A negative control holds when the gate it stands for rejects: its case passes
+            // exactly when the assertion's own case fails.
+            for case in &mut out[before..] {
+                case.name = format!("negative_control:{}", case.name);
+                case.detail = format!(
+                    "expected to fail, and it {}: {}",
+                    if case.pass { "passed" } else { "failed" },
+                    case.detail
+                );
+                case.pass = !case.pass;
+            }
         }
     }
     Ok(out)

@@ -20,7 +20,7 @@ use crate::metrics::divergence::DivergenceTracker;
 use crate::output::folder::{StudyFolder, verify};
 use crate::output::manifest::Manifest;
 use crate::output::schema;
-use crate::output::table::{TableWriter, columns_of, read};
+use crate::output::table::{TableWriter, columns_of, for_each_row_group, read};
 use crate::study::{Shard, divergence_tables};
 use crate::system::Registry;
 
@@ -262,6 +262,12 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
             ),
         ));
     }
+    // A sharded `kfmc simulate`: its tables concatenate, and there is nothing to fold.
+    let simulation = m0.exchange.is_some();
+    if simulation {
+        plan.filters.clear();
+        plan.rmse_thresholds = None;
+    }
     let folder = StudyFolder::open(dir, false)?;
 
     let mut finished = Vec::new();
@@ -276,12 +282,14 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         }
         let mut writer: Option<TableWriter> = None;
         for f in &files {
-            let df = read(f)?;
-            let w = match writer.as_mut() {
-                Some(w) => w,
-                None => writer.insert(TableWriter::create(dir, name, columns_of(&df, f)?)?),
-            };
-            w.append_frame(&df, f)?;
+            // Row group by row group: memory does not grow with the parts' sizes.
+            for_each_row_group(f, |df| {
+                let w = match writer.as_mut() {
+                    Some(w) => w,
+                    None => writer.insert(TableWriter::create(dir, name, columns_of(&df, f)?)?),
+                };
+                w.append_frame(&df, f)
+            })?;
         }
         finished.push(writer.expect("at least one part").finish()?);
     }

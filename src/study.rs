@@ -98,6 +98,8 @@ struct Aggregator<'a> {
     steps: TableWriter,
     summary: TableWriter,
     traces: Option<TableWriter>,
+    /// `estimates.parquet` (`--export-estimates`): every run in the exchange format.
+    estimates: Option<TableWriter>,
     consistency: Option<TableWriter>,
     sensors: Option<TableWriter>,
     bands: BandCache,
@@ -177,7 +179,10 @@ impl Aggregator<'_> {
                 self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr);
             }
         }
-        if let (Some(tr), Some(w)) = (&r.trace, self.traces.as_mut()) {
+        if let (Some(tr), Some(w)) = (&r.trace, self.estimates.as_mut()) {
+            write_estimates(w, plan, sname, noise, run, tr, nx)?;
+        }
+        if let (Some(tr), Some(w), true) = (&r.trace, self.traces.as_mut(), run < plan.trace_runs) {
             let layout = self.trial.layout();
             let (nu, nz) = (layout.inputs.len(), layout.measurements.len());
             let nw = layout.world_states.len();
@@ -356,6 +361,38 @@ pub fn run(
     opts: &ExecOptions,
     observer: &dyn RunObserver,
 ) -> Result<StudyReport, KfmcError> {
+    if let Some(f) = plan.filters.iter().find(|f| f.external)
+        && plan.estimates.is_none()
+    {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "filters".into(),
+                message: format!(
+                    "`{}` is an external filter: its estimates come from a file. Run `kfmc simulate`, estimate from its tables, then `kfmc score DIR --estimates FILE` (or `kfmc check SPEC --estimates FILE`)",
+                    f.label
+                ),
+            },
+        ])));
+    }
+    if plan.export_estimates
+        && let Some(f) = plan
+            .filters
+            .iter()
+            .enumerate()
+            .find(|(i, f)| plan.filters[..*i].iter().any(|g| g.label == f.label))
+    {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "filters".into(),
+                message: format!(
+                    "--export-estimates needs one variant per label, but `{}` has several q_scale/r_scale variants (the estimates format keys a filter by its label alone)",
+                    f.1.label
+                ),
+            },
+        ])));
+    }
     let started = Instant::now();
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -403,6 +440,15 @@ pub fn run(
         } else {
             Some(TableWriter::create(dir, "sensors", schema::sensors())?)
         },
+        estimates: if plan.export_estimates {
+            Some(TableWriter::create(
+                dir,
+                "estimates",
+                crate::score::estimate_columns(&states, &layout.measurement_names()),
+            )?)
+        } else {
+            None
+        },
         bands: BandCache::new(plan.alpha),
         divergence: vec![
             DivergenceTracker::new(plan.runs, states.len());
@@ -440,6 +486,7 @@ pub fn run(
         steps,
         summary,
         traces,
+        estimates,
         consistency,
         sensors,
         ..
@@ -448,19 +495,40 @@ pub fn run(
     written.extend(sensors);
     written.extend(consistency);
     written.extend(traces);
+    written.extend(estimates);
 
     let finished = written
         .into_iter()
         .map(TableWriter::finish)
         .collect::<Result<Vec<_>, _>>()?;
     let wall_s = started.elapsed().as_secs_f64();
+    let manifest = manifest_for(plan, opts, started_unix_s, wall_s, cells.clone());
+    let tables = folder.commit(finished, manifest)?;
+    let done = ((cells.end - cells.start) * n_runs) as u64;
+    Ok(StudyReport {
+        output: dir.clone(),
+        tables,
+        wall_s,
+        runs: done,
+    })
+}
+
+/// The manifest of a study (or a part, or a simulation) of `plan` over `cells`; the commit
+/// fills in its tables.
+pub(crate) fn manifest_for(
+    plan: &Plan,
+    opts: &ExecOptions,
+    started_unix_s: u64,
+    wall_s: f64,
+    cells: std::ops::Range<usize>,
+) -> Manifest {
     let size = plan.size();
     let threads = if opts.threads == 0 {
         crate::runner::default_threads()
     } else {
         opts.threads
     };
-    let manifest = Manifest {
+    Manifest {
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
         experiment: plan.name.clone(),
         system: plan.kind.clone(),
@@ -491,6 +559,7 @@ pub fn run(
         runs_per_s: size.runs as f64 / wall_s.max(1e-9),
         // Filled in by the commit, with each table's size and checksum.
         tables: Vec::new(),
+        exchange: None,
         shard: opts.shard.map(|s| crate::output::manifest::ShardEntry {
             index: s.index as u64,
             count: s.count as u64,
@@ -498,15 +567,45 @@ pub fn run(
             end_cell: cells.end as u64,
         }),
         spec: plan.spec_text.clone(),
-    };
-    let tables = folder.commit(finished, manifest)?;
-    let done = ((cells.end - cells.start) * n_runs) as u64;
-    Ok(StudyReport {
-        output: dir.clone(),
-        tables,
-        wall_s,
-        runs: done,
-    })
+    }
+}
+
+/// Writes one run's rows of `estimates.parquet`: every kfmc filter (external ones are what
+/// is being scored, not exported), in the exchange format of [`crate::score`].
+fn write_estimates(
+    w: &mut TableWriter,
+    plan: &Plan,
+    scenario: &str,
+    noise: f64,
+    run: usize,
+    tr: &crate::trial::RunTrace,
+    nq: usize,
+) -> Result<(), OutputError> {
+    let ntri = nq * (nq + 1) / 2;
+    let nz = plan.layout().measurements.len();
+    let ztri = nz * (nz + 1) / 2;
+    let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+    for (fi, f) in plan.filters.iter().enumerate() {
+        let Some(Some(x)) = tr.export.get(fi) else {
+            continue;
+        };
+        for k in 0..tr.truth.len() / nq {
+            let mut row = vec![
+                Value::Str(scenario),
+                Value::F64(Some(noise)),
+                Value::I64(Some(run as i64)),
+                Value::I64(Some(k as i64)),
+                Value::Str(&f.label),
+            ];
+            row.extend(f64s(&tr.est[fi][k * nq..(k + 1) * nq]));
+            row.extend(f64s(&tr.cov[fi][k * ntri..(k + 1) * ntri]));
+            row.extend(f64s(&x.nu[k * nz..(k + 1) * nz]));
+            row.extend(f64s(&x.s[k * ztri..(k + 1) * ztri]));
+            row.extend(f64s(&x.a[k * nq * nq..(k + 1) * nq * nq]));
+            w.push(&row)?;
+        }
+    }
+    Ok(())
 }
 
 /// The divergence tables from the trackers of every (scenario, filter variant); shared with
@@ -535,20 +634,29 @@ pub(crate) fn divergence_tables(
             for (i, state) in states.iter().enumerate() {
                 // Runs that never crossed are censored beyond the largest scale: +∞ in the
                 // ordering, so a quantile that needs them is unknown (null), not invented.
-                let mut per_run: Vec<f64> = (0..plan.runs)
-                    .map(|r| scale_of(tracker.run_crossing(r, i)).unwrap_or(f64::INFINITY))
+                // robustness.m records the largest multiplier tried for a state that never
+                // crossed; by default such a run is censored instead.
+                let never = if plan.never_crossed_largest {
+                    max_scale.unwrap_or(f64::INFINITY)
+                } else {
+                    f64::INFINITY
+                };
+                let crossing: Vec<Option<f64>> = (0..plan.runs)
+                    .map(|r| scale_of(tracker.run_crossing(r, i)))
                     .collect();
+                let mut per_run: Vec<f64> = crossing.iter().map(|c| c.unwrap_or(never)).collect();
                 for (r, v) in per_run.iter().enumerate() {
                     let mut row = key.to_vec();
                     row.extend([
                         Value::I64(Some(r as i64)),
                         Value::Str(state),
                         Value::F64(v.is_finite().then_some(*v)),
+                        Value::Bool(Some(crossing[r].is_none())),
                     ]);
                     dr.push(&row)?;
                 }
                 per_run.sort_by(f64::total_cmp);
-                let diverged = per_run.iter().filter(|v| v.is_finite()).count();
+                let diverged = crossing.iter().filter(|c| c.is_some()).count();
                 let mut row = key.to_vec();
                 row.extend([
                     Value::Str(state),

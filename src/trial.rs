@@ -39,6 +39,74 @@ pub struct RunTrace {
     /// Per filter: the lower triangle of the quantities' covariance, row by row
     /// ((0,0), (1,0), (1,1), (2,0), …), `nq(nq+1)/2` per step (NaN without a covariance).
     pub cov: Vec<Vec<f64>>,
+    /// Per filter, when the plan exports estimates: what `estimates.parquet` adds to the
+    /// estimate and covariance (empty otherwise).
+    pub export: Vec<Option<ExportTrace>>,
+    /// The prior every filter of the run starts from, x̂_0 and the lower triangle of P_0,
+    /// when the system forms one prior for all of them (`initial.parquet`).
+    pub initial: Option<(Vec<f64>, Vec<f64>)>,
+}
+
+impl RunTrace {
+    /// The world's part of a trace (inputs, truth, measurements with NaN where a component
+    /// did not report, and the world's own states); the filters' parts are pushed after.
+    pub fn of_world<const NQ: usize, const NU: usize, const NZ: usize>(
+        inputs: &[Vector<NU>],
+        truth: &[Vector<NQ>],
+        measurements: &[Measurement<NZ>],
+        world: Vec<f64>,
+    ) -> Self {
+        RunTrace {
+            u: inputs.iter().flat_map(|u| u.iter().copied()).collect(),
+            truth: truth.iter().flat_map(|x| x.iter().copied()).collect(),
+            z: measurements
+                .iter()
+                .flat_map(|m| {
+                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
+                })
+                .collect(),
+            world,
+            est: Vec::new(),
+            cov: Vec::new(),
+            export: Vec::new(),
+            initial: None,
+        }
+    }
+
+    /// Adds one filter's output (a filter that kept no trajectory adds NaN rows, so every
+    /// filter has its columns).
+    pub fn push_filter(&mut self, out: &mut FilterOutput, nq: usize) {
+        let samples = self.truth.len() / nq.max(1);
+        let (e, c) = out.trace.take().unwrap_or_else(|| {
+            (
+                vec![f64::NAN; samples * nq],
+                vec![f64::NAN; samples * nq * (nq + 1) / 2],
+            )
+        });
+        self.est.push(e);
+        self.cov.push(c);
+        self.export.push(out.export.take());
+    }
+}
+
+/// The lower triangle of a symmetric matrix, row by row ((0,0), (1,0), (1,1), …).
+pub fn lower_triangle<const N: usize>(m: &Matrix<N, N>) -> Vec<f64> {
+    (0..N)
+        .flat_map(|i| (0..=i).map(move |j| m[(i, j)]))
+        .collect()
+}
+
+/// What an exported run adds to the estimates, per step, flattened row-major: ν, the lower
+/// triangle of S (both NaN where a component did not report, and at step 0) and the error
+/// transition A_k in quantity space, row-major (NaN when the filter has none).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExportTrace {
+    /// ν_k, `nz` per step.
+    pub nu: Vec<f64>,
+    /// The lower triangle of S_k, `nz(nz+1)/2` per step.
+    pub s: Vec<f64>,
+    /// A_k, `nq²` per step.
+    pub a: Vec<f64>,
 }
 
 /// What one unit produces.
@@ -264,8 +332,13 @@ pub struct RunContext<'a, const NQ: usize, const NU: usize, const NZ: usize> {
     pub quantity_names: &'a [&'a str],
     /// Whether to keep the estimate trajectory.
     pub trace: bool,
+    /// Whether to keep what `estimates.parquet` needs beyond the trajectory (ν, S, A); implies
+    /// `trace`.
+    pub export: bool,
     /// Consistency sums to compute, if any.
     pub consistency: Option<ConsistencyOptions>,
+    /// The unit being run (external estimates are looked up by it).
+    pub unit: Unit,
 }
 
 /// One filter's run: the record, and the trajectories when traced.
@@ -275,6 +348,8 @@ pub struct FilterOutput {
     /// The estimated quantities and their covariance's lower triangle when traced (see
     /// [`RunTrace`]).
     pub trace: Option<(Vec<f64>, Vec<f64>)>,
+    /// ν, S and A when the run is exported.
+    pub export: Option<ExportTrace>,
 }
 
 /// The monomorphised step loop: predict, update, and per-step metrics on the quantities that
@@ -294,8 +369,15 @@ where
     let steps = ctx.truth.len() - 1;
     let ntri = NQ * (NQ + 1) / 2;
     let mut values = StepValues::new(NQ, steps);
-    let mut est = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * NQ]);
-    let mut cov = ctx.trace.then(|| vec![f64::NAN; (steps + 1) * ntri]);
+    let traced = ctx.trace || ctx.export;
+    let mut est = traced.then(|| vec![f64::NAN; (steps + 1) * NQ]);
+    let mut cov = traced.then(|| vec![f64::NAN; (steps + 1) * ntri]);
+    let ztri = NZ * (NZ + 1) / 2;
+    let mut export = ctx.export.then(|| ExportTrace {
+        nu: vec![f64::NAN; (steps + 1) * NZ],
+        s: vec![f64::NAN; (steps + 1) * ztri],
+        a: vec![f64::NAN; (steps + 1) * NQ * NQ],
+    });
     let mut repairs = 0u32;
     let mut failure: Option<(usize, String)> = None;
     let mut belief = filter.init(model, prior.x0_hat, prior.p0, &ctx.measurements[0]);
@@ -319,6 +401,9 @@ where
                 .and_then(|()| filter.update(model, &mut belief, u, &ctx.measurements[k]));
             match step {
                 Ok(Some(inn)) => {
+                    if let Some(x) = export.as_mut() {
+                        record_innovation(x, k, &inn);
+                    }
                     nis = inn.nis;
                     values.nis_dof[k] = inn.dof as u8;
                     innovation = Some(inn);
@@ -398,6 +483,17 @@ where
         if let Some(est) = est.as_mut() {
             est[k * NQ..(k + 1) * NQ].copy_from_slice(eval.mean(&filter.mean(&belief)).as_slice());
         }
+        if k > 0
+            && let Some(x) = export.as_mut()
+            && let Some(a) = filter
+                .error_transition(&belief)
+                .and_then(|a| eval.transition(&a))
+        {
+            x.a[k * NQ * NQ..(k + 1) * NQ * NQ]
+                .iter_mut()
+                .enumerate()
+                .for_each(|(t, v)| *v = a[(t / NQ, t % NQ)]);
+        }
         for i in 0..NQ {
             values.sq_err[k * NQ + i] = e[i] * e[i];
         }
@@ -405,6 +501,7 @@ where
         values.nis[k] = nis;
         values.completed = k + 1;
     }
+    repairs += filter.internal_repairs(&belief);
     let nees0 = values.nees[0];
     let mut run = values.finish(failure, ctx.thresholds, ctx.quantity_names, repairs);
     run.consistency = match (after_burn_in, from_start) {
@@ -423,5 +520,29 @@ where
     FilterOutput {
         run,
         trace: est.zip(cov),
+        export,
+    }
+}
+
+/// Writes ν_k and S_k's lower triangle over the reporting components into an export.
+fn record_innovation<const NZ: usize>(x: &mut ExportTrace, k: usize, inn: &Innovation<NZ>) {
+    let ztri = NZ * (NZ + 1) / 2;
+    let row = &mut x.nu[k * NZ..(k + 1) * NZ];
+    for (i, v) in row.iter_mut().enumerate() {
+        if inn.available.has(i) {
+            *v = inn.residual[i];
+        }
+    }
+    if let Some(s) = &inn.covariance {
+        let row = &mut x.s[k * ztri..(k + 1) * ztri];
+        let mut t = 0;
+        for i in 0..NZ {
+            for j in 0..=i {
+                if inn.available.has(i) && inn.available.has(j) {
+                    row[t] = s[(i, j)];
+                }
+                t += 1;
+            }
+        }
     }
 }

@@ -73,10 +73,10 @@ fn bad_specs_exit_2_naming_the_file_and_key_path() {
             &["runs", "line 1"],
         ),
         (
-            "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"ekf\"\nkind = \"ukf\"\n[noise]\nscales = [1.0, 1.0]\n",
+            "[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"basic\"\n[[filters]]\nlabel = \"ekf\"\nkind = \"particle\"\n[noise]\nscales = [1.0, 1.0]\n",
             &[
                 "filters[0].kind",
-                "unknown value `ukf`",
+                "unknown value `particle`",
                 "noise.scales",
                 "duplicate",
             ],
@@ -206,6 +206,8 @@ fn list_names_the_models_scenarios_and_filters() {
         "ekf",
         "running_mean",
         "open_loop",
+        "ukf",
+        "ckf",
         "pole_placement",
         "batch_ls",
     ] {

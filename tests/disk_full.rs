@@ -156,3 +156,95 @@ fn a_full_disk_leaves_nothing_half_written() {
     );
     assert!(!out.join(".report.html.partial").exists());
 }
+
+/// The entries of `dir` that a failed command must not leave: partial files, a lock, or a
+/// manifest (which would claim the folder is a complete study).
+fn leftovers(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".partial") || n == ".kfmc.lock" || n == "manifest.toml")
+        .collect()
+}
+
+#[test]
+fn simulate_and_score_on_a_full_disk_leave_nothing_half_written() {
+    let Some(fs) = Tmpfs::mount("2m") else {
+        eprintln!(
+            "SKIPPED: cannot mount a tmpfs here (needs root); the disk-full test of simulate and score did not run"
+        );
+        return;
+    };
+    let work = tempfile::tempdir().unwrap();
+    let spec = |kind: &str| {
+        let p = work.path().join(format!("{kind}.toml"));
+        std::fs::write(
+            &p,
+            format!(
+                "name = \"full\"\nmaster_seed = 3\nruns = 4\n[model]\nkind = \"linear_quadrotor\"\nsensor = \"positions\"\n[[scenarios]]\nname = \"hover\"\nx0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]\nduration_s = 5.0\n[[filters]]\nlabel = \"kf\"\nkind = \"{kind}\"\n[initial_estimate]\nmode = \"sampled\"\np0_std = 1.0\n"
+            ),
+        )
+        .unwrap();
+        p.to_string_lossy().into_owned()
+    };
+    let (run_spec, ext_spec) = (spec("ekf"), spec("external"));
+    // Estimates made on a disk with room.
+    let est_dir = work.path().join("run");
+    let (code, err) = run(&[
+        "run",
+        &run_spec,
+        "-q",
+        "--export-estimates",
+        "--out",
+        est_dir.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let estimates = est_dir.join("estimates.parquet");
+
+    // A simulation too large for the disk fails with the OS error and leaves no table.
+    let big = fs.path().join("big");
+    let (code, err) = run(&[
+        "simulate",
+        &ext_spec,
+        "-q",
+        "--runs",
+        "3000",
+        "--out",
+        big.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(err.contains("space"), "{err}");
+    assert!(leftovers(&big).is_empty(), "{:?}", leftovers(&big));
+    let _ = std::fs::remove_dir_all(&big);
+
+    // One that fits, then a score with the disk full.
+    let sim = fs.path().join("sim");
+    let (code, err) = run(&["simulate", &ext_spec, "-q", "--out", sim.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    fill(&fs.path(), 0);
+    let scored = fs.path().join("scored");
+    let (code, err) = run(&[
+        "score",
+        sim.to_str().unwrap(),
+        "-q",
+        "--out",
+        scored.to_str().unwrap(),
+        "--estimates",
+        estimates.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(leftovers(&scored).is_empty(), "{:?}", leftovers(&scored));
+    // The simulation itself is still a complete, verifiable folder.
+    std::fs::remove_file(fs.path().join("filler")).unwrap();
+    let (code, err) = run(&[
+        "score",
+        sim.to_str().unwrap(),
+        "-q",
+        "--out",
+        scored.to_str().unwrap(),
+        "--estimates",
+        estimates.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+}

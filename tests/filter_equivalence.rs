@@ -1,13 +1,16 @@
 //! Linear-Gaussian filters are one estimator in different algebra: on the same L1 runs the
-//! covariance-form KF (the EKF on a linear model), the information filter and the square-root
-//! filter must agree on x̂_k and P_k to round-off. A new linear-Gaussian filter joins the
+//! covariance-form KF (the EKF on a linear model), the information filter, the square-root
+//! filter and the sigma-point filters (UKF, CKF: exact for a linear model) must agree on x̂_k and P_k to round-off. A new linear-Gaussian filter joins the
 //! comparison by adding one line to [`FILTERS`].
 //!
 //! The steady-state KF is checked against the seed's printed closed-loop poles λ_K and against
 //! the limit of the time-varying gain.
 
 use kfmc::filter::steady_state::solve_dare;
-use kfmc::filter::{CovarianceUpdate, Ekf, Filter, Information, SquareRoot, SteadyState};
+use kfmc::filter::{
+    CovarianceUpdate, Ekf, Filter, Information, SigmaPointKalman, SigmaPoints, SquareRoot,
+    SteadyState,
+};
 use kfmc::linalg::{Matrix, Vector, eigenvalues};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
@@ -79,6 +82,20 @@ const FILTERS: &[(&str, Run3)] = &[
         history(m, &Information::new(q, r), t)
     }),
     ("sqrt", |m, q, r, t| history(m, &SquareRoot::new(q, r), t)),
+    ("ukf", |m, q, r, t| {
+        history(
+            m,
+            &SigmaPointKalman::new(q, r, SigmaPoints::DEFAULT_UNSCENTED).unwrap(),
+            t,
+        )
+    }),
+    ("ckf", |m, q, r, t| {
+        history(
+            m,
+            &SigmaPointKalman::new(q, r, SigmaPoints::Cubature).unwrap(),
+            t,
+        )
+    }),
 ];
 
 /// One seeded L1 run with the seed's x̂_0 = [1,0,1,0,1,0], P_0 = I, the truth drawn from
@@ -108,7 +125,7 @@ fn l1_run(model: &Linear<3>, seed: u64) -> Trajectory<6, 3> {
 }
 
 #[test]
-fn kf_information_and_sqrt_agree_to_1e_9() {
+fn every_linear_gaussian_filter_agrees_to_1e_9() {
     for sensor in [LinearSensor::Positions, LinearSensor::Velocities] {
         let model = Linear::<3>::new(sensor, 0.1).unwrap();
         let q = model.process_noise_covariance().unwrap();

@@ -90,7 +90,13 @@ where
         thresholds: None,
         quantity_names: &STATES,
         trace: true,
+        export: false,
         consistency: None,
+        unit: kfmc::trial::Unit {
+            scenario: 0,
+            scale: 0,
+            run: 0,
+        },
     };
     let q = diag_from_std(&Vector::<6>::repeat(case.filter_std.0));
     let r = diag_from_std(&Vector::<NZ>::from_fn(|i, _| case.filter_std.1[i]));

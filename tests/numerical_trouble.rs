@@ -69,6 +69,14 @@ QSTD
 label = "open_loop"
 kind = "open_loop"
 QSTD
+[[filters]]
+label = "ukf"
+kind = "ukf"
+QSTD
+[[filters]]
+label = "ckf"
+kind = "ckf"
+QSTD
 "#;
 
 #[test]
@@ -79,8 +87,8 @@ fn every_filter_records_non_finite_values_and_the_batch_completes() {
         PLANAR_FILTERS.replace("QSTD\n", "")
     );
     // L1 started at 1.7e308 m and m/s: x + ẋΔt overflows at the first step.
-    let linear = "runs = 4\n[model]\nkind = \"linear_quadrotor\"\n[[scenarios]]\nname = \"blowup\"\nx0 = [1.7e308, 1.7e308, 1.0, 0.0, 1.0, 0.0]\nduration_s = 2.0\n[[filters]]\nlabel = \"kf\"\nkind = \"ekf\"\n[[filters]]\nlabel = \"steady_state\"\nkind = \"steady_state\"\n[[filters]]\nlabel = \"pole_placement\"\nkind = \"pole_placement\"\npole_scale = 0.5\n[[filters]]\nlabel = \"information\"\nkind = \"information\"\n[[filters]]\nlabel = \"sqrt\"\nkind = \"sqrt\"\n[[filters]]\nlabel = \"open_loop\"\nkind = \"open_loop\"\n";
-    for (spec, filters) in [(planar, 6), (linear.to_string(), 6)] {
+    let linear = "runs = 4\n[model]\nkind = \"linear_quadrotor\"\n[[scenarios]]\nname = \"blowup\"\nx0 = [1.7e308, 1.7e308, 1.0, 0.0, 1.0, 0.0]\nduration_s = 2.0\n[[filters]]\nlabel = \"kf\"\nkind = \"ekf\"\n[[filters]]\nlabel = \"steady_state\"\nkind = \"steady_state\"\n[[filters]]\nlabel = \"pole_placement\"\nkind = \"pole_placement\"\npole_scale = 0.5\n[[filters]]\nlabel = \"information\"\nkind = \"information\"\n[[filters]]\nlabel = \"sqrt\"\nkind = \"sqrt\"\n[[filters]]\nlabel = \"open_loop\"\nkind = \"open_loop\"\n[[filters]]\nlabel = \"ukf\"\nkind = \"ukf\"\n[[filters]]\nlabel = \"ckf\"\nkind = \"ckf\"\n";
+    for (spec, filters) in [(planar, 8), (linear.to_string(), 8)] {
         let r = rows(&run(&spec));
         assert_eq!(
             r.len(),
@@ -107,7 +115,7 @@ fn a_covariance_that_is_not_positive_definite_is_a_failure_or_a_counted_repair()
         PLANAR_FILTERS.replace("QSTD", "q_std = 0.0")
     );
     let r = rows(&run(&spec));
-    assert_eq!(r.len(), 4 * 5);
+    assert_eq!(r.len(), 4 * 7);
     for (f, status, detail, repairs) in &r {
         let failed = status == "numerical_failure" && detail.contains("not positive definite");
         assert!(

@@ -99,6 +99,11 @@ impl Model<4, 0, 2> for CvRangeBearing {
         Vector::<2>::new(z[0] - z_pred[0], wrap(z[1] - z_pred[1]))
     }
 
+    fn angle_measurements(&self) -> &[usize] {
+        // The bearing: kfmc's `ukf` and `ckf` average it on the circle.
+        &[1]
+    }
+
     fn process_noise_covariance(&self) -> Option<Matrix<4, 4>> {
         Some(self.q)
     }

@@ -138,6 +138,68 @@ pub enum Command {
         /// committed cells; a checkpoint of a changed spec is refused.
         #[arg(long, conflicts_with_all = ["shard", "shards"])]
         resume: bool,
+        /// Also write every run of kfmc's filters in the estimates exchange format
+        /// (`estimates.parquet`: est_*, P_*, nu_*, S_*, A_*), as `kfmc score` reads it.
+        #[arg(long)]
+        export_estimates: bool,
+    },
+    /// Write every run's world for an estimator outside kfmc: truth.parquet,
+    /// measurements.parquet, initial.parquet and a manifest saying what they mean. The runs
+    /// are those `kfmc run` gives its own filters.
+    Simulate {
+        /// The spec and the shared overrides.
+        #[command(flatten)]
+        study: StudyArgs,
+        /// Simulate only part I of N (0-based), into `<out>/parts/` (or from SLURM_ARRAY_TASK_ID,
+        /// or JOB_COMPLETION_INDEX with --shards).
+        #[arg(long, value_name = "I/N", conflicts_with = "shards")]
+        shard: Option<String>,
+        /// The number of parts when the index comes from the scheduler's environment.
+        #[arg(long, value_name = "N")]
+        shards: Option<usize>,
+    },
+    /// Score estimates made outside kfmc against a `kfmc simulate` folder: writes the tables
+    /// `kfmc run` writes (runs, steps, summary, consistency, divergence), with kfmc's own
+    /// filters of the spec run beside them on the same runs.
+    Score {
+        /// A folder written by `kfmc simulate`.
+        dir: PathBuf,
+        /// Estimates files (Parquet; `kfmc schema estimates SPEC` lists the columns).
+        #[arg(long, required = true, num_args = 1..)]
+        estimates: Vec<PathBuf>,
+        /// Output folder for the tables (default: DIR/score).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Worker threads; 0 = all cores.
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// No progress bar and no report.
+        #[arg(long, short)]
+        quiet: bool,
+        /// Write into a non-empty output folder that is not a kfmc result folder.
+        #[arg(long)]
+        force: bool,
+    },
+    /// Run the study R times with independent master seeds and write power.parquet: per
+    /// (cell, filter variant, test) the rejection rate with its 95 % interval and the
+    /// statistic's distribution — the false-alarm rate at the true Q and R, the power against
+    /// every q_scale/r_scale variant.
+    Power {
+        /// The spec and the shared overrides (`--seed` is the base seed of the replications;
+        /// `--out` the folder of power.parquet, default `<output>/power`).
+        #[command(flatten)]
+        study: StudyArgs,
+        /// Independent replications of the whole study.
+        #[arg(long, short = 'R')]
+        replications: usize,
+    },
+    /// Print the columns of an exchange table for a spec.
+    Schema {
+        /// Which table.
+        #[arg(value_enum)]
+        table: SchemaTable,
+        /// The experiment spec (TOML).
+        spec: PathBuf,
     },
     /// Combine the parts of a sharded study (`run --shard i/n`) into the tables one process
     /// would have written, byte for byte.
@@ -186,6 +248,10 @@ pub enum Command {
         /// Also write the results as JUnit XML to this file.
         #[arg(long)]
         junit: Option<PathBuf>,
+        /// Judge the spec's external filters from these estimates files (made from `kfmc
+        /// simulate`'s tables of the same spec, runs and seed).
+        #[arg(long, num_args = 1..)]
+        estimates: Vec<PathBuf>,
     },
     /// Search a filter's Q scale (and R scale with --tune-r) for consistency or minimum RMSE:
     /// a coarse log grid, then a refinement; writes tuning.parquet.
@@ -244,6 +310,79 @@ pub enum Command {
     },
     /// List the registered systems with their sensors, scenarios and filter kinds.
     List,
+}
+
+/// The exchange tables `kfmc schema` describes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SchemaTable {
+    /// The estimates file an outside estimator writes.
+    Estimates,
+    /// `truth.parquet` of `kfmc simulate`.
+    Truth,
+    /// `measurements.parquet` of `kfmc simulate`.
+    Measurements,
+    /// `initial.parquet` of `kfmc simulate`.
+    Initial,
+}
+
+fn schema_text(table: SchemaTable, plan: &Plan) -> String {
+    use crate::output::schema::{self, Dtype};
+    let l = plan.layout();
+    let (q, z, u, w) = (
+        l.quantity_names(),
+        l.measurement_names(),
+        l.input_names(),
+        l.world_state_names(),
+    );
+    let cols = match table {
+        SchemaTable::Estimates => crate::score::estimate_columns(&q, &z),
+        SchemaTable::Truth => schema::truth(&q, &w),
+        SchemaTable::Measurements => schema::measurements(&z, &u),
+        SchemaTable::Initial => schema::initial(&q),
+    };
+    let mut s = String::new();
+    let mut noted = std::collections::BTreeSet::new();
+    for c in &cols {
+        let ty = match c.dtype {
+            Dtype::Str => "string",
+            Dtype::F64 => "float64 (nullable)",
+            Dtype::I64 => "int64",
+            Dtype::U64 => "uint64",
+            Dtype::Bool => "bool",
+        };
+        let group = c.name.split('_').next().unwrap_or("");
+        let first = noted.insert(group.to_string());
+        let note = match (table, group) {
+            _ if !first => "",
+            (SchemaTable::Estimates, "nu" | "S") => {
+                "  optional: the NIS and whiteness tests; nu null where z did not report"
+            }
+            (SchemaTable::Estimates, "A") => "  optional: the calibrated NEES verdict",
+            (SchemaTable::Estimates, "P") => "  or L_<i>_<j>, a lower Cholesky factor",
+            (SchemaTable::Estimates, "filter") => "  a [[filters]] label with kind = \"external\"",
+            (SchemaTable::Measurements, "z") => "  null where the sensor did not report",
+            _ => "",
+        };
+        s.push_str(&format!("{:<24} {ty}{note}\n", c.name));
+    }
+    if table == SchemaTable::Estimates {
+        s.push_str(&format!(
+            "\nerror convention: {}\nfile metadata checked when present: kfmc.spec_hash = {}, kfmc.master_seed = {}\n",
+            crate::score::ERROR_CONVENTION,
+            plan.spec_hash,
+            plan.master_seed
+        ));
+    }
+    s
+}
+
+/// Reads the external filters' estimates into `plan`, naming the files on trouble.
+fn attach_estimates(plan: &mut Plan, files: &[PathBuf]) -> anyhow::Result<()> {
+    let set = crate::score::EstimateSet::load(plan, files)
+        .map_err(KfmcError::from)
+        .map_err(|e| anyhow::Error::from(e).context("reading the estimates"))?;
+    plan.estimates = Some(std::sync::Arc::new(set));
+    Ok(())
 }
 
 fn describe(plan: &Plan) -> String {
@@ -358,9 +497,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             shard,
             shards,
             resume,
+            export_estimates,
         } => {
             if resume {
-                let plan = study.plan(registry, trace_runs)?;
+                let mut plan = study.plan(registry, trace_runs)?;
+                plan.export_estimates = export_estimates;
                 let threads = study.threads(study.quiet);
                 let observer = ProgressObserver::new(!study.quiet);
                 let r = crate::merge::run_resumable(&plan, threads, &observer, registry)
@@ -391,7 +532,8 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                             message,
                         }]))
                     })?;
-            let plan = study.plan(registry, trace_runs)?;
+            let mut plan = study.plan(registry, trace_runs)?;
+            plan.export_estimates = export_estimates;
             let threads = study.threads(study.quiet);
             let StudyArgs {
                 spec, quiet, force, ..
@@ -454,8 +596,181 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             outln!("{}", path.display());
             Ok(())
         }
-        Command::Check { study, junit } => {
+        Command::Simulate {
+            study,
+            shard,
+            shards,
+        } => {
+            let shard =
+                crate::merge::shard_from(shard.as_deref(), shards, &|k| std::env::var(k).ok())
+                    .map_err(|message| {
+                        KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
+                            file: study.spec.clone(),
+                            key_path: "--shard".into(),
+                            message,
+                        }]))
+                    })?;
+            let plan = study.plan(registry, None)?;
+            let threads = study.threads(study.quiet);
+            let observer = ProgressObserver::new(!study.quiet);
+            let report = crate::simulate::simulate(
+                &plan,
+                &crate::study::ExecOptions {
+                    threads,
+                    force: study.force,
+                    shard,
+                },
+                &observer,
+            )
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("simulating {}", study.spec.display())))?;
+            if !study.quiet {
+                outln!(
+                    "{} runs simulated in {:.1} s → {}",
+                    report.runs,
+                    report.wall_s,
+                    report.output.display()
+                );
+                for (name, rows) in &report.tables {
+                    outln!("  {name}.parquet  {rows} rows");
+                }
+            }
+            Ok(())
+        }
+        Command::Score {
+            dir,
+            estimates,
+            out,
+            threads,
+            quiet,
+            force,
+        } => {
+            let manifest = crate::output::folder::verify(&dir)
+                .map_err(KfmcError::from)
+                .map_err(|e| {
+                    anyhow::Error::from(e).context(format!("reading {}", dir.display()))
+                })?;
+            if manifest.exchange.is_none() {
+                return Err(anyhow::anyhow!(
+                    "{} was not written by `kfmc simulate` (its manifest has no [exchange] section)",
+                    dir.display()
+                ));
+            }
+            let spec_path = PathBuf::from(&manifest.spec_path);
+            let mut plan = experiment::parse_with(&manifest.spec, &spec_path, registry)
+                .map_err(KfmcError::from)
+                .map_err(|e| {
+                    anyhow::Error::from(e)
+                        .context(format!("the spec recorded in {}", dir.display()))
+                })?;
+            if plan.spec_hash != manifest.spec_hash {
+                return Err(anyhow::anyhow!(
+                    "{}: the recorded spec hashes to {}, the manifest says {}; the folder was altered",
+                    dir.join("manifest.toml").display(),
+                    plan.spec_hash,
+                    manifest.spec_hash
+                ));
+            }
+            if manifest.shard.is_some() {
+                return Err(anyhow::anyhow!(
+                    "{} is one part of a sharded simulation; score the whole simulation's folder",
+                    dir.display()
+                ));
+            }
+            plan.apply(&Overrides {
+                runs: Some(manifest.runs_per_cell as usize),
+                master_seed: Some(manifest.master_seed),
+                output: Some(out.unwrap_or_else(|| dir.join("score"))),
+                trace_runs: None,
+            })?;
+            attach_estimates(&mut plan, &estimates)?;
+            let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let observer = ProgressObserver::new(!quiet);
+            let report = crate::study::run(
+                &plan,
+                &crate::study::ExecOptions {
+                    threads: if threads == 0 { 0 } else { threads.min(cpus) },
+                    force,
+                    shard: None,
+                },
+                &observer,
+            )
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("scoring against {}", dir.display())))?;
+            if !quiet {
+                outln!(
+                    "{} runs scored in {:.1} s → {}",
+                    report.runs,
+                    report.wall_s,
+                    report.output.display()
+                );
+                for (name, rows) in &report.tables {
+                    outln!("  {name}.parquet  {rows} rows");
+                }
+            }
+            Ok(())
+        }
+        Command::Power {
+            study,
+            replications,
+        } => {
+            if replications == 0 {
+                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+                    crate::error::SpecError {
+                        file: study.spec.clone(),
+                        key_path: "--replications".into(),
+                        message: "must be at least 1".into(),
+                    },
+                ]))
+                .into());
+            }
+            let out_given = study.out.clone();
+            let mut plan = study.plan(registry, Some(0))?;
+            let out = out_given.unwrap_or_else(|| plan.output.join("power"));
+            plan.output = out.clone();
+            let threads = study.threads(study.quiet);
+            let observer = ProgressObserver::new(!study.quiet);
+            let report = crate::power::power(
+                &plan,
+                replications,
+                plan.master_seed,
+                &out,
+                &crate::study::ExecOptions {
+                    threads,
+                    force: study.force,
+                    shard: None,
+                },
+                &observer,
+            )
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
+            if !study.quiet {
+                outln!(
+                    "{replications} replications ({} runs) in {:.1} s → {}",
+                    report.runs,
+                    report.wall_s,
+                    report.output.display()
+                );
+                for (name, rows) in &report.tables {
+                    outln!("  {name}.parquet  {rows} rows");
+                }
+            }
+            Ok(())
+        }
+        Command::Schema { table, spec } => {
+            let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
+            emit(&schema_text(table, &plan));
+            Ok(())
+        }
+        Command::Check {
+            study,
+            junit,
+            estimates,
+        } => {
             let mut plan = study.plan(registry, None)?;
+            if !estimates.is_empty() {
+                attach_estimates(&mut plan, &estimates)?;
+            }
             let threads = study.threads(study.quiet);
             let StudyArgs {
                 spec, quiet, force, ..

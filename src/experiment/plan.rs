@@ -33,8 +33,12 @@ pub struct FilterPlan {
     pub label: String,
     /// The kind tag.
     pub kind: String,
-    /// Index into the system's filter entries ([`SystemPlan::filters`]).
+    /// Index into the system's filter entries ([`SystemPlan::filters`]); unused for an
+    /// external filter.
     pub entry: usize,
+    /// Whether the filter is outside kfmc (`kind = "external"`): its estimates come from a
+    /// file (`kfmc score`, `kfmc check --estimates`), not from a system's filter kind.
+    pub external: bool,
     /// Multiplier of the assumed Q (the `q_scale` column).
     pub q_scale: f64,
     /// Multiplier of the assumed R (the `r_scale` column).
@@ -55,6 +59,8 @@ pub enum Assertion {
         filter: Option<String>,
         /// Scenario filter.
         scenario: Option<String>,
+        /// A negative control (`expect = "fail"`): every case must fail.
+        expect_fail: bool,
     },
     /// The mean RMSE over runs of a state stays below a bound.
     RmseBelow {
@@ -66,7 +72,19 @@ pub enum Assertion {
         state: String,
         /// The bound.
         max: f64,
+        /// A negative control (`expect = "fail"`): every case must fail.
+        expect_fail: bool,
     },
+}
+
+impl Assertion {
+    /// Whether the assertion is a negative control (`expect = "fail"`).
+    pub fn expect_fail(&self) -> bool {
+        match self {
+            Assertion::TestPasses { expect_fail, .. }
+            | Assertion::RmseBelow { expect_fail, .. } => *expect_fail,
+        }
+    }
 }
 
 /// The validated `[consistency]` section.
@@ -144,6 +162,29 @@ pub struct Plan {
     pub consistency: Option<ConsistencyPlan>,
     /// `kfmc check` assertions.
     pub assertions: Vec<Assertion>,
+    /// Whether to write every run's estimates in the exchange format (`estimates.parquet`,
+    /// `kfmc run --export-estimates`).
+    pub export_estimates: bool,
+    /// The estimates of the external filters, once read (`kfmc score`, `kfmc check
+    /// --estimates`).
+    pub estimates: Option<Arc<crate::score::EstimateSet>>,
+    /// How the runs' random numbers relate across noise multipliers (`noise.draws`).
+    pub draws: Draws,
+    /// Whether a run that never crosses its divergence threshold records the largest
+    /// multiplier (`divergence.never_crossed = "largest_scale"`) instead of null.
+    pub never_crossed_largest: bool,
+}
+
+/// How a run's random numbers relate across the noise multipliers (`[noise] draws`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Draws {
+    /// A run sees the same standard normals at every multiplier (common random numbers):
+    /// smooth, paired curves, and a run's divergence point is where its own errors, scaled,
+    /// cross the threshold.
+    Common,
+    /// Every (run, multiplier) has its own streams, as `robustness.m` draws fresh noise at
+    /// each multiplier: a run's first crossing is the first of many independent chances.
+    Fresh,
 }
 
 /// Documented caps on a plan. Beyond them a spec is refused before anything runs (the
@@ -241,6 +282,18 @@ pub struct PlanSize {
 }
 
 impl Plan {
+    /// The seed of run `run` of scenario `scenario` at noise multiplier index `scale`: every
+    /// random stream of that run derives from it.
+    pub fn run_seed(&self, scenario: &str, scale: usize, run: usize) -> u64 {
+        let common = crate::sim::seed::run_seed(self.master_seed, scenario, run as u64);
+        match self.draws {
+            Draws::Common => common,
+            Draws::Fresh => crate::sim::seed::mix64(
+                common ^ crate::sim::seed::mix64(0x6672_6573_6800_0000 ^ scale as u64),
+            ),
+        }
+    }
+
     /// The system's names and Δt.
     pub fn layout(&self) -> &Layout {
         self.system.layout()
@@ -646,15 +699,29 @@ pub fn validate(
         }
     }
     figure_name_clashes(&mut c, &spec, &names, &labels);
-    let filter_tables: Vec<FilterTable> = spec
-        .filters
-        .iter()
-        .map(|f| FilterTable {
-            label: f.label.clone(),
-            kind: f.kind.clone(),
-            keys: f.keys.clone(),
-        })
-        .collect();
+    // External filters are kfmc's, not the system's: the system sees the others only, and
+    // `system_index[i]` is spec entry i's position among them.
+    let mut system_index = Vec::with_capacity(spec.filters.len());
+    let mut filter_tables: Vec<FilterTable> = Vec::new();
+    for (i, f) in spec.filters.iter().enumerate() {
+        if f.kind == EXTERNAL_KIND {
+            system_index.push(None);
+            for k in f.keys.keys() {
+                c.err(
+                    format!("filters[{i}].{}", super::checker::path_key(k)),
+                    "an external filter has no keys besides label and kind (its settings are its own)",
+                );
+            }
+        } else {
+            system_index.push(Some(filter_tables.len()));
+            filter_tables.push(FilterTable {
+                key: format!("filters[{i}]"),
+                label: f.label.clone(),
+                kind: f.kind.clone(),
+                keys: f.keys.clone(),
+            });
+        }
+    }
 
     // Initial estimate: the mode is generic, P0 and any initialiser are the system's.
     let ie = spec.initial_estimate.as_deref();
@@ -693,9 +760,28 @@ pub fn validate(
     let mut filters = Vec::new();
     for (i, f) in spec.filters.iter().enumerate() {
         let key = format!("filters[{i}]");
+        let Some(entry) = system_index[i] else {
+            c.reject_present(
+                &key,
+                &[
+                    ("q_scale", f.q_scale.is_some()),
+                    ("r_scale", f.r_scale.is_some()),
+                ],
+                "not used by an external filter (its tuning is its own; give each variant its own label)",
+            );
+            filters.push(FilterPlan {
+                label: f.label.clone(),
+                kind: f.kind.clone(),
+                entry: usize::MAX,
+                external: true,
+                q_scale: 1.0,
+                r_scale: 1.0,
+            });
+            continue;
+        };
         let info = configured
             .as_ref()
-            .and_then(|s| s.filters().get(i).cloned());
+            .and_then(|s| s.filters().get(entry).cloned());
         if let Some(info) = &info {
             let msg = format!("not used by a {} filter", info.kind);
             c.reject_present(
@@ -728,7 +814,8 @@ pub fn validate(
                 filters.push(FilterPlan {
                     label: f.label.clone(),
                     kind: f.kind.clone(),
-                    entry: i,
+                    entry,
+                    external: false,
                     q_scale,
                     r_scale,
                 });
@@ -757,6 +844,25 @@ pub fn validate(
     } else {
         FilterNoiseMode::Nominal
     };
+    let draws = if c.choice(
+        "noise.draws",
+        noise.and_then(|n| n.draws.as_deref()),
+        "common",
+        &["common", "fresh"],
+    ) == "fresh"
+    {
+        Draws::Fresh
+    } else {
+        Draws::Common
+    };
+    let never_crossed_largest = c.choice(
+        "divergence.never_crossed",
+        spec.divergence
+            .as_deref()
+            .and_then(|d| d.never_crossed.as_deref()),
+        "null",
+        &["null", "largest_scale"],
+    ) == "largest_scale";
 
     let states: Vec<String> = configured
         .as_ref()
@@ -840,7 +946,12 @@ pub fn validate(
     let test_names = crate::metrics::consistency::test_names(&state_refs);
     let covariance = |label: &str| -> Option<(bool, String)> {
         let i = spec.filters.iter().position(|f| f.label == label)?;
-        let info = configured.as_ref()?.filters().get(i)?.clone();
+        // An external filter's columns are only known when its file is read.
+        let info = configured
+            .as_ref()?
+            .filters()
+            .get(system_index[i]?)?
+            .clone();
         Some((info.has_covariance, info.kind))
     };
     let mut assertions = Vec::new();
@@ -910,11 +1021,18 @@ pub fn validate(
         let unused_msg = format!("not used by kind = \"{}\"", a.kind);
         let unused =
             |c: &mut Checker, keys: &[(&str, bool)]| c.reject_present(&key, keys, &unused_msg);
+        let expect_fail = c.choice(
+            &format!("{key}.expect"),
+            a.expect.as_deref(),
+            "pass",
+            &["pass", "fail"],
+        ) == "fail";
         let tests = |names: Vec<String>| Assertion::TestPasses {
             kind: a.kind.clone(),
             tests: names,
             filter: a.filter.clone(),
             scenario: a.scenario.clone(),
+            expect_fail,
         };
         let parsed = match a.kind.as_str() {
             "consistent" | "white" => {
@@ -978,6 +1096,7 @@ pub fn validate(
                         scenario: a.scenario.clone(),
                         state: state.clone(),
                         max,
+                        expect_fail,
                     }),
                     _ => {
                         c.err(
@@ -1120,8 +1239,15 @@ pub fn validate(
         alpha,
         consistency,
         assertions,
+        export_estimates: false,
+        estimates: None,
+        draws,
+        never_crossed_largest,
     })
 }
+
+/// The `kind` of a `[[filters]]` entry whose estimates come from outside kfmc.
+pub const EXTERNAL_KIND: &str = "external";
 
 #[cfg(test)]
 mod tests {

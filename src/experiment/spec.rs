@@ -99,6 +99,9 @@ pub struct AssertSpec {
     pub max: Option<f64>,
     /// A test name of consistency.parquet (`test_passes`).
     pub test: Option<String>,
+    /// `pass` (default) or `fail`: a negative control, whose every case must fail, so a
+    /// pipeline proves its gate catches a deliberately mistuned filter.
+    pub expect: Option<String>,
 }
 
 /// `[consistency]`
@@ -149,6 +152,9 @@ pub struct NoiseSpec {
     pub scales: Option<Scales>,
     /// `nominal` (filters keep their Q/R) or `matched` (filters' Q/R scale with the truth).
     pub filter_noise: Option<String>,
+    /// `common` (a run sees the same standard normals at every multiplier) or `fresh`
+    /// (every run and multiplier its own, as robustness.m draws them).
+    pub draws: Option<String>,
 }
 
 /// `[initial_estimate]`
@@ -168,6 +174,9 @@ pub struct InitialEstimateSpec {
 pub struct DivergenceSpec {
     /// RMSE threshold per state.
     pub rmse_thresholds: Option<OneOrMany>,
+    /// A run that never crosses: `null` (censored, the default) or `largest_scale` (the largest
+    /// multiplier tried, as robustness.m records it).
+    pub never_crossed: Option<String>,
 }
 
 /// A number or a list of numbers.

@@ -15,7 +15,7 @@
 //! Welch & Bishop, *An Introduction to the Kalman Filter*, TR 95-041 (2002) — the seeds' source.
 
 use super::{Filter, FilterError, Innovation};
-use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
+use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::model::{Measurement, Model};
 
 /// How the covariance is updated after a measurement.
@@ -134,7 +134,9 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         };
         b.i_kh = i_kh;
         check_finite(b)?;
-        Ok(Some(Innovation::new(nu, whitened, z.available)))
+        Ok(Some(
+            Innovation::new(nu, whitened, z.available).with_covariance(s),
+        ))
     }
 
     fn mean(&self, b: &Gaussian<NX>) -> Vector<NX> {
@@ -150,25 +152,14 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     }
 
     fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {
-        let sym = symmetrize(&b.p);
-        // Jitter relative to the covariance's own scale, so units do not matter.
-        let scale = (sym.trace() / NX as f64).abs().max(f64::MIN_POSITIVE);
-        let mut jitter = 1e-12 * scale;
-        for _ in 0..8 {
-            let candidate = sym + Matrix::<NX, NX>::identity() * jitter;
-            if SmallCholesky::new(&candidate).is_some() {
-                b.p = candidate;
-                return true;
-            }
-            jitter *= 100.0;
-        }
-        false
+        super::repair_spd(&mut b.p).is_some()
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::linalg::symmetrize;
     use crate::model::Availability;
     use crate::systems::planar::model::{PlanarP1, PlanarParams};
 

@@ -152,7 +152,9 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         b.y += ht_rinv * (nu + h * x);
         b.ht_rinv_h = Some(ht_rinv_h);
         check_finite(&b.y, &b.info)?;
-        Ok(Some(Innovation::new(nu, whitened, z.available)))
+        Ok(Some(
+            Innovation::new(nu, whitened, z.available).with_covariance(s),
+        ))
     }
 
     fn mean(&self, b: &InformationBelief<NX>) -> Vector<NX> {

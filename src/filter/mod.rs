@@ -11,10 +11,11 @@ pub mod ekf;
 pub mod information;
 pub mod luenberger;
 pub mod open_loop;
+pub mod sigma_point;
 pub mod sqrt;
 pub mod steady_state;
 
-use crate::linalg::{Matrix, Vector};
+use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
 use crate::model::{Availability, Measurement, Model};
 
 pub use batch_ls::{BatchInitial, BatchLsError};
@@ -24,6 +25,7 @@ pub use luenberger::{
     Luenberger, PlacementError, SeedPoleReading, place_observer_poles, seed_poles,
 };
 pub use open_loop::OpenLoop;
+pub use sigma_point::{SigmaPointKalman, SigmaPoints};
 pub use sqrt::SquareRoot;
 pub use steady_state::SteadyState;
 
@@ -84,6 +86,10 @@ pub struct Innovation<const NZ: usize> {
     pub whitened: Vector<NZ>,
     /// The components that reported.
     pub available: Availability,
+    /// S, the innovation covariance (identity rows and columns where a component did not
+    /// report), when the filter forms it. Only `kfmc run --export-estimates` reads it, to
+    /// write the `S_<i>_<j>` columns that let `kfmc score` recompute the NIS and whiteness.
+    pub covariance: Option<Matrix<NZ, NZ>>,
 }
 
 impl<const NZ: usize> Innovation<NZ> {
@@ -96,7 +102,14 @@ impl<const NZ: usize> Innovation<NZ> {
             dof: available.count(),
             whitened,
             available,
+            covariance: None,
         }
+    }
+
+    /// The same innovation, also carrying its covariance S.
+    pub fn with_covariance(mut self, s: Matrix<NZ, NZ>) -> Self {
+        self.covariance = Some(s);
+        self
     }
 }
 
@@ -118,6 +131,10 @@ pub enum FilterError {
     /// The Riccati recursion did not converge: the model is not detectable with this sensor.
     #[error("the discrete algebraic Riccati equation has no steady state (not detectable)")]
     NoSteadyState,
+    /// An external filter's estimates file cannot give this step (a missing row, a null
+    /// estimate): that run's status, as numerical trouble is.
+    #[error("{0}")]
+    Estimates(String),
     /// The estimate or covariance contains NaN or ±∞.
     #[error("non-finite {what}")]
     NonFinite {
@@ -178,4 +195,30 @@ pub trait Filter<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX,
     fn repair_covariance(&self, _belief: &mut Self::Belief) -> bool {
         false
     }
+
+    /// Repairs the filter made inside its own steps so far: a sigma-point filter factors its
+    /// predicted covariance to draw points and repairs it as [`repair_spd`] does. They are
+    /// counted per run with those of [`Filter::repair_covariance`].
+    fn internal_repairs(&self, _belief: &Self::Belief) -> u32 {
+        0
+    }
+}
+
+/// The covariance repair every filter shares: symmetrise, then add the smallest jitter
+/// (10⁻¹², 10⁻¹⁰, … 10² times the mean variance) that makes the matrix factorable. Returns the
+/// factor, or `None` (and leaves `p` alone) when no jitter helps.
+pub fn repair_spd<const NX: usize>(p: &mut Matrix<NX, NX>) -> Option<SmallCholesky<NX>> {
+    let sym = symmetrize(p);
+    // Jitter relative to the covariance's own scale, so units do not matter.
+    let scale = (sym.trace() / NX as f64).abs().max(f64::MIN_POSITIVE);
+    let mut jitter = 1e-12 * scale;
+    for _ in 0..8 {
+        let candidate = sym + Matrix::<NX, NX>::identity() * jitter;
+        if let Some(chol) = SmallCholesky::new(&candidate) {
+            *p = candidate;
+            return Some(chol);
+        }
+        jitter *= 100.0;
+    }
+    None
 }

@@ -142,7 +142,9 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         b.s = pre.a22;
         b.gain = Some((k_bar, l_s, h));
         check_finite(&b.x, &b.s)?;
-        Ok(Some(Innovation::new(nu, whitened, z.available)))
+        Ok(Some(
+            Innovation::new(nu, whitened, z.available).with_covariance(l_s * l_s.transpose()),
+        ))
     }
 
     fn mean(&self, b: &SqrtBelief<NX, NZ>) -> Vector<NX> {

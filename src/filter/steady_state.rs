@@ -180,7 +180,9 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
                 what: "state estimate",
             });
         }
-        Ok(Some(Innovation::new(nu, whitened, z.available)))
+        Ok(Some(
+            Innovation::new(nu, whitened, z.available).with_covariance(s),
+        ))
     }
 
     fn mean(&self, b: &FixedGainBelief<NX>) -> Vector<NX> {

@@ -31,6 +31,15 @@ impl Availability {
     }
 }
 
+/// Wraps an angle difference into [−π, π) exactly as MATLAB's `mod(a + pi, 2*pi) - pi`.
+pub fn wrap_angle(a: f64) -> f64 {
+    let two_pi = 2.0 * std::f64::consts::PI;
+    let m = (a + std::f64::consts::PI) % two_pi;
+    // MATLAB's mod takes the sign of the divisor; Rust's % takes the sign of the dividend.
+    let m = if m < 0.0 { m + two_pi } else { m };
+    m - std::f64::consts::PI
+}
+
 /// A measurement at one step: the value and which components it contains.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Measurement<const NZ: usize> {
@@ -57,9 +66,37 @@ pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync 
     fn measure(&self, x: &Vector<NX>, u: &Vector<NU>) -> Vector<NZ>;
     /// H_k = ∂h/∂x at (x_k, u_k).
     fn measurement_jacobian(&self, x: &Vector<NX>, u: &Vector<NU>) -> Matrix<NZ, NX>;
-    /// The residual z − ẑ; models with angle measurements wrap those components here.
+    /// The residual z − ẑ, with the [`Model::angle_measurements`] wrapped to [−π, π).
     fn residual(&self, z: &Vector<NZ>, z_pred: &Vector<NZ>) -> Vector<NZ> {
-        z - z_pred
+        let mut r = z - z_pred;
+        for &i in self.angle_measurements() {
+            r[i] = wrap_angle(r[i]);
+        }
+        r
+    }
+    /// The difference a − b of two states, with the [`Model::angle_states`] wrapped to
+    /// [−π, π). Sigma-point filters form their deviations with it.
+    fn state_residual(&self, a: &Vector<NX>, b: &Vector<NX>) -> Vector<NX> {
+        let mut d = a - b;
+        for &i in self.angle_states() {
+            d[i] = wrap_angle(d[i]);
+        }
+        d
+    }
+    /// Indices of the state components that are angles in radians (none by default).
+    ///
+    /// A sigma-point filter averages them on the circle and wraps their deviations, so a
+    /// cloud of points that straddles ±π (or an angle the model keeps on any branch) has the
+    /// right mean. The filters never wrap the estimate itself: a model whose angle is
+    /// continuous (the planar θ) keeps its branch.
+    fn angle_states(&self) -> &[usize] {
+        &[]
+    }
+    /// Indices of the measurement components that are angles in radians (none by default):
+    /// the default [`Model::residual`] wraps them and sigma-point filters average them on the
+    /// circle. A model that overrides `residual` should list its wrapped components here.
+    fn angle_measurements(&self) -> &[usize] {
+        &[]
     }
     /// Which measurement components report at `step` (all of them unless the model is
     /// multi-rate).

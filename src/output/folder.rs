@@ -65,6 +65,9 @@ fn is_kfmc_file(name: &str) -> bool {
         || name.starts_with("tune_")
         || name == "parts"
         || name == "slurm"
+        || name == "score"
+        || name == "power"
+        || name == ".power-replication"
         || name == "tuning.parquet"
         || (name.starts_with('.') && name.ends_with(".partial"))
         || schema::TABLES

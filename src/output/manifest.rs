@@ -43,6 +43,19 @@ pub struct ShardEntry {
     pub end_cell: u64,
 }
 
+/// What a simulation folder's tables mean, for the estimators that read them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ExchangeEntry {
+    /// Version of the exchange format.
+    pub schema_version: u32,
+    /// How errors are formed (e = truth − estimate).
+    pub error_convention: String,
+    /// How each run's seed derives from the master seed (the `seed` column of initial.parquet).
+    pub run_seeds: String,
+    /// The metadata keys an estimates file may carry to be checked against this folder.
+    pub estimates_metadata: Vec<String>,
+}
+
 /// The manifest of a result folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -91,6 +104,9 @@ pub struct Manifest {
     pub runs_per_s: f64,
     /// Tables written.
     pub tables: Vec<TableEntry>,
+    /// Set in a folder written by `kfmc simulate`: what its exchange tables mean.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exchange: Option<ExchangeEntry>,
     /// Set in the folder of one part of a sharded study (`kfmc run --shard i/n`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<ShardEntry>,

@@ -65,7 +65,7 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 9] = [
+pub const TABLES: [&str; 14] = [
     "runs",
     "steps",
     "summary",
@@ -75,6 +75,11 @@ pub const TABLES: [&str; 9] = [
     "divergence_runs",
     "traces",
     "tuning",
+    "estimates",
+    "truth",
+    "measurements",
+    "initial",
+    "power",
 ];
 
 /// `runs.parquet`: one row per scenario × noise scale × filter × run.
@@ -200,6 +205,9 @@ pub fn divergence_runs() -> Vec<ColumnDef> {
         col("run", Dtype::I64),
         col("state", Dtype::Str),
         col("divergence_scale", Dtype::F64),
+        // The run never crossed at any multiplier tried (its divergence_scale is null, or the
+        // largest multiplier with `divergence.never_crossed = "largest_scale"`).
+        col("never_crossed", Dtype::Bool),
     ]);
     c
 }
@@ -248,5 +256,48 @@ pub fn covariance_columns(names: &[&str]) -> Vec<ColumnDef> {
             c.push(col(format!("P_{qi}_{qj}"), Dtype::F64));
         }
     }
+    c
+}
+
+/// The keys of `kfmc simulate`'s per-step tables.
+fn run_step_keys() -> Vec<ColumnDef> {
+    vec![
+        col("scenario", Dtype::Str),
+        col("noise_scale", Dtype::F64),
+        col("run", Dtype::I64),
+        col("step", Dtype::I64),
+        col("t", Dtype::F64),
+    ]
+}
+
+/// `truth.parquet` (`kfmc simulate`): per run and step, the true evaluated quantities and the
+/// world's own states.
+pub fn truth(states: &[&str], world: &[&str]) -> Vec<ColumnDef> {
+    let mut c = run_step_keys();
+    c.extend(per("truth_", states, Dtype::F64));
+    c.extend(per("world_", world, Dtype::F64));
+    c
+}
+
+/// `measurements.parquet` (`kfmc simulate`): per run and step, what a filter receives: the
+/// measurement components (null where a sensor did not report) and the inputs.
+pub fn measurements(meas: &[&str], inputs: &[&str]) -> Vec<ColumnDef> {
+    let mut c = run_step_keys();
+    c.extend(per("z_", meas, Dtype::F64));
+    c.extend(per("u_", inputs, Dtype::F64));
+    c
+}
+
+/// `initial.parquet` (`kfmc simulate`): per run, its seed and the prior x̂_0, P_0 kfmc's own
+/// filters start from.
+pub fn initial(states: &[&str]) -> Vec<ColumnDef> {
+    let mut c = vec![
+        col("scenario", Dtype::Str),
+        col("noise_scale", Dtype::F64),
+        col("run", Dtype::I64),
+        col("seed", Dtype::U64),
+    ];
+    c.extend(per("est_", states, Dtype::F64));
+    c.extend(covariance_columns(states));
     c
 }

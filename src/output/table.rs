@@ -288,6 +288,40 @@ pub fn columns_of(df: &DataFrame, origin: &Path) -> Result<Vec<ColumnDef>, Outpu
         .collect()
 }
 
+/// Reads a Parquet table one row group at a time, so memory is bounded by a row group
+/// whatever the table's size (`kfmc merge`, `kfmc score`). Returns the file's metadata
+/// (its key-value pairs, say) after the last group.
+pub fn for_each_row_group(
+    path: &Path,
+    mut f: impl FnMut(DataFrame) -> Result<(), OutputError>,
+) -> Result<polars::io::parquet::read::FileMetadata, OutputError> {
+    let open = || {
+        File::open(path).map_err(|source| OutputError::Io {
+            action: "cannot open",
+            path: path.to_path_buf(),
+            source,
+        })
+    };
+    let bad = |source| OutputError::Polars {
+        action: "cannot read",
+        path: path.to_path_buf(),
+        source,
+    };
+    let meta = ParquetReader::new(open()?)
+        .get_metadata()
+        .map_err(bad)?
+        .clone();
+    let mut offset = 0;
+    for rg in &meta.row_groups {
+        let height = rg.num_rows();
+        let mut reader = ParquetReader::new(open()?).with_slice(Some((offset, height)));
+        reader.set_metadata(meta.clone());
+        f(reader.finish().map_err(bad)?)?;
+        offset += height;
+    }
+    Ok(std::sync::Arc::unwrap_or_clone(meta))
+}
+
 /// Reads a whole Parquet table.
 pub fn read(path: &Path) -> Result<DataFrame, OutputError> {
     let file = File::open(path).map_err(|source| OutputError::Io {

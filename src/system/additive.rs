@@ -7,7 +7,7 @@
 //! (it is the [`SystemPlan`] and builds the [`Trial`]).
 //!
 //! Filter kinds are values of [`FilterKind`]: [`common_kinds`] work on any [`Model`]
-//! (EKF, information, square-root, open loop), [`linear_kinds`] add the fixed-gain ones that
+//! (EKF, information, square-root, open loop, UKF, CKF), [`linear_kinds`] add the fixed-gain ones that
 //! need a linear model (steady state, pole placement). A system adds its own (the planar
 //! running mean) and a user adds theirs, through the same trait.
 
@@ -21,18 +21,18 @@ use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
 use crate::experiment::spec::OneOrMany;
 use crate::experiment::{Checker, FilterNoiseMode, InitialMode, Plan, non_negative, positive};
 use crate::filter::luenberger::{SeedPoleReading, seed_poles};
+use crate::filter::sigma_point::SigmaPointError;
 use crate::filter::{
-    BatchInitial, CovarianceUpdate, Ekf, Filter, Information, Luenberger, OpenLoop, SquareRoot,
-    SteadyState,
+    BatchInitial, CovarianceUpdate, Ekf, Filter, Information, Luenberger, OpenLoop,
+    SigmaPointKalman, SigmaPoints, SquareRoot, SteadyState,
 };
 use crate::linalg::{Matrix, Vector, diag_from_std};
 use crate::model::Model;
 use crate::scenario::Scenario;
-use crate::sim::seed::run_seed;
 use crate::sim::{NoiseDraws, TruthNoise, simulate};
 use crate::trial::{
     ConsistencyOptions, FilterOutput, Identity, Prior, RunContext, RunTrace, Trial, Unit,
-    UnitResult, run_filter,
+    UnitResult, lower_triangle, run_filter,
 };
 
 /// The filter's assumed noise for one cell: Q and R after every scale is applied.
@@ -210,8 +210,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
         // would be silently ignored: the kinds refuse it.
         let full_q = model.process_noise_covariance().is_some();
         let mut out = Vec::new();
-        for (i, f) in filters.iter().enumerate() {
-            let key = format!("filters[{i}]");
+        for f in filters {
+            let key = f.key.clone();
             let Some(kind) = self.get(&f.kind) else {
                 let msg = unknown(&f.kind).unwrap_or_else(|| {
                     format!(
@@ -245,6 +245,9 @@ struct KalmanKeys {
     q_std: Option<OneOrMany>,
     r_std: Option<OneOrMany>,
     covariance_update: Option<String>,
+    alpha: Option<f64>,
+    beta: Option<f64>,
+    kappa: Option<f64>,
 }
 
 /// The assumed-noise part every Kalman-type entry shares.
@@ -331,13 +334,15 @@ impl AssumedStd {
 }
 
 /// Which Kalman-type filter an entry builds.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 enum Kalman {
     Ekf(CovarianceUpdate),
     Information,
     Sqrt,
     OpenLoop,
     SteadyState,
+    /// The unscented or the cubature filter, by its points.
+    SigmaPoint(SigmaPoints),
 }
 
 impl Kalman {
@@ -348,6 +353,8 @@ impl Kalman {
             Kalman::Sqrt => "sqrt",
             Kalman::OpenLoop => "open_loop",
             Kalman::SteadyState => "steady_state",
+            Kalman::SigmaPoint(SigmaPoints::Unscented { .. }) => "ukf",
+            Kalman::SigmaPoint(SigmaPoints::Cubature) => "ckf",
         }
     }
 }
@@ -388,6 +395,10 @@ where
                 },
             }),
             Kalman::SteadyState => Box::new(SteadyState::new(model, &q, &r)),
+            Kalman::SigmaPoint(points) => Box::new(
+                SigmaPointKalman::new(q, r, points)
+                    .expect("the points' parameters were checked when the spec was validated"),
+            ),
         }
     }
 }
@@ -437,6 +448,36 @@ where
                 &format!("not used by a {} filter", other.tag()),
             ),
         }
+        match which {
+            Kalman::SigmaPoint(SigmaPoints::Unscented { .. }) => {
+                let SigmaPoints::Unscented { alpha, beta, kappa } = SigmaPoints::DEFAULT_UNSCENTED
+                else {
+                    unreachable!("the default points are unscented")
+                };
+                let points = SigmaPoints::Unscented {
+                    alpha: keys.alpha.unwrap_or(alpha),
+                    beta: keys.beta.unwrap_or(beta),
+                    kappa: keys.kappa.unwrap_or(kappa),
+                };
+                // Every parameter is checked on its own, so one bad key does not hide another.
+                for e in unscented_problems(points, NX) {
+                    c.err(format!("{}.{}", cx.key, e.key()), e.to_string());
+                }
+                which = Kalman::SigmaPoint(points);
+            }
+            other => c.reject_present(
+                &cx.key,
+                &[
+                    ("alpha", keys.alpha.is_some()),
+                    ("beta", keys.beta.is_some()),
+                    ("kappa", keys.kappa.is_some()),
+                ],
+                &format!(
+                    "not used by kind = \"{}\" (only ukf has sigma-point parameters)",
+                    other.tag()
+                ),
+            ),
+        }
         if which == Kalman::OpenLoop {
             c.reject_present(
                 &cx.key,
@@ -458,7 +499,41 @@ where
     }
 }
 
-/// The kinds that work on any model: `ekf`, `information`, `sqrt`, `open_loop`.
+/// The problems of a set of unscented parameters, one per key.
+fn unscented_problems(points: SigmaPoints, n: usize) -> Vec<SigmaPointError> {
+    let SigmaPoints::Unscented { alpha, beta, kappa } = points else {
+        return Vec::new();
+    };
+    let one = |p: SigmaPoints| p.weights(n).err();
+    let mut out: Vec<SigmaPointError> = [
+        one(SigmaPoints::Unscented {
+            alpha,
+            beta: 2.0,
+            kappa: 0.0,
+        }),
+        one(SigmaPoints::Unscented {
+            alpha: 1.0,
+            beta,
+            kappa: 0.0,
+        }),
+        one(SigmaPoints::Unscented {
+            alpha: 1.0,
+            beta: 2.0,
+            kappa,
+        }),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    if out.is_empty()
+        && let Err(e) = points.weights(n)
+    {
+        out.push(e);
+    }
+    out
+}
+
+/// The kinds that work on any model: `ekf`, `information`, `sqrt`, `open_loop`, `ukf`, `ckf`.
 pub fn common_kinds<const NX: usize, const NU: usize, const NZ: usize, M>()
 -> FilterKinds<NX, NU, NZ, M>
 where
@@ -483,6 +558,16 @@ where
         .with(KalmanKind {
             which: Kalman::OpenLoop,
             about: "the time update alone (measurements ignored): propagated covariance vs Monte Carlo spread; q_std",
+            requires: None,
+        })
+        .with(KalmanKind {
+            which: Kalman::SigmaPoint(SigmaPoints::DEFAULT_UNSCENTED),
+            about: "unscented Kalman filter (scaled sigma points, additive noise, circular means of angles); q_std, r_std, alpha = 1, beta = 2, kappa = 0 (defaults: every weight non-negative)",
+            requires: None,
+        })
+        .with(KalmanKind {
+            which: Kalman::SigmaPoint(SigmaPoints::Cubature),
+            about: "cubature Kalman filter (third-degree spherical-radial rule, 2n equal weights); q_std, r_std",
             requires: None,
         })
 }
@@ -822,7 +907,7 @@ where
         let si = plan.scenarios[unit.scenario].index;
         let scenario = &sys.scenarios[si];
         let noise_scale = plan.noise_scales[unit.scale];
-        let seed = run_seed(plan.master_seed, &scenario.name, unit.run as u64);
+        let seed = plan.run_seed(&scenario.name, unit.scale, unit.run);
         let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
         let mut trajectory = simulate(
             &sys.model,
@@ -857,45 +942,37 @@ where
             thresholds: plan.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,
+            export: plan.export_estimates,
             consistency: ConsistencyOptions::of(plan),
+            unit: *unit,
         };
+        let keep = traced || plan.export_estimates;
+        let mut trace = keep.then(|| {
+            let mut t = RunTrace::of_world(
+                &scenario.controls,
+                &trajectory.truth,
+                &trajectory.measurements,
+                Vec::new(),
+            );
+            t.initial = Some((trajectory.x0_hat.as_slice().to_vec(), lower_triangle(&p0)));
+            t
+        });
         let mut filters = Vec::with_capacity(plan.filters.len());
-        let mut est = Vec::new();
-        let mut cov = Vec::new();
         for (fi, f) in plan.filters.iter().enumerate() {
-            let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
-            let filter = slot.get_or_init(|| {
-                sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, filter_scale))
-            });
-            let out = filter.run(&sys.model, &prior, &ctx);
-            if let Some((e, c)) = out.trace {
-                est.push(e);
-                cov.push(c);
+            let mut out = if f.external {
+                crate::score::replay(plan, fi, &sys.model, &ctx)
+            } else {
+                let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
+                let filter = slot.get_or_init(|| {
+                    sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, filter_scale))
+                });
+                filter.run(&sys.model, &prior, &ctx)
+            };
+            if let Some(t) = trace.as_mut() {
+                t.push_filter(&mut out, NX);
             }
             filters.push(out.run);
         }
-        let trace = traced.then(|| RunTrace {
-            u: scenario
-                .controls
-                .iter()
-                .flat_map(|u| u.iter().copied())
-                .collect(),
-            truth: trajectory
-                .truth
-                .iter()
-                .flat_map(|x| x.iter().copied())
-                .collect(),
-            z: trajectory
-                .measurements
-                .iter()
-                .flat_map(|m| {
-                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
-                })
-                .collect(),
-            world: Vec::new(),
-            est,
-            cov,
-        });
         UnitResult {
             unit: *unit,
             seed,

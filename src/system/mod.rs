@@ -127,6 +127,9 @@ pub struct FilterInfo {
 /// system (the generic keys `q_scale` and `r_scale` are taken out).
 #[derive(Clone, Debug, PartialEq)]
 pub struct FilterTable {
+    /// The entry's key path in the spec, `filters[i]` (external entries are not passed to
+    /// the system, so `i` need not be the position in the list the system sees).
+    pub key: String,
     /// `label`.
     pub label: String,
     /// `kind`.

@@ -20,7 +20,6 @@ use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
 use crate::experiment::{FilterNoiseMode, Plan};
 use crate::linalg::Vector;
 use crate::model::Measurement;
-use crate::sim::seed::run_seed;
 use crate::trial::{
     ConsistencyOptions, FilterOutput, RunContext, RunTrace, Trial, Unit, UnitResult,
 };
@@ -191,7 +190,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
         let si = plan.scenarios[unit.scenario].index;
         let name = &self.sys.scenario_info[si].name;
         let noise_scale = plan.noise_scales[unit.scale];
-        let seed = run_seed(plan.master_seed, name, unit.run as u64);
+        let seed = plan.run_seed(name, unit.scale, unit.run);
         let real = self.sys.world.simulate(si, noise_scale, seed);
         let traced = unit.run < plan.trace_runs;
         let ctx = RunContext {
@@ -202,7 +201,9 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
             thresholds: plan.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,
+            export: plan.export_estimates,
             consistency: ConsistencyOptions::of(plan),
+            unit: *unit,
         };
         let settings = NoiseSettings {
             noise_scale,
@@ -213,38 +214,37 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
             q_scale: 1.0,
             r_scale: 1.0,
         };
+        let mut trace = (traced || plan.export_estimates).then(|| {
+            RunTrace::of_world(
+                &real.inputs,
+                &real.truth,
+                &real.measurements,
+                real.world.clone(),
+            )
+        });
         let mut filters = Vec::with_capacity(plan.filters.len());
-        let (mut est, mut cov) = (Vec::new(), Vec::new());
+        let unmodelled = crate::score::Unmodelled {
+            dt_s: self.sys.layout.dt_s,
+        };
         for (fi, f) in plan.filters.iter().enumerate() {
-            let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
-            let filter = slot.get_or_init(|| {
-                self.sys.entries[f.entry].prepare(&NoiseSettings {
-                    q_scale: f.q_scale,
-                    r_scale: f.r_scale,
-                    ..settings
-                })
-            });
-            let out = filter.run(&real, &ctx);
-            if let Some((e, c)) = out.trace {
-                est.push(e);
-                cov.push(c);
+            let mut out = if f.external {
+                crate::score::replay(plan, fi, &unmodelled, &ctx)
+            } else {
+                let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
+                let filter = slot.get_or_init(|| {
+                    self.sys.entries[f.entry].prepare(&NoiseSettings {
+                        q_scale: f.q_scale,
+                        r_scale: f.r_scale,
+                        ..settings
+                    })
+                });
+                filter.run(&real, &ctx)
+            };
+            if let Some(t) = trace.as_mut() {
+                t.push_filter(&mut out, NQ);
             }
             filters.push(out.run);
         }
-        let trace = traced.then(|| RunTrace {
-            u: real.inputs.iter().flat_map(|u| u.iter().copied()).collect(),
-            truth: real.truth.iter().flat_map(|x| x.iter().copied()).collect(),
-            z: real
-                .measurements
-                .iter()
-                .flat_map(|m| {
-                    (0..NZ).map(move |i| if m.available.has(i) { m.z[i] } else { f64::NAN })
-                })
-                .collect(),
-            world: real.world,
-            est,
-            cov,
-        });
         UnitResult {
             unit: *unit,
             seed,

@@ -717,14 +717,8 @@ fn with_measurements<'a>(
     measurements: &'a [Measurement<NZ>],
 ) -> RunContext<'a, NQ, NU, NZ> {
     RunContext {
-        truth: ctx.truth,
-        inputs: ctx.inputs,
         measurements,
-        angles: ctx.angles,
-        thresholds: ctx.thresholds,
-        quantity_names: ctx.quantity_names,
-        trace: ctx.trace,
-        consistency: ctx.consistency,
+        ..*ctx
     }
 }
 

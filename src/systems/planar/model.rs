@@ -124,14 +124,12 @@ impl<const NZ: usize> Planar<NZ> {
     }
 }
 
-/// Wraps an angle difference into [−π, π) exactly as MATLAB's `mod(a + pi, 2*pi) - pi`.
-pub fn wrap_angle(a: f64) -> f64 {
-    let two_pi = 2.0 * std::f64::consts::PI;
-    let m = (a + std::f64::consts::PI) % two_pi;
-    // MATLAB's mod takes the sign of the divisor; Rust's % takes the sign of the dividend.
-    let m = if m < 0.0 { m + two_pi } else { m };
-    m - std::f64::consts::PI
-}
+pub use crate::model::wrap_angle;
+
+/// θ, the attitude: an angle state of both sensor sets.
+const ANGLE_STATES: [usize; 1] = [4];
+/// P1's θ measurement: its residual is wrapped (line 138 of `simulation_quadrotor.m`).
+const P1_ANGLE_MEASUREMENTS: [usize; 1] = [1];
 
 impl Model<6, 2, 3> for PlanarP1 {
     fn dt_s(&self) -> f64 {
@@ -153,10 +151,11 @@ impl Model<6, 2, 3> for PlanarP1 {
         h[(2, 5)] = 1.0;
         h
     }
-    fn residual(&self, z: &Vector<3>, z_pred: &Vector<3>) -> Vector<3> {
-        let mut r = z - z_pred;
-        r[1] = wrap_angle(r[1]);
-        r
+    fn angle_states(&self) -> &[usize] {
+        &ANGLE_STATES
+    }
+    fn angle_measurements(&self) -> &[usize] {
+        &P1_ANGLE_MEASUREMENTS
     }
 }
 
@@ -185,6 +184,10 @@ impl Model<6, 2, 4> for PlanarImu {
         h[(2, 4)] = -c * thrust / p.mass_kg;
         h[(3, 4)] = -s * thrust / p.mass_kg;
         h
+    }
+    // ẍ and ÿ are accelerations, not angles: only the state θ is.
+    fn angle_states(&self) -> &[usize] {
+        &ANGLE_STATES
     }
 }
 

@@ -1,0 +1,281 @@
+//! `kfmc power`: how often each consistency test rejects, over independent replications of a
+//! whole study.
+//!
+//! Whether a test "detects" a mistuning is a rate, not one master seed's outcome. `power` runs
+//! the study R times with independent master seeds (replication r uses
+//! `run_seed(base, "power", r)`, so the table is a function of R and the base seed alone, not
+//! of the thread count), folds each replication's consistency rows and writes
+//! `power.parquet`: per (cell, filter variant, test, runs, α) the rejection rate with its
+//! Clopper–Pearson 95 % interval and the distribution of the statistic. Run on the spec's own
+//! `q_scale`/`r_scale` variants, the row at the true Q and R is the test's false-alarm rate
+//! and every other row its power against that mistuning.
+//!
+//! Memory is bounded by one replication's tables plus R statistics per row.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use statrs::distribution::{Beta, ContinuousCDF};
+
+use crate::error::{KfmcError, OutputError};
+use crate::experiment::Plan;
+use crate::experiment::plan::ConsistencyPlan;
+use crate::metrics::quantile_sorted;
+use crate::output::folder::StudyFolder;
+use crate::output::schema::{ColumnDef, Dtype};
+use crate::output::table::read;
+use crate::output::{TableWriter, Value};
+use crate::runner::RunObserver;
+use crate::sim::seed::run_seed;
+use crate::study::{ExecOptions, StudyReport};
+
+/// The master seed of replication `r` of a power study with base seed `base`.
+pub fn replication_seed(base: u64, r: u64) -> u64 {
+    run_seed(base, "power", r)
+}
+
+/// `power.parquet`'s columns.
+pub fn columns() -> Vec<ColumnDef> {
+    let c = |n: &str, dtype| ColumnDef {
+        name: n.into(),
+        dtype,
+    };
+    vec![
+        c("scenario", Dtype::Str),
+        c("noise_scale", Dtype::F64),
+        c("filter", Dtype::Str),
+        c("q_scale", Dtype::F64),
+        c("r_scale", Dtype::F64),
+        c("test", Dtype::Str),
+        c("runs", Dtype::I64),
+        c("alpha", Dtype::F64),
+        c("replications", Dtype::I64),
+        c("rejections", Dtype::I64),
+        c("rejection_rate", Dtype::F64),
+        c("rejection_ci_lo", Dtype::F64),
+        c("rejection_ci_hi", Dtype::F64),
+        c("statistic_mean", Dtype::F64),
+        c("statistic_p05", Dtype::F64),
+        c("statistic_p50", Dtype::F64),
+        c("statistic_p95", Dtype::F64),
+        c("direction_optimistic", Dtype::I64),
+        c("direction_pessimistic", Dtype::I64),
+    ]
+}
+
+/// The exact (Clopper–Pearson) two-sided 95 % interval of a binomial rate k/n.
+pub fn clopper_pearson(k: u64, n: u64) -> (f64, f64) {
+    let a = 0.05;
+    let beta = |p: f64, x: f64, y: f64| Beta::new(x, y).map_or(f64::NAN, |b| b.inverse_cdf(p));
+    let lo = if k == 0 {
+        0.0
+    } else {
+        beta(a / 2.0, k as f64, (n - k + 1) as f64)
+    };
+    let hi = if k == n {
+        1.0
+    } else {
+        beta(1.0 - a / 2.0, (k + 1) as f64, (n - k) as f64)
+    };
+    (lo, hi)
+}
+
+/// What the rows of one (cell, variant, test, runs, α) accumulate.
+#[derive(Default)]
+struct Tally {
+    order: usize,
+    rejections: u64,
+    seen: u64,
+    statistics: Vec<f64>,
+    optimistic: u64,
+    pessimistic: u64,
+}
+
+type Key = (String, u64, String, u64, u64, String, i64, u64);
+
+/// Runs `replications` replications of `plan` and writes `power.parquet` into `out`.
+pub fn power(
+    plan: &Plan,
+    replications: usize,
+    base_seed: u64,
+    out: &Path,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<StudyReport, KfmcError> {
+    let started = Instant::now();
+    let started_unix_s = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let folder = StudyFolder::open(out, opts.force)?;
+    let scratch: PathBuf = out.join(".power-replication");
+    let mut one = plan.clone();
+    one.trace_runs = 0;
+    one.export_estimates = false;
+    one.output = scratch.clone();
+    one.consistency.get_or_insert(ConsistencyPlan {
+        alpha: plan.alpha,
+        whiteness_lags: 5,
+        subsets: Vec::new(),
+    });
+    observer.on_start((replications * plan.size().runs) as u64);
+    let mut tallies: BTreeMap<Key, Tally> = BTreeMap::new();
+    for r in 0..replications {
+        one.master_seed = replication_seed(base_seed, r as u64);
+        let report = crate::study::run(&one, opts, &Counted(observer));
+        let report = match report {
+            Ok(rep) => rep,
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&scratch);
+                return Err(e);
+            }
+        };
+        fold(&report.output.join("consistency.parquet"), &mut tallies)?;
+        std::fs::remove_dir_all(&scratch).map_err(|source| OutputError::Io {
+            action: "cannot remove",
+            path: scratch.clone(),
+            source,
+        })?;
+    }
+    observer.on_finish();
+
+    let mut table = TableWriter::create(out, "power", columns())?;
+    let mut rows: Vec<(&Key, &mut Tally)> = tallies.iter_mut().collect();
+    rows.sort_by_key(|(_, t)| t.order);
+    for (k, t) in rows {
+        t.statistics.sort_by(f64::total_cmp);
+        let n = t.seen;
+        let (lo, hi) = clopper_pearson(t.rejections, n);
+        let mean = (!t.statistics.is_empty())
+            .then(|| t.statistics.iter().sum::<f64>() / t.statistics.len() as f64);
+        table.push(&[
+            Value::Str(&k.0),
+            Value::F64(Some(f64::from_bits(k.1))),
+            Value::Str(&k.2),
+            Value::F64(Some(f64::from_bits(k.3))),
+            Value::F64(Some(f64::from_bits(k.4))),
+            Value::Str(&k.5),
+            Value::I64(Some(k.6)),
+            Value::F64(Some(f64::from_bits(k.7))),
+            Value::I64(Some(n as i64)),
+            Value::I64(Some(t.rejections as i64)),
+            Value::F64(Some(t.rejections as f64 / n.max(1) as f64)),
+            Value::F64(Some(lo)),
+            Value::F64(Some(hi)),
+            Value::F64(mean),
+            Value::F64(quantile_sorted(&t.statistics, 0.05)),
+            Value::F64(quantile_sorted(&t.statistics, 0.50)),
+            Value::F64(quantile_sorted(&t.statistics, 0.95)),
+            Value::I64(Some(t.optimistic as i64)),
+            Value::I64(Some(t.pessimistic as i64)),
+        ])?;
+    }
+    let finished = vec![table.finish()?];
+    let wall_s = started.elapsed().as_secs_f64();
+    let mut manifest = crate::study::manifest_for(
+        plan,
+        opts,
+        started_unix_s,
+        wall_s,
+        0..plan.scenarios.len() * plan.noise_scales.len(),
+    );
+    manifest.master_seed = base_seed;
+    manifest.runs = (replications * plan.size().runs) as u64;
+    let tables = folder.commit(finished, manifest)?;
+    Ok(StudyReport {
+        output: out.to_path_buf(),
+        tables,
+        wall_s,
+        runs: (replications * plan.size().runs) as u64,
+    })
+}
+
+/// Forwards the replications' progress to one bar over all of them.
+struct Counted<'a>(&'a dyn RunObserver);
+
+impl RunObserver for Counted<'_> {
+    fn on_start(&self, _units: u64) {}
+    fn on_units_done(&self, n: u64) {
+        self.0.on_units_done(n);
+    }
+    fn on_finish(&self) {}
+}
+
+/// Adds one replication's consistency rows to the tallies.
+fn fold(path: &Path, tallies: &mut BTreeMap<Key, Tally>) -> Result<(), OutputError> {
+    let df = read(path)?;
+    let bad = |e| OutputError::Polars {
+        action: "unexpected columns in",
+        path: path.to_path_buf(),
+        source: e,
+    };
+    let s = |c: &str| df.column(c).and_then(|c| c.str().cloned()).map_err(bad);
+    let f = |c: &str| df.column(c).and_then(|c| c.f64().cloned()).map_err(bad);
+    let (scen, filt, test, dir) = (s("scenario")?, s("filter")?, s("test")?, s("direction")?);
+    let (noise, q, r, alpha, stat) = (
+        f("noise_scale")?,
+        f("q_scale")?,
+        f("r_scale")?,
+        f("alpha")?,
+        f("statistic")?,
+    );
+    let runs = df
+        .column("runs")
+        .and_then(|c| c.i64().cloned())
+        .map_err(bad)?;
+    let pass = df
+        .column("pass")
+        .and_then(|c| c.bool().cloned())
+        .map_err(bad)?;
+    let next = tallies.len();
+    for i in 0..df.height() {
+        let bits = |v: Option<f64>| v.unwrap_or(f64::NAN).to_bits();
+        let key = (
+            scen.get(i).unwrap_or("").to_string(),
+            bits(noise.get(i)),
+            filt.get(i).unwrap_or("").to_string(),
+            bits(q.get(i)),
+            bits(r.get(i)),
+            test.get(i).unwrap_or("").to_string(),
+            runs.get(i).unwrap_or(0),
+            bits(alpha.get(i)),
+        );
+        let t = tallies.entry(key).or_insert_with(|| Tally {
+            order: next + i,
+            ..Default::default()
+        });
+        // A test that could not be computed (null pass) is neither a rejection nor a count.
+        let Some(p) = pass.get(i) else { continue };
+        t.seen += 1;
+        t.rejections += u64::from(!p);
+        if let Some(v) = stat.get(i) {
+            t.statistics.push(v);
+        }
+        match dir.get(i) {
+            Some("optimistic") => t.optimistic += 1,
+            Some("pessimistic") => t.pessimistic += 1,
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn clopper_pearson_matches_its_closed_forms_at_the_ends() {
+        // k = 0: hi = 1 − (α/2)^(1/n); k = n: lo = (α/2)^(1/n).
+        let n = 20;
+        let (lo, hi) = clopper_pearson(0, n);
+        assert_eq!(lo, 0.0);
+        assert!((hi - (1.0 - 0.025f64.powf(1.0 / n as f64))).abs() < 1e-10);
+        let (lo, hi) = clopper_pearson(n, n);
+        assert_eq!(hi, 1.0);
+        assert!((lo - 0.025f64.powf(1.0 / n as f64)).abs() < 1e-10);
+        // k = 1 of 20: the tabulated exact interval [0.00127, 0.2487].
+        let (lo, hi) = clopper_pearson(1, n);
+        assert!((lo - 0.001265).abs() < 1e-6 && (hi - 0.248733).abs() < 1e-6);
+    }
+}

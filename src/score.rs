@@ -1,0 +1,886 @@
+//! Estimates from outside kfmc: the exchange format that `kfmc score` and `kfmc check
+//! --estimates` read, and the replay that turns its rows into the very filter records an
+//! in-process filter produces.
+//!
+//! An estimates file has one row per (scenario, noise scale, run, step) and filter label:
+//!
+//! | column | meaning |
+//! |---|---|
+//! | `scenario`, `noise_scale`, `run`, `step` | the keys of `kfmc simulate`'s tables (integers are never matched by time) |
+//! | `filter` | the label of a `[[filters]]` entry with `kind = "external"` |
+//! | `est_<q>` | the estimate of every evaluated quantity q |
+//! | `P_<qi>_<qj>` | its covariance, lower triangle (qi at or after qj in the quantity order), or |
+//! | `L_<i>_<j>` | a lower Cholesky factor of it (0-based indices, i ≥ j) |
+//! | `nu_<z>`, `S_<zi>_<zj>` | optional: the innovation (null where z did not report) and its covariance, lower triangle: enable the NIS and whiteness tests |
+//! | `A_<qi>_<qj>` | optional: the error transition (row qi, column qj): enables the calibrated NEES verdict |
+//!
+//! The error convention is e = truth − estimate, angle quantities wrapped. File metadata
+//! `kfmc.spec_hash` and `kfmc.master_seed`, when present, must match the study.
+//!
+//! Reading streams the files row group by row group into one fixed-width spill file per
+//! external filter (unlinked at once, so nothing is left behind even after a kill), indexed
+//! by its keys; each run then reads its rows back with one positioned read. Memory stays
+//! bounded by a row group, whatever the file's order and size.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+
+use polars::prelude::*;
+
+use crate::error::OutputError;
+use crate::experiment::Plan;
+use crate::filter::{Filter, FilterError, Innovation};
+use crate::linalg::{Matrix, SmallCholesky, Vector};
+use crate::metrics::StepValues;
+use crate::model::{Availability, Measurement, Model};
+use crate::output::schema::{ColumnDef, Dtype, covariance_columns};
+use crate::trial::{FilterOutput, Identity, Prior, RunContext, Unit, run_filter};
+
+/// Version of the exchange format (`truth`, `measurements`, `initial`, estimates).
+pub const SCHEMA_VERSION: u32 = 1;
+
+/// The error convention every table uses, written into the simulation manifest.
+pub const ERROR_CONVENTION: &str = "e = truth - estimate; angle quantities wrapped";
+
+/// How an estimates file gives the covariance.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CovarianceForm {
+    /// `P_<qi>_<qj>`, the lower triangle.
+    Lower,
+    /// `L_<i>_<j>`, a lower Cholesky factor.
+    Cholesky,
+}
+
+/// The columns an estimates file has, beyond the keys.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct EstimateColumns {
+    /// Evaluated quantities.
+    pub quantities: Vec<String>,
+    /// Measurement components.
+    pub measurements: Vec<String>,
+    /// The covariance form.
+    pub covariance: CovarianceForm,
+    /// Whether `nu_*` and `S_*` are present.
+    pub innovations: bool,
+    /// Whether `A_*` is present.
+    pub transition: bool,
+}
+
+impl EstimateColumns {
+    fn nq(&self) -> usize {
+        self.quantities.len()
+    }
+    fn nz(&self) -> usize {
+        self.measurements.len()
+    }
+    fn ntri(&self) -> usize {
+        self.nq() * (self.nq() + 1) / 2
+    }
+    fn ztri(&self) -> usize {
+        self.nz() * (self.nz() + 1) / 2
+    }
+    /// f64 values per row in the spill file.
+    fn width(&self) -> usize {
+        self.nq()
+            + self.ntri()
+            + if self.innovations {
+                self.nz() + self.ztri()
+            } else {
+                0
+            }
+            + if self.transition {
+                self.nq() * self.nq()
+            } else {
+                0
+            }
+    }
+
+    /// The value columns in spill order.
+    pub fn value_columns(&self) -> Vec<String> {
+        let q: Vec<&str> = self.quantities.iter().map(String::as_str).collect();
+        let z: Vec<&str> = self.measurements.iter().map(String::as_str).collect();
+        let mut c: Vec<String> = q.iter().map(|n| format!("est_{n}")).collect();
+        match self.covariance {
+            CovarianceForm::Lower => c.extend(covariance_columns(&q).into_iter().map(|d| d.name)),
+            CovarianceForm::Cholesky => {
+                for i in 0..q.len() {
+                    for j in 0..=i {
+                        c.push(format!("L_{i}_{j}"));
+                    }
+                }
+            }
+        }
+        if self.innovations {
+            c.extend(z.iter().map(|n| format!("nu_{n}")));
+            for (i, zi) in z.iter().enumerate() {
+                for zj in &z[..=i] {
+                    c.push(format!("S_{zi}_{zj}"));
+                }
+            }
+        }
+        if self.transition {
+            for qi in &q {
+                for qj in &q {
+                    c.push(format!("A_{qi}_{qj}"));
+                }
+            }
+        }
+        c
+    }
+}
+
+/// Every column of an estimates file for a study with these quantities and measurements, in
+/// the order `kfmc run --export-estimates` writes them (`kfmc schema estimates`).
+pub fn estimate_columns(quantities: &[&str], measurements: &[&str]) -> Vec<ColumnDef> {
+    let cols = EstimateColumns {
+        quantities: quantities.iter().map(|s| s.to_string()).collect(),
+        measurements: measurements.iter().map(|s| s.to_string()).collect(),
+        covariance: CovarianceForm::Lower,
+        innovations: true,
+        transition: true,
+    };
+    let mut c = key_columns();
+    c.extend(cols.value_columns().into_iter().map(|name| ColumnDef {
+        name,
+        dtype: Dtype::F64,
+    }));
+    c
+}
+
+/// The key columns of an estimates file.
+pub fn key_columns() -> Vec<ColumnDef> {
+    [
+        ("scenario", Dtype::Str),
+        ("noise_scale", Dtype::F64),
+        ("run", Dtype::I64),
+        ("step", Dtype::I64),
+        ("filter", Dtype::Str),
+    ]
+    .into_iter()
+    .map(|(n, dtype)| ColumnDef {
+        name: n.into(),
+        dtype,
+    })
+    .collect()
+}
+
+/// One external filter's estimates, spilled to a fixed-width file indexed by its keys.
+#[derive(Debug)]
+struct External {
+    label: String,
+    files: Vec<PathBuf>,
+    columns: EstimateColumns,
+    spill: File,
+    /// One bit per (cell, run, step) row: whether a file gave it.
+    present: Vec<u64>,
+}
+
+/// The estimates of a plan's external filters, read and checked.
+#[derive(Debug)]
+pub struct EstimateSet {
+    /// Per plan filter: index into `externals`.
+    by_filter: Vec<Option<usize>>,
+    externals: Vec<External>,
+    /// Per cell (scenario-major): the first row index and the samples K + 1 per run.
+    cells: Vec<(u64, usize)>,
+    runs: usize,
+}
+
+fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
+    OutputError::Format {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+fn polars_err(path: &Path, source: PolarsError) -> OutputError {
+    OutputError::Polars {
+        action: "cannot read",
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Creates an unlinked scratch file: the data lives while the handle does, and a killed
+/// process leaves nothing behind.
+fn scratch_file() -> Result<File, OutputError> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static COUNTER: AtomicU64 = AtomicU64::new(0);
+    let path = std::env::temp_dir().join(format!(
+        ".kfmc-estimates-{}-{}.spill",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    ));
+    let io = |source| OutputError::Io {
+        action: "cannot create the scratch file",
+        path: path.clone(),
+        source,
+    };
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create_new(true)
+        .open(&path)
+        .map_err(io)?;
+    std::fs::remove_file(&path).map_err(io)?;
+    Ok(file)
+}
+
+/// Which value columns a file has, checked against the study's layout: every column must be
+/// a key or a known value column, and each group complete.
+fn detect_columns(
+    path: &Path,
+    names: &[String],
+    quantities: &[&str],
+    measurements: &[&str],
+) -> Result<EstimateColumns, OutputError> {
+    let has = |n: &str| names.iter().any(|c| c == n);
+    let base = |covariance, innovations, transition| EstimateColumns {
+        quantities: quantities.iter().map(|s| s.to_string()).collect(),
+        measurements: measurements.iter().map(|s| s.to_string()).collect(),
+        covariance,
+        innovations,
+        transition,
+    };
+    let covariance = if names.iter().any(|c| c.starts_with("L_")) {
+        CovarianceForm::Cholesky
+    } else {
+        CovarianceForm::Lower
+    };
+    let innovations = names
+        .iter()
+        .any(|c| c.starts_with("nu_") || c.starts_with("S_"));
+    let transition = names.iter().any(|c| c.starts_with("A_"));
+    if names.iter().any(|c| c.starts_with("var_")) {
+        return Err(format_err(
+            path,
+            "column var_*: a diagonal covariance is not supported yet; give the lower triangle P_<qi>_<qj> (zeros off the diagonal) or L_<i>_<j>",
+        ));
+    }
+    let cols = base(covariance, innovations, transition);
+    let expected = cols.value_columns();
+    for k in key_columns() {
+        if !has(&k.name) {
+            return Err(format_err(path, format!("missing key column `{}`", k.name)));
+        }
+    }
+    for e in &expected {
+        if !has(e) {
+            return Err(format_err(
+                path,
+                format!(
+                    "missing column `{e}` (the file has {} value columns, this study's format {}; `kfmc schema estimates SPEC` lists them)",
+                    names.len().saturating_sub(5),
+                    expected.len()
+                ),
+            ));
+        }
+    }
+    let keys: Vec<String> = key_columns().into_iter().map(|c| c.name).collect();
+    if let Some(extra) = names
+        .iter()
+        .find(|n| !keys.contains(n) && !expected.contains(n))
+    {
+        return Err(format_err(
+            path,
+            format!(
+                "unexpected column `{extra}` (not a key nor a value column of this study; `kfmc schema estimates SPEC` lists them)"
+            ),
+        ));
+    }
+    Ok(cols)
+}
+
+impl EstimateSet {
+    /// Reads `files` for the external filters of `plan`. File-level trouble (an undeclared
+    /// label, a key outside the plan, a duplicate row, a wrong column, a foreign study) is an
+    /// error naming the file, the column and the first offending key; missing rows and
+    /// non-finite values are left for the runs' status.
+    pub fn load(plan: &Plan, files: &[PathBuf]) -> Result<Self, OutputError> {
+        let layout = plan.layout();
+        let quantities = layout.quantity_names();
+        let measurements = layout.measurement_names();
+        let n_scales = plan.noise_scales.len();
+        let mut cells = Vec::with_capacity(plan.scenarios.len() * n_scales);
+        let mut total = 0u64;
+        for s in &plan.scenarios {
+            for _ in 0..n_scales {
+                cells.push((total, s.steps + 1));
+                total += (plan.runs * (s.steps + 1)) as u64;
+            }
+        }
+        let mut by_filter = vec![None; plan.filters.len()];
+        let mut externals: Vec<External> = Vec::new();
+        let label_of: HashMap<&str, usize> = plan
+            .filters
+            .iter()
+            .enumerate()
+            .filter(|(_, f)| f.external)
+            .map(|(i, f)| (f.label.as_str(), i))
+            .collect();
+        let scenario_of: HashMap<&str, usize> = plan
+            .scenarios
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (s.name.as_str(), i))
+            .collect();
+        let scale_of: HashMap<u64, usize> = plan
+            .noise_scales
+            .iter()
+            .enumerate()
+            .map(|(i, s)| (s.to_bits(), i))
+            .collect();
+        let set = EstimateSet {
+            by_filter: Vec::new(),
+            externals: Vec::new(),
+            cells,
+            runs: plan.runs,
+        };
+
+        for path in files {
+            let file = File::open(path).map_err(|source| OutputError::Io {
+                action: "cannot open",
+                path: path.clone(),
+                source,
+            })?;
+            let mut reader = ParquetReader::new(file);
+            let meta = reader
+                .get_metadata()
+                .map_err(|e| polars_err(path, e))?
+                .clone();
+            check_metadata(path, &meta, plan)?;
+            let names: Vec<String> = reader
+                .schema()
+                .map_err(|e| polars_err(path, e))?
+                .iter_names()
+                .map(|n| n.to_string())
+                .collect();
+            let cols = detect_columns(path, &names, &quantities, &measurements)?;
+            let value_names = cols.value_columns();
+            let width = cols.width();
+            let mut offset = 0usize;
+            crate::output::table::for_each_row_group(path, |df| {
+                let height = df.height();
+                offset += height;
+                let col_err =
+                    |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
+                let strs = |name: &str| -> Result<StringChunked, OutputError> {
+                    let c = df.column(name).map_err(|e| col_err(name, e))?;
+                    Ok(c.str().map_err(|e| col_err(name, e))?.clone())
+                };
+                let floats = |name: &str| -> Result<Float64Chunked, OutputError> {
+                    let c = df
+                        .column(name)
+                        .and_then(|c| c.cast(&DataType::Float64))
+                        .map_err(|e| col_err(name, e))?;
+                    Ok(c.f64().map_err(|e| col_err(name, e))?.clone())
+                };
+                let ints = |name: &str| -> Result<Int64Chunked, OutputError> {
+                    let c = df.column(name).map_err(|e| col_err(name, e))?;
+                    if !c.dtype().is_integer() {
+                        return Err(format_err(
+                            path,
+                            format!("column `{name}` must be an integer, not {}", c.dtype()),
+                        ));
+                    }
+                    let c = c.cast(&DataType::Int64).map_err(|e| col_err(name, e))?;
+                    Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
+                };
+                let scen = strs("scenario")?;
+                let filt = strs("filter")?;
+                let noise = floats("noise_scale")?;
+                let run = ints("run")?;
+                let step = ints("step")?;
+                let values: Vec<Float64Chunked> = value_names
+                    .iter()
+                    .map(|n| floats(n))
+                    .collect::<Result<_, _>>()?;
+                // Consecutive rows of one filter usually land in consecutive spill rows:
+                // they are written in one call.
+                let mut pending: Option<(usize, u64, Vec<f64>)> = None;
+                let mut buf = Vec::with_capacity(width);
+                for i in 0..df.height() {
+                    let key = || {
+                        let o = |v: Option<String>| v.unwrap_or_else(|| "null".into());
+                        format!(
+                            "scenario = {}, noise_scale = {}, run = {}, step = {}, filter = {}",
+                            o(scen.get(i).map(|s| format!("{s:?}"))),
+                            o(noise.get(i).map(|v| v.to_string())),
+                            o(run.get(i).map(|v| v.to_string())),
+                            o(step.get(i).map(|v| v.to_string())),
+                            o(filt.get(i).map(|s| format!("{s:?}"))),
+                        )
+                    };
+                    let label = filt.get(i).ok_or_else(|| {
+                        format_err(
+                            path,
+                            format!("column `filter`: null at row {}", offset - height + i),
+                        )
+                    })?;
+                    let Some(&fi) = label_of.get(label) else {
+                        let declared = plan.filters.iter().any(|f| f.label == label);
+                        return Err(format_err(
+                            path,
+                            if declared {
+                                format!(
+                                    "column `filter`: `{label}` is one of kfmc's filters, not an external one (set kind = \"external\" in the spec to score it from a file) at {}",
+                                    key()
+                                )
+                            } else {
+                                format!(
+                                    "column `filter`: `{label}` is not a filter of the spec; declare it with [[filters]] label = \"{label}\", kind = \"external\" (at {})",
+                                    key()
+                                )
+                            },
+                        ));
+                    };
+                    let ext = match by_filter[fi] {
+                        Some(e) => e,
+                        None => {
+                            externals.push(External {
+                                label: label.to_string(),
+                                files: Vec::new(),
+                                columns: cols.clone(),
+                                spill: scratch_file()?,
+                                present: vec![0; total.div_ceil(64) as usize],
+                            });
+                            by_filter[fi] = Some(externals.len() - 1);
+                            externals.len() - 1
+                        }
+                    };
+                    let e = &mut externals[ext];
+                    if e.columns != cols {
+                        return Err(format_err(
+                            path,
+                            format!(
+                                "filter `{label}` has other columns here than in {}; give every file of one filter the same columns",
+                                e.files
+                                    .first()
+                                    .map_or(String::new(), |p| p.display().to_string())
+                            ),
+                        ));
+                    }
+                    if !e.files.contains(path) {
+                        e.files.push(path.clone());
+                    }
+                    let si = scen
+                        .get(i)
+                        .and_then(|s| scenario_of.get(s).copied())
+                        .ok_or_else(|| {
+                            format_err(
+                                path,
+                                format!(
+                                    "column `scenario`: not a scenario of this study at {}",
+                                    key()
+                                ),
+                            )
+                        })?;
+                    let sj = noise
+                        .get(i)
+                        .and_then(|v| scale_of.get(&v.to_bits()).copied())
+                        .ok_or_else(|| {
+                            format_err(path, format!("column `noise_scale`: not a noise scale of this study (values must be the simulation's exactly) at {}", key()))
+                        })?;
+                    let (base, samples) = set.cells[si * n_scales + sj];
+                    let r = run
+                        .get(i)
+                        .filter(|r| (0..plan.runs as i64).contains(r))
+                        .ok_or_else(|| {
+                            format_err(
+                                path,
+                                format!("column `run`: outside 0..{} at {}", plan.runs, key()),
+                            )
+                        })?;
+                    let k = step
+                        .get(i)
+                        .filter(|k| (0..samples as i64).contains(k))
+                        .ok_or_else(|| {
+                            format_err(
+                                path,
+                                format!("column `step`: outside 0..={} at {}", samples - 1, key()),
+                            )
+                        })?;
+                    let row = base + r as u64 * samples as u64 + k as u64;
+                    let (word, bit) = ((row / 64) as usize, row % 64);
+                    if e.present[word] & (1 << bit) != 0 {
+                        return Err(format_err(path, format!("duplicate row {}", key())));
+                    }
+                    e.present[word] |= 1 << bit;
+                    buf.clear();
+                    buf.extend(values.iter().map(|c| c.get(i).unwrap_or(f64::NAN)));
+                    match &mut pending {
+                        Some((pe, start, data))
+                            if *pe == ext && *start + (data.len() / width) as u64 == row =>
+                        {
+                            data.extend_from_slice(&buf);
+                        }
+                        _ => {
+                            if let Some((pe, start, data)) = pending.take() {
+                                write_rows(&externals[pe], start, &data, width)?;
+                            }
+                            pending = Some((ext, row, buf.clone()));
+                        }
+                    }
+                    if let Some((pe, start, data)) = &pending
+                        && data.len() >= width * 4096
+                    {
+                        write_rows(&externals[*pe], *start, data, width)?;
+                        pending = None;
+                    }
+                }
+                if let Some((pe, start, data)) = pending.take() {
+                    write_rows(&externals[pe], start, &data, width)?;
+                }
+                Ok(())
+            })?;
+        }
+        if let Some(f) = plan
+            .filters
+            .iter()
+            .enumerate()
+            .find(|(i, f)| f.external && by_filter[*i].is_none())
+        {
+            return Err(format_err(
+                files
+                    .first()
+                    .map_or(Path::new("--estimates"), |p| p.as_path()),
+                format!(
+                    "no rows for the external filter `{}` in any of the estimate files",
+                    f.1.label
+                ),
+            ));
+        }
+        Ok(EstimateSet {
+            by_filter,
+            externals,
+            ..set
+        })
+    }
+
+    /// The labels read and the files each came from.
+    pub fn sources(&self) -> Vec<(String, Vec<PathBuf>)> {
+        self.externals
+            .iter()
+            .map(|e| (e.label.clone(), e.files.clone()))
+            .collect()
+    }
+
+    fn unit_rows(&self, filter: usize, unit: &Unit, n_scales: usize) -> Option<UnitRows<'_>> {
+        let e = &self.externals[self.by_filter.get(filter).copied().flatten()?];
+        let (base, samples) = self.cells[unit.scenario * n_scales + unit.scale];
+        let first = base + (unit.run * samples) as u64;
+        let width = e.columns.width();
+        let mut bytes = vec![0u8; samples * width * 8];
+        let read = e.spill.read_exact_at(&mut bytes, first * width as u64 * 8);
+        let present: Vec<bool> = (0..samples as u64)
+            .map(|k| {
+                let row = first + k;
+                e.present[(row / 64) as usize] & (1 << (row % 64)) != 0
+            })
+            .collect();
+        // A spill shorter than this run (its last rows never written) reads as absent rows.
+        let values = if read.is_ok() {
+            bytes
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+                .collect()
+        } else {
+            let mut v = vec![f64::NAN; samples * width];
+            for (k, p) in present.iter().enumerate() {
+                if *p {
+                    let mut row = vec![0u8; width * 8];
+                    if e.spill
+                        .read_exact_at(&mut row, (first + k as u64) * width as u64 * 8)
+                        .is_ok()
+                    {
+                        for (t, b) in row.chunks_exact(8).enumerate() {
+                            v[k * width + t] = f64::from_le_bytes(b.try_into().expect("8 bytes"));
+                        }
+                    }
+                }
+            }
+            v
+        };
+        Some(UnitRows {
+            columns: &e.columns,
+            values,
+            present,
+            width,
+        })
+    }
+
+    /// Runs per cell the set was read for.
+    pub fn runs(&self) -> usize {
+        self.runs
+    }
+}
+
+fn write_rows(e: &External, start: u64, data: &[f64], width: usize) -> Result<(), OutputError> {
+    let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+    e.spill
+        .write_all_at(&bytes, start * width as u64 * 8)
+        .map_err(|source| OutputError::Io {
+            action: "cannot write the scratch file for",
+            path: e.files.last().cloned().unwrap_or_default(),
+            source,
+        })
+}
+
+/// Checks the file's `kfmc.*` metadata against the study.
+fn check_metadata(
+    path: &Path,
+    meta: &polars::io::parquet::read::FileMetadata,
+    plan: &Plan,
+) -> Result<(), OutputError> {
+    for kv in meta.key_value_metadata().iter().flatten() {
+        let value = kv.value.as_deref().unwrap_or("");
+        match kv.key.as_str() {
+            "kfmc.spec_hash" if value != plan.spec_hash => {
+                return Err(format_err(
+                    path,
+                    format!(
+                        "metadata kfmc.spec_hash = {value}, but the study's spec hashes to {}: these estimates were made for another spec's simulation",
+                        plan.spec_hash
+                    ),
+                ));
+            }
+            "kfmc.master_seed" if value != plan.master_seed.to_string() => {
+                return Err(format_err(
+                    path,
+                    format!(
+                        "metadata kfmc.master_seed = {value}, but the study's master seed is {}: these estimates are of other runs",
+                        plan.master_seed
+                    ),
+                ));
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// One run's rows of one external filter.
+struct UnitRows<'a> {
+    columns: &'a EstimateColumns,
+    values: Vec<f64>,
+    present: Vec<bool>,
+    width: usize,
+}
+
+impl UnitRows<'_> {
+    fn row(&self, k: usize) -> &[f64] {
+        &self.values[k * self.width..(k + 1) * self.width]
+    }
+    fn mean<const NQ: usize>(&self, k: usize) -> Vector<NQ> {
+        Vector::<NQ>::from_column_slice(&self.row(k)[..NQ])
+    }
+    fn covariance<const NQ: usize>(&self, k: usize) -> Matrix<NQ, NQ> {
+        let tri = &self.row(k)[NQ..NQ + NQ * (NQ + 1) / 2];
+        let mut m = Matrix::<NQ, NQ>::zeros();
+        let mut t = 0;
+        for i in 0..NQ {
+            for j in 0..=i {
+                m[(i, j)] = tri[t];
+                if self.columns.covariance == CovarianceForm::Lower {
+                    m[(j, i)] = tri[t];
+                }
+                t += 1;
+            }
+        }
+        match self.columns.covariance {
+            CovarianceForm::Lower => m,
+            CovarianceForm::Cholesky => m * m.transpose(),
+        }
+    }
+    /// Why row k cannot be used, if it cannot.
+    fn problem<const NQ: usize>(&self, k: usize) -> Option<String> {
+        if !self.present[k] {
+            return Some(format!("estimates: no row for step {k}"));
+        }
+        let row = self.row(k);
+        let names = &self.columns.quantities;
+        if let Some(i) = (0..NQ).find(|&i| !row[i].is_finite()) {
+            return Some(format!("estimates: est_{} is null or non-finite", names[i]));
+        }
+        if row[NQ..NQ + NQ * (NQ + 1) / 2]
+            .iter()
+            .any(|v| !v.is_finite())
+        {
+            return Some("estimates: a covariance entry is null or non-finite".into());
+        }
+        None
+    }
+}
+
+/// The filter that replays a file's rows: its belief is the step.
+struct Replay<'a> {
+    rows: &'a UnitRows<'a>,
+}
+
+impl<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU, NZ>> Filter<NQ, NU, NZ, M>
+    for Replay<'_>
+{
+    type Belief = usize;
+
+    fn init(&self, _: &M, _: &Vector<NQ>, _: &Matrix<NQ, NQ>, _: &Measurement<NZ>) -> usize {
+        0
+    }
+
+    fn predict(&self, _: &M, k: &mut usize, _: &Vector<NU>) -> Result<(), FilterError> {
+        *k += 1;
+        match self.rows.problem::<NQ>(*k) {
+            Some(why) => Err(FilterError::Estimates(why)),
+            None => Ok(()),
+        }
+    }
+
+    fn update(
+        &self,
+        _: &M,
+        k: &mut usize,
+        _: &Vector<NU>,
+        _: &Measurement<NZ>,
+    ) -> Result<Option<Innovation<NZ>>, FilterError> {
+        let cols = self.rows.columns;
+        if !cols.innovations {
+            return Ok(None);
+        }
+        let row = self.rows.row(*k);
+        let at = NQ + NQ * (NQ + 1) / 2;
+        let nu_row = &row[at..at + NZ];
+        let s_row = &row[at + NZ..at + NZ + NZ * (NZ + 1) / 2];
+        let mut available = 0u32;
+        let mut nu = Vector::<NZ>::zeros();
+        for (i, v) in nu_row.iter().enumerate() {
+            if v.is_finite() {
+                available |= 1 << i;
+                nu[i] = *v;
+            }
+        }
+        let available = Availability(available);
+        if available.count() == 0 {
+            return Ok(None);
+        }
+        // Components that did not report get identity rows, as the EKF masks them, so the
+        // factor and the whitened innovation equal the in-process ones.
+        let mut s = Matrix::<NZ, NZ>::identity();
+        let mut t = 0;
+        for i in 0..NZ {
+            for j in 0..=i {
+                if available.has(i) && available.has(j) {
+                    if !s_row[t].is_finite() {
+                        return Err(FilterError::Estimates(format!(
+                            "estimates: S_{}_{} is null or non-finite where nu reported",
+                            cols.measurements[i], cols.measurements[j]
+                        )));
+                    }
+                    s[(i, j)] = s_row[t];
+                    s[(j, i)] = s_row[t];
+                }
+                t += 1;
+            }
+        }
+        let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
+            which: "innovation covariance S",
+        })?;
+        let whitened = chol.solve_lower(&nu);
+        Ok(Some(
+            Innovation::new(nu, whitened, available).with_covariance(s),
+        ))
+    }
+
+    fn mean(&self, k: &usize) -> Vector<NQ> {
+        self.rows.mean(*k)
+    }
+
+    fn covariance(&self, k: &usize) -> Option<Matrix<NQ, NQ>> {
+        Some(self.rows.covariance(*k))
+    }
+
+    fn error_transition(&self, k: &usize) -> Option<Matrix<NQ, NQ>> {
+        let cols = self.rows.columns;
+        if !cols.transition {
+            return None;
+        }
+        let row = self.rows.row(*k);
+        let at = row.len() - NQ * NQ;
+        let a = &row[at..];
+        a.iter()
+            .all(|v| v.is_finite())
+            .then(|| Matrix::<NQ, NQ>::from_fn(|i, j| a[i * NQ + j]))
+    }
+}
+
+/// Scores plan filter `filter` (an external one) on one run from its rows: the same step
+/// loop, metrics and record as an in-process filter. `model` is only there to satisfy the
+/// step loop's types; the replay never evaluates it.
+pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU, NZ>>(
+    plan: &Plan,
+    filter: usize,
+    model: &M,
+    ctx: &RunContext<'_, NQ, NU, NZ>,
+) -> FilterOutput {
+    let steps = ctx.truth.len() - 1;
+    let rows = plan
+        .estimates
+        .as_ref()
+        .and_then(|set| set.unit_rows(filter, &ctx.unit, plan.noise_scales.len()));
+    let fail = |why: String| FilterOutput {
+        run: StepValues::new(NQ, steps).finish(
+            Some((0, why)),
+            ctx.thresholds,
+            ctx.quantity_names,
+            0,
+        ),
+        trace: None,
+        export: None,
+    };
+    let Some(rows) = rows else {
+        return fail(format!(
+            "no estimates were given for the external filter `{}`",
+            plan.filters[filter].label
+        ));
+    };
+    if let Some(why) = rows.problem::<NQ>(0) {
+        return fail(why);
+    }
+    let (x0, p0) = (rows.mean::<NQ>(0), rows.covariance::<NQ>(0));
+    run_filter(
+        model,
+        &Replay { rows: &rows },
+        &Identity,
+        &Prior {
+            x0_hat: &x0,
+            p0: &p0,
+        },
+        ctx,
+    )
+}
+
+/// The model a world system's external filters are replayed on: kfmc does not know their
+/// model, and the replay never asks it anything; it only carries Δt.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Unmodelled {
+    /// Sample time Δt in seconds.
+    pub dt_s: f64,
+}
+
+impl<const NX: usize, const NU: usize, const NZ: usize> Model<NX, NU, NZ> for Unmodelled {
+    fn dt_s(&self) -> f64 {
+        self.dt_s
+    }
+    fn propagate(&self, x: &Vector<NX>, _: &Vector<NU>) -> Vector<NX> {
+        *x
+    }
+    fn transition_jacobian(&self, _: &Vector<NX>, _: &Vector<NU>) -> Matrix<NX, NX> {
+        Matrix::<NX, NX>::identity()
+    }
+    fn measure(&self, _: &Vector<NX>, _: &Vector<NU>) -> Vector<NZ> {
+        Vector::<NZ>::zeros()
+    }
+    fn measurement_jacobian(&self, _: &Vector<NX>, _: &Vector<NU>) -> Matrix<NZ, NX> {
+        Matrix::<NZ, NX>::zeros()
+    }
+}

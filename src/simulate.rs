@@ -1,0 +1,140 @@
+//! `kfmc simulate`: the world of every run written as files, for estimators outside kfmc.
+//!
+//! The runs are the very runs `kfmc run` gives its own filters (same seeds, same streams), so
+//! estimates made from these files and scored by `kfmc score` are paired with kfmc's filters
+//! run by run. Tables: `truth` (the true quantities and world states), `measurements` (what
+//! a filter receives: z with nulls where a sensor did not report, and the inputs) and
+//! `initial` (each run's seed and the prior kfmc's filters start from); the manifest says
+//! what they mean ([`crate::output::manifest::ExchangeEntry`]).
+
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use crate::error::{KfmcError, OutputError};
+use crate::experiment::Plan;
+use crate::output::folder::StudyFolder;
+use crate::output::manifest::ExchangeEntry;
+use crate::output::{TableWriter, Value, schema};
+use crate::runner::{RunObserver, execute};
+use crate::study::{ExecOptions, StudyReport};
+use crate::trial::Unit;
+
+/// Writes the simulation of `plan` into `plan.output` (or its part folder): streamed, one run
+/// at a time, committed like every study.
+pub fn simulate(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<StudyReport, KfmcError> {
+    let started = Instant::now();
+    let started_unix_s = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    // The world alone: no filter runs, and every run keeps its trajectories.
+    let mut world_only = plan.clone();
+    world_only.filters.clear();
+    world_only.trace_runs = plan.runs;
+    world_only.consistency = None;
+    world_only.rmse_thresholds = None;
+    world_only.export_estimates = false;
+    let part_dir = opts.shard.map(|s| s.folder(&plan.output));
+    let dir = part_dir.as_ref().unwrap_or(&plan.output);
+    let folder = StudyFolder::open(dir, opts.force)?;
+    let n_cells = plan.scenarios.len() * plan.noise_scales.len();
+    let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
+    let trial = world_only.system.trial(&world_only);
+    let layout = plan.layout();
+    let states = layout.quantity_names();
+    let (inputs, meas, world) = (
+        layout.input_names(),
+        layout.measurement_names(),
+        layout.world_state_names(),
+    );
+    let (nq, nu, nz, nw) = (states.len(), inputs.len(), meas.len(), world.len());
+    let mut truth = TableWriter::create(dir, "truth", schema::truth(&states, &world))?;
+    let mut measurements =
+        TableWriter::create(dir, "measurements", schema::measurements(&meas, &inputs))?;
+    let mut initial: Option<TableWriter> = None;
+    let dt = plan.dt_s();
+
+    let (n_scales, n_runs) = (plan.noise_scales.len(), plan.runs);
+    let unit_of = |i: usize| Unit {
+        scenario: i / (n_scales * n_runs),
+        scale: i / n_runs % n_scales,
+        run: i % n_runs,
+    };
+    let first_unit = cells.start * n_runs;
+    execute::<_, KfmcError>(
+        (cells.end - cells.start) * n_runs,
+        opts.threads,
+        |i| trial.run(&unit_of(first_unit + i)),
+        observer,
+        |r| {
+            let u = r.unit;
+            let scenario = plan.scenarios[u.scenario].name.as_str();
+            let noise = plan.noise_scales[u.scale];
+            let tr = r.trace.as_ref().ok_or_else(|| OutputError::Format {
+                path: dir.clone(),
+                message: format!("the {} system gave no trajectories to write", plan.kind),
+            })?;
+            let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+            for k in 0..tr.truth.len() / nq {
+                let key = [
+                    Value::Str(scenario),
+                    Value::F64(Some(noise)),
+                    Value::I64(Some(u.run as i64)),
+                    Value::I64(Some(k as i64)),
+                    Value::F64(Some(k as f64 * dt)),
+                ];
+                let mut row = key.to_vec();
+                row.extend(f64s(&tr.truth[k * nq..(k + 1) * nq]));
+                row.extend(f64s(tr.world.get(k * nw..(k + 1) * nw).unwrap_or(&[])));
+                truth.push(&row)?;
+                let mut row = key.to_vec();
+                row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
+                measurements.push(&row)?;
+            }
+            if let Some((x0, p0)) = &tr.initial {
+                if initial.is_none() {
+                    initial = Some(TableWriter::create(
+                        dir,
+                        "initial",
+                        schema::initial(&states),
+                    )?);
+                }
+                let mut row = vec![
+                    Value::Str(scenario),
+                    Value::F64(Some(noise)),
+                    Value::I64(Some(u.run as i64)),
+                    Value::U64(r.seed),
+                ];
+                row.extend(f64s(x0));
+                row.extend(f64s(p0));
+                initial.as_mut().expect("created above").push(&row)?;
+            }
+            Ok(())
+        },
+    )?;
+    let mut written = vec![truth, measurements];
+    written.extend(initial);
+    let finished = written
+        .into_iter()
+        .map(TableWriter::finish)
+        .collect::<Result<Vec<_>, _>>()?;
+    let wall_s = started.elapsed().as_secs_f64();
+    let mut manifest =
+        crate::study::manifest_for(&world_only, opts, started_unix_s, wall_s, cells.clone());
+    manifest.exchange = Some(ExchangeEntry {
+        schema_version: crate::score::SCHEMA_VERSION,
+        error_convention: crate::score::ERROR_CONVENTION.into(),
+        run_seeds: "per run: seed column of initial.parquet (from the master seed, the scenario name and the run index)".into(),
+        estimates_metadata: vec!["kfmc.spec_hash".into(), "kfmc.master_seed".into()],
+    });
+    let tables = folder.commit(finished, manifest)?;
+    Ok(StudyReport {
+        output: dir.clone(),
+        tables,
+        wall_s,
+        runs: ((cells.end - cells.start) * n_runs) as u64,
+    })
+}
