@@ -313,65 +313,70 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         };
         for p in &ordered {
             let path = p.dir.join("runs.parquet");
-            let df = read(&path)?;
-            let bad = |e| OutputError::Polars {
-                action: "unexpected columns in",
-                path: path.clone(),
-                source: e,
-            };
-            let sc = df
-                .column("scenario")
-                .and_then(|c| c.str().cloned())
-                .map_err(bad)?;
-            let ns = df
-                .column("noise_scale")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
-            let fl = df
-                .column("filter")
-                .and_then(|c| c.str().cloned())
-                .map_err(bad)?;
-            let qs = df
-                .column("q_scale")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
-            let rs = df
-                .column("r_scale")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
-            let run = df
-                .column("run")
-                .and_then(|c| c.i64().cloned())
-                .map_err(bad)?;
-            let rmse = states
-                .iter()
-                .map(|s| {
-                    df.column(&format!("rmse_{s}"))
-                        .and_then(|c| c.f64().cloned())
-                        .map_err(bad)
-                })
-                .collect::<Result<Vec<_>, _>>()?;
-            for i in 0..df.height() {
-                let key = (
-                    sc.get(i).and_then(|s| scenario_of.get(s).copied()),
-                    ns.get(i).and_then(scale_of),
-                    variant_of(
-                        fl.get(i).unwrap_or(""),
-                        qs.get(i).unwrap_or(f64::NAN),
-                        rs.get(i).unwrap_or(f64::NAN),
-                    ),
-                    run.get(i),
-                );
-                let (Some(si), Some(scale), Some(fi), Some(r)) = key else {
-                    return Err(mismatch(
-                        &path,
-                        format!("row {i} names a cell the spec does not have"),
-                    ));
+            // Row group by row group: a part's runs table grows with its runs.
+            for_each_row_group(&path, |df| {
+                let bad = |e| OutputError::Polars {
+                    action: "unexpected columns in",
+                    path: path.clone(),
+                    source: e,
                 };
-                // A null RMSE (a failed run) is NaN, as the single process feeds it.
-                let v: Vec<f64> = rmse.iter().map(|c| c.get(i).unwrap_or(f64::NAN)).collect();
-                trackers[si * nf + fi].observe_run(r as usize, scale, &v, &thr);
-            }
+                let sc = df
+                    .column("scenario")
+                    .and_then(|c| c.str().cloned())
+                    .map_err(bad)?;
+                let ns = df
+                    .column("noise_scale")
+                    .and_then(|c| c.f64().cloned())
+                    .map_err(bad)?;
+                let fl = df
+                    .column("filter")
+                    .and_then(|c| c.str().cloned())
+                    .map_err(bad)?;
+                let qs = df
+                    .column("q_scale")
+                    .and_then(|c| c.f64().cloned())
+                    .map_err(bad)?;
+                let rs = df
+                    .column("r_scale")
+                    .and_then(|c| c.f64().cloned())
+                    .map_err(bad)?;
+                let run = df
+                    .column("run")
+                    .and_then(|c| c.i64().cloned())
+                    .map_err(bad)?;
+                let rmse = states
+                    .iter()
+                    .map(|s| {
+                        df.column(&format!("rmse_{s}"))
+                            .and_then(|c| c.f64().cloned())
+                            .map_err(bad)
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                for i in 0..df.height() {
+                    let key = (
+                        sc.get(i).and_then(|s| scenario_of.get(s).copied()),
+                        ns.get(i).and_then(scale_of),
+                        variant_of(
+                            fl.get(i).unwrap_or(""),
+                            qs.get(i).unwrap_or(f64::NAN),
+                            rs.get(i).unwrap_or(f64::NAN),
+                        ),
+                        run.get(i),
+                    );
+                    let (Some(si), Some(scale), Some(fi), Some(r)) = key else {
+                        return Err(OutputError::Mismatch {
+                            path: path.clone(),
+                            why: format!(
+                                "a row names a cell the spec does not have (row {i} of a row group)"
+                            ),
+                        });
+                    };
+                    // A null RMSE (a failed run) is NaN, as the single process feeds it.
+                    let v: Vec<f64> = rmse.iter().map(|c| c.get(i).unwrap_or(f64::NAN)).collect();
+                    trackers[si * nf + fi].observe_run(r as usize, scale, &v, &thr);
+                }
+                Ok(())
+            })?;
             let path = p.dir.join("summary.parquet");
             let df = read(&path)?;
             let bad = |e| OutputError::Polars {
