@@ -88,13 +88,16 @@ pub enum SigmaPointError {
         /// The κ given.
         kappa: f64,
     },
+    /// α so small that α²(n + κ) underflows to zero.
+    #[error("{0} is so small that α²(n + κ) underflows to 0: the points would not spread")]
+    AlphaUnderflow(f64),
 }
 
 impl SigmaPointError {
     /// The spec key the error is about (`alpha`, `beta` or `kappa`).
     pub fn key(&self) -> &'static str {
         match self {
-            SigmaPointError::Alpha(_) => "alpha",
+            SigmaPointError::Alpha(_) | SigmaPointError::AlphaUnderflow(_) => "alpha",
             SigmaPointError::Beta(_) => "beta",
             SigmaPointError::Kappa(_) | SigmaPointError::Spread { .. } => "kappa",
         }
@@ -150,8 +153,11 @@ impl SigmaPoints {
                 }
                 let nf = n as f64;
                 let n_lambda = alpha * alpha * (nf + kappa);
-                if !(nf + kappa > 0.0 && n_lambda > 0.0) {
+                if !(nf + kappa > 0.0) {
                     return Err(SigmaPointError::Spread { n, kappa });
+                }
+                if !(n_lambda > 0.0) {
+                    return Err(SigmaPointError::AlphaUnderflow(alpha));
                 }
                 let lambda = n_lambda - nf;
                 Ok(Weights {
@@ -525,6 +531,12 @@ mod tests {
             Err(SigmaPointError::Spread { n: 6, kappa: -6.0 })
         );
         assert_eq!(ukf(1.0, 2.0, -6.0).unwrap_err().key(), "kappa");
+        // A denormal α squares to 0: the fault is α's, whatever κ is.
+        assert_eq!(
+            ukf(5e-324, 2.0, 0.0),
+            Err(SigmaPointError::AlphaUnderflow(5e-324))
+        );
+        assert_eq!(ukf(5e-324, 2.0, 0.0).unwrap_err().key(), "alpha");
         assert!(ukf(1.0, 2.0, -5.9).is_ok());
     }
 

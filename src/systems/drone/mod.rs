@@ -233,10 +233,13 @@ impl System for DroneSystem {
         let params = params(spec.model, c);
         let scenarios = scenarios(spec.scenarios, &params, c);
         if spec.initial.mode != InitialMode::Sampled {
+            // Name a key that is in the file: the mode, the section, or the file itself.
             let key = if c.has("initial_estimate.mode") {
                 "initial_estimate.mode"
-            } else {
+            } else if c.has("initial_estimate") {
                 "initial_estimate"
+            } else {
+                ""
             };
             c.err(
                 key,
