@@ -153,10 +153,10 @@ impl SigmaPoints {
                 }
                 let nf = n as f64;
                 let n_lambda = alpha * alpha * (nf + kappa);
-                if !(nf + kappa > 0.0) {
+                if nf + kappa <= 0.0 {
                     return Err(SigmaPointError::Spread { n, kappa });
                 }
-                if !(n_lambda > 0.0) {
+                if n_lambda <= 0.0 {
                     return Err(SigmaPointError::AlphaUnderflow(alpha));
                 }
                 let lambda = n_lambda - nf;
