@@ -32,7 +32,7 @@ Models:
 import argparse
 import math
 import os
-import tomllib
+import re
 
 import numpy as np
 import pyarrow as pa
@@ -42,6 +42,32 @@ from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_MODEL = os.path.join(HERE, "..", "..", "tests", "golden", "filterpy_l1_input.csv")
+
+
+def read_manifest(path):
+    """manifest.toml with tomllib (Python ≥ 3.11); on older Pythons, the few keys used here."""
+    try:
+        import tomllib
+
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except ImportError:
+        pass
+    text = open(path, encoding="utf-8").read()
+    # The top-level keys precede the spec text (which repeats some of them) in the file.
+    head = text.split('spec = """', 1)[0]
+
+    def scalar(key):
+        return re.search(rf"^{key} = (.+)$", head, re.M).group(1).strip().strip('"')
+
+    quantities = [{"name": n} for n in re.findall(r'\[\[quantities\]\]\s*name = "([^"]+)"', text)]
+    meas = re.search(r'^measurements = \[(.*)\]$', head, re.M).group(1)
+    return {
+        "spec_hash": scalar("spec_hash"),
+        "master_seed": int(scalar("master_seed")),
+        "quantities": quantities,
+        "measurements": re.findall(r'"([^"]+)"', meas),
+    }
 
 
 def read_model(path):
@@ -160,8 +186,7 @@ def main():
     ap.add_argument("--l1-model", default=DEFAULT_MODEL, help="CSV with L1's F, H, Q, R")
     args = ap.parse_args()
 
-    with open(os.path.join(args.sim, "manifest.toml"), "rb") as f:
-        manifest = tomllib.load(f)
+    manifest = read_manifest(os.path.join(args.sim, "manifest.toml"))
     q_names = [q["name"] for q in manifest["quantities"]]
     z_names = manifest["measurements"]
     nq, nz = len(q_names), len(z_names)
