@@ -10,12 +10,13 @@
 //! scenario, so the merge computes them from the merged runs and summary rows, with the same
 //! order-independent trackers a single process uses. Memory is one part's table at a time.
 
+use polars::prelude::{Column, DataFrame, Float64Chunked, PolarsResult, StringChunked};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::error::{KfmcError, OutputError};
-use crate::experiment::{self, Overrides};
+use crate::experiment::{self, Overrides, Plan};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::output::folder::{StudyFolder, verify};
 use crate::output::manifest::Manifest;
@@ -305,65 +306,20 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
             .enumerate()
             .map(|(i, s)| (s.name.as_str(), i))
             .collect();
-        let scale_of = |x: f64| plan.noise_scales.iter().position(|s| *s == x);
-        let variant_of = |label: &str, q: f64, r: f64| {
-            plan.filters
-                .iter()
-                .position(|f| f.label == label && f.q_scale == q && f.r_scale == r)
-        };
         for p in &ordered {
             let path = p.dir.join("runs.parquet");
             // Row group by row group: a part's runs table grows with its runs.
             for_each_row_group(&path, |df| {
-                let bad = |e| OutputError::Polars {
-                    action: "unexpected columns in",
-                    path: path.clone(),
-                    source: e,
-                };
-                let sc = df
-                    .column("scenario")
-                    .and_then(|c| c.str().cloned())
-                    .map_err(bad)?;
-                let ns = df
-                    .column("noise_scale")
-                    .and_then(|c| c.f64().cloned())
-                    .map_err(bad)?;
-                let fl = df
-                    .column("filter")
-                    .and_then(|c| c.str().cloned())
-                    .map_err(bad)?;
-                let qs = df
-                    .column("q_scale")
-                    .and_then(|c| c.f64().cloned())
-                    .map_err(bad)?;
-                let rs = df
-                    .column("r_scale")
-                    .and_then(|c| c.f64().cloned())
-                    .map_err(bad)?;
-                let run = df
-                    .column("run")
-                    .and_then(|c| c.i64().cloned())
-                    .map_err(bad)?;
+                let keys = CellColumns::read(&df, &path)?;
+                let run = column(&df, "run", &path, |c| c.i64().cloned())?;
                 let rmse = states
                     .iter()
-                    .map(|s| {
-                        df.column(&format!("rmse_{s}"))
-                            .and_then(|c| c.f64().cloned())
-                            .map_err(bad)
-                    })
+                    .map(|s| column(&df, &format!("rmse_{s}"), &path, |c| c.f64().cloned()))
                     .collect::<Result<Vec<_>, _>>()?;
                 for i in 0..df.height() {
-                    let key = (
-                        sc.get(i).and_then(|s| scenario_of.get(s).copied()),
-                        ns.get(i).and_then(scale_of),
-                        variant_of(
-                            fl.get(i).unwrap_or(""),
-                            qs.get(i).unwrap_or(f64::NAN),
-                            rs.get(i).unwrap_or(f64::NAN),
-                        ),
-                        run.get(i),
-                    );
-                    let (Some(si), Some(scale), Some(fi), Some(r)) = key else {
+                    let (Some((si, scale, fi)), Some(r)) =
+                        (keys.cell(i, &plan, &scenario_of), run.get(i))
+                    else {
                         return Err(OutputError::Mismatch {
                             path: path.clone(),
                             why: format!(
@@ -379,47 +335,11 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
             })?;
             let path = p.dir.join("summary.parquet");
             let df = read(&path)?;
-            let bad = |e| OutputError::Polars {
-                action: "unexpected columns in",
-                path: path.clone(),
-                source: e,
-            };
-            let sc = df
-                .column("scenario")
-                .and_then(|c| c.str().cloned())
-                .map_err(bad)?;
-            let ns = df
-                .column("noise_scale")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
-            let fl = df
-                .column("filter")
-                .and_then(|c| c.str().cloned())
-                .map_err(bad)?;
-            let qs = df
-                .column("q_scale")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
-            let rs = df
-                .column("r_scale")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
-            let mean = df
-                .column("rmse_mean")
-                .and_then(|c| c.f64().cloned())
-                .map_err(bad)?;
+            let keys = CellColumns::read(&df, &path)?;
+            let mean = column(&df, "rmse_mean", &path, |c| c.f64().cloned())?;
             // The summary has one row per state, in state order, per (cell, filter).
             for start in (0..df.height()).step_by(nq.max(1)) {
-                let key = (
-                    sc.get(start).and_then(|s| scenario_of.get(s).copied()),
-                    ns.get(start).and_then(scale_of),
-                    variant_of(
-                        fl.get(start).unwrap_or(""),
-                        qs.get(start).unwrap_or(f64::NAN),
-                        rs.get(start).unwrap_or(f64::NAN),
-                    ),
-                );
-                let (Some(si), Some(scale), Some(fi)) = key else {
+                let Some((si, scale, fi)) = keys.cell(start, &plan, &scenario_of) else {
                     return Err(mismatch(
                         &path,
                         format!("row {start} names a cell the spec does not have"),
@@ -452,6 +372,61 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         tables,
         wall_s: started.elapsed().as_secs_f64(),
     })
+}
+
+/// One column of a part's table, of the type `get` asks for, or an error naming the table.
+fn column<T>(
+    df: &DataFrame,
+    name: &str,
+    path: &Path,
+    get: impl FnOnce(&Column) -> PolarsResult<T>,
+) -> Result<T, OutputError> {
+    df.column(name)
+        .and_then(get)
+        .map_err(|source| OutputError::Polars {
+            action: "unexpected columns in",
+            path: path.to_path_buf(),
+            source,
+        })
+}
+
+/// The key columns of a per-cell table: scenario, noise scale, filter label and its scales.
+struct CellColumns {
+    scenario: StringChunked,
+    noise: Float64Chunked,
+    filter: StringChunked,
+    q: Float64Chunked,
+    r: Float64Chunked,
+}
+
+impl CellColumns {
+    fn read(df: &DataFrame, path: &Path) -> Result<Self, OutputError> {
+        Ok(CellColumns {
+            scenario: column(df, "scenario", path, |c| c.str().cloned())?,
+            noise: column(df, "noise_scale", path, |c| c.f64().cloned())?,
+            filter: column(df, "filter", path, |c| c.str().cloned())?,
+            q: column(df, "q_scale", path, |c| c.f64().cloned())?,
+            r: column(df, "r_scale", path, |c| c.f64().cloned())?,
+        })
+    }
+
+    /// Row i's (scenario, noise scale, filter variant) indices in `plan`, if it has that cell.
+    fn cell(
+        &self,
+        i: usize,
+        plan: &Plan,
+        scenario_of: &HashMap<&str, usize>,
+    ) -> Option<(usize, usize, usize)> {
+        let si = scenario_of.get(self.scenario.get(i)?).copied()?;
+        let noise = self.noise.get(i)?;
+        let scale = plan.noise_scales.iter().position(|s| *s == noise)?;
+        let (label, q, r) = (self.filter.get(i)?, self.q.get(i)?, self.r.get(i)?);
+        let fi = plan
+            .filters
+            .iter()
+            .position(|f| f.label == label && f.q_scale == q && f.r_scale == r)?;
+        Some((si, scale, fi))
+    }
 }
 
 /// Options of `kfmc slurm`.

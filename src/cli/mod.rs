@@ -376,6 +376,22 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
     s
 }
 
+/// The shard of `--shard i/n`, `--shards n` or the scheduler's environment; a bad value is a
+/// usage error at `--shard`.
+fn shard_arg(
+    spec: &std::path::Path,
+    shard: Option<&str>,
+    shards: Option<usize>,
+) -> Result<Option<crate::study::Shard>, KfmcError> {
+    crate::merge::shard_from(shard, shards, &|k| std::env::var(k).ok()).map_err(|message| {
+        KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
+            file: spec.to_path_buf(),
+            key_path: "--shard".into(),
+            message,
+        }]))
+    })
+}
+
 /// Reads the external filters' estimates into `plan`, naming the files on trouble.
 fn attach_estimates(plan: &mut Plan, files: &[PathBuf]) -> anyhow::Result<()> {
     let set = crate::score::EstimateSet::load(plan, files)
@@ -482,6 +498,13 @@ macro_rules! outln {
     };
 }
 
+/// Lists the tables a command wrote with their row counts.
+fn print_tables(tables: &[(String, u64)]) {
+    for (name, rows) in tables {
+        outln!("  {name}.parquet  {rows} rows");
+    }
+}
+
 fn plot_dir(dir: &std::path::Path, opts: &PlotOptions) -> anyhow::Result<Vec<PathBuf>> {
     crate::plot::plot_all(dir, opts)
         .map_err(KfmcError::from)
@@ -514,24 +537,14 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                         r.cells_reused,
                         plan.output.display()
                     );
-                    for (name, rows) in &r.merge.tables {
-                        outln!("  {name}.parquet  {rows} rows");
-                    }
+                    print_tables(&r.merge.tables);
                 }
                 if plot {
                     plot_dir(&plan.output, &PlotOptions::default())?;
                 }
                 return Ok(());
             }
-            let shard =
-                crate::merge::shard_from(shard.as_deref(), shards, &|k| std::env::var(k).ok())
-                    .map_err(|message| {
-                        KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
-                            file: study.spec.clone(),
-                            key_path: "--shard".into(),
-                            message,
-                        }]))
-                    })?;
+            let shard = shard_arg(&study.spec, shard.as_deref(), shards)?;
             let mut plan = study.plan(registry, trace_runs)?;
             plan.export_estimates = export_estimates;
             let threads = study.threads(study.quiet);
@@ -558,9 +571,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     report.runs as f64 / report.wall_s.max(1e-9),
                     report.output.display()
                 );
-                for (name, rows) in &report.tables {
-                    outln!("  {name}.parquet  {rows} rows");
-                }
+                print_tables(&report.tables);
             }
             if plot {
                 let files = plot_dir(&report.output, &PlotOptions::default())?;
@@ -601,15 +612,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             shard,
             shards,
         } => {
-            let shard =
-                crate::merge::shard_from(shard.as_deref(), shards, &|k| std::env::var(k).ok())
-                    .map_err(|message| {
-                        KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
-                            file: study.spec.clone(),
-                            key_path: "--shard".into(),
-                            message,
-                        }]))
-                    })?;
+            let shard = shard_arg(&study.spec, shard.as_deref(), shards)?;
             let plan = study.plan(registry, None)?;
             let threads = study.threads(study.quiet);
             let observer = ProgressObserver::new(!study.quiet);
@@ -631,9 +634,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     report.wall_s,
                     report.output.display()
                 );
-                for (name, rows) in &report.tables {
-                    outln!("  {name}.parquet  {rows} rows");
-                }
+                print_tables(&report.tables);
             }
             Ok(())
         }
@@ -704,9 +705,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     report.wall_s,
                     report.output.display()
                 );
-                for (name, rows) in &report.tables {
-                    outln!("  {name}.parquet  {rows} rows");
-                }
+                print_tables(&report.tables);
             }
             Ok(())
         }
@@ -751,9 +750,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     report.wall_s,
                     report.output.display()
                 );
-                for (name, rows) in &report.tables {
-                    outln!("  {name}.parquet  {rows} rows");
-                }
+                print_tables(&report.tables);
             }
             Ok(())
         }
@@ -921,9 +918,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 report.wall_s,
                 dir.display()
             );
-            for (name, rows) in &report.tables {
-                outln!("  {name}.parquet  {rows} rows");
-            }
+            print_tables(&report.tables);
             Ok(())
         }
         Command::Slurm {

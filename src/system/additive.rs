@@ -860,14 +860,7 @@ where
                 .then(|| Matrix::<NX, NX>::from_diagonal(&sys.p0_std)),
             model_q: sys.model.process_noise_covariance(),
             names: sys.layout.quantity_names(),
-            angles: sys
-                .layout
-                .quantities
-                .iter()
-                .enumerate()
-                .filter(|(_, q)| q.angle)
-                .map(|(i, q)| (i, q.unit == "deg"))
-                .collect(),
+            angles: sys.layout.angles(),
             prepared: (0..plan.filters.len() * plan.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),

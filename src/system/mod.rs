@@ -77,6 +77,15 @@ pub struct Layout {
 }
 
 impl Layout {
+    /// The angle quantities, whose errors are wrapped: (index, whether in degrees).
+    pub fn angles(&self) -> Vec<(usize, bool)> {
+        self.quantities
+            .iter()
+            .enumerate()
+            .filter(|(_, q)| q.angle)
+            .map(|(i, q)| (i, q.unit == "deg"))
+            .collect()
+    }
     /// The quantity names, in order.
     pub fn quantity_names(&self) -> Vec<&str> {
         self.quantities.iter().map(|q| q.name.as_str()).collect()

@@ -156,14 +156,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
     fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a> {
         Box::new(WorldTrial {
             names: self.layout.quantity_names(),
-            angles: self
-                .layout
-                .quantities
-                .iter()
-                .enumerate()
-                .filter(|(_, q)| q.angle)
-                .map(|(i, q)| (i, q.unit == "deg"))
-                .collect(),
+            angles: self.layout.angles(),
             prepared: (0..plan.filters.len() * plan.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
