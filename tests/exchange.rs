@@ -172,6 +172,23 @@ fn exported_kf_scored_as_external_gives_the_run_tables() {
     let truth = read(&s.dir.join("sim/truth.parquet"));
     assert_eq!(truth.height(), 12 * 2 * (51 + 31));
 
+    // Scoring does not depend on the thread count either.
+    for threads in ["1", "2"] {
+        let mut c = kfmc();
+        c.args(["score", "-q", "--threads", threads])
+            .arg(s.dir.join("sim"))
+            .arg("--out")
+            .arg(s.dir.join(format!("score_t{threads}")))
+            .arg("--estimates")
+            .arg(s.dir.join("kf.parquet"));
+        ok(&mut c);
+    }
+    for t in ["runs", "steps", "summary", "consistency", "divergence_runs"] {
+        let a = fs::read(s.dir.join(format!("score_t1/{t}.parquet"))).unwrap();
+        let b = fs::read(s.dir.join(format!("score_t2/{t}.parquet"))).unwrap();
+        assert!(a == b, "{t}.parquet of score differs between 1 and 2 threads");
+    }
+
     // A sharded simulation merges into the single process's tables, byte for byte, and
     // scores like it (4 cells in 3 parts).
     let sharded = s.dir.join("sharded");
