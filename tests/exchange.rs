@@ -186,7 +186,10 @@ fn exported_kf_scored_as_external_gives_the_run_tables() {
     for t in ["runs", "steps", "summary", "consistency", "divergence_runs"] {
         let a = fs::read(s.dir.join(format!("score_t1/{t}.parquet"))).unwrap();
         let b = fs::read(s.dir.join(format!("score_t2/{t}.parquet"))).unwrap();
-        assert!(a == b, "{t}.parquet of score differs between 1 and 2 threads");
+        assert!(
+            a == b,
+            "{t}.parquet of score differs between 1 and 2 threads"
+        );
     }
 
     // A sharded simulation merges into the single process's tables, byte for byte, and
