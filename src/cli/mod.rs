@@ -278,6 +278,20 @@ pub enum Command {
         #[arg(long)]
         allow_large: bool,
     },
+    /// Print a system's analysis for a spec and write it as TOML: per scenario F, G, H, Q
+    /// and R along the clean trajectory, the observability ranks (whole sensor set, each
+    /// component, each sensor group), the steady-state gain and its poles, and per filter the
+    /// NEES variance inflation ρ and the tests' effective degrees of freedom.
+    Describe {
+        /// The experiment spec (TOML).
+        spec: PathBuf,
+        /// The TOML file to write (default: the spec's output folder / describe.toml).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Only print; write no file.
+        #[arg(long)]
+        no_write: bool,
+    },
     /// Print the RMSE summary (and divergence points) of a result folder.
     Summary {
         /// A folder written by `kfmc run`.
@@ -897,6 +911,29 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
             plan.check_limits(allow_large).map_err(KfmcError::from)?;
             outln!("{}", describe(&plan));
+            Ok(())
+        }
+        Command::Describe {
+            spec,
+            out,
+            no_write,
+        } => {
+            let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
+            let description = plan.system.describe(&plan);
+            emit(&description.render());
+            if !no_write {
+                let path = out.unwrap_or_else(|| plan.output.join("describe.toml"));
+                if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(parent).map_err(|e| {
+                        anyhow::Error::from(e).context(format!("creating {}", parent.display()))
+                    })?;
+                }
+                crate::output::folder::write_atomic(&path, description.to_toml().as_bytes())
+                    .map_err(|e| {
+                        anyhow::Error::from(e).context(format!("writing {}", path.display()))
+                    })?;
+                outln!("wrote {}", path.display());
+            }
             Ok(())
         }
         Command::Summary { dir, noise_scale } => {

@@ -62,6 +62,7 @@ fn is_kfmc_file(name: &str) -> bool {
         || name == LOCK_FILE
         || name == "figures"
         || name == "report.html"
+        || name == "describe.toml"
         || name.starts_with("tune_")
         || name == "parts"
         || name == "slurm"

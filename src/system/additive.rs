@@ -27,6 +27,7 @@ use crate::filter::{
     SigmaPointKalman, SigmaPoints, SquareRoot, SteadyState,
 };
 use crate::linalg::{Matrix, Vector, diag_from_std};
+use crate::metrics::RunConsistency;
 use crate::model::Model;
 use crate::scenario::Scenario;
 use crate::sim::{NoiseDraws, TruthNoise, simulate};
@@ -764,6 +765,8 @@ pub struct AdditivePlan<const NX: usize, const NU: usize, const NZ: usize, M> {
     pub entries: Vec<Arc<dyn FilterEntry<NX, NU, NZ, M>>>,
     /// Their infos (same order).
     pub filter_info: Vec<FilterInfo>,
+    /// The system's own sections of `kfmc describe` (e.g. the ranks of other sensor sets).
+    pub analysis_sections: Vec<crate::analysis::Section>,
 }
 
 impl<const NX: usize, const NU: usize, const NZ: usize, M: Debug> Debug
@@ -808,6 +811,7 @@ where
             p0_std,
             batch: None,
             entries,
+            analysis_sections: Vec::new(),
         }
     }
 }
@@ -831,6 +835,18 @@ where
     }
     fn as_any(&self) -> &dyn Any {
         self
+    }
+    fn describe(&self, plan: &Plan) -> crate::analysis::Description {
+        let trial = AdditiveTrial::new(self, plan);
+        let mut d = crate::analysis::describe_model(
+            plan,
+            &self.model,
+            &self.scenarios,
+            &self.truth_noise,
+            |scenario| trial.clean_consistency(scenario),
+        );
+        d.sections.extend(self.analysis_sections.iter().cloned());
+        d
     }
 }
 
@@ -886,6 +902,59 @@ where
             Matrix::<NZ, NZ>::zeros()
         };
         AssumedNoise { q, r }
+    }
+
+    /// The consistency sums of every filter variant on the clean (noise-free) run of plan
+    /// scenario `scenario`, with the filters' Q and R at noise scale 1: what `kfmc describe`
+    /// calibrates the tests with. `None` for a variant without a covariance or an external one.
+    fn clean_consistency(&self, scenario: usize) -> Vec<Option<RunConsistency>> {
+        let (plan, sys) = (self.plan, self.sys);
+        let si = plan.scenarios[scenario].index;
+        let sc = &sys.scenarios[si];
+        let draws = NoiseDraws::<NX, NZ>::draw(0, sc.steps());
+        let mut trajectory = simulate(&sys.model, sc, &sys.truth_noise, 0.0, None, &draws);
+        let p0 = match &sys.batch {
+            Some(batch) => {
+                trajectory.x0_hat = batch[si].estimate(&trajectory.measurements);
+                batch[si].covariance
+            }
+            None => self.p0,
+        };
+        let prior = Prior {
+            x0_hat: &trajectory.x0_hat,
+            p0: &p0,
+        };
+        let ctx = RunContext {
+            truth: &trajectory.truth,
+            inputs: &sc.controls,
+            measurements: &trajectory.measurements,
+            angles: &self.angles,
+            thresholds: None,
+            quantity_names: &self.names,
+            trace: false,
+            export: false,
+            consistency: Some(ConsistencyOptions::of(plan).unwrap_or(ConsistencyOptions {
+                lags: 0,
+                burn_in: plan.initial != InitialMode::Sampled,
+                initial_nees: plan.initial == InitialMode::BatchLs,
+            })),
+            unit: Unit {
+                scenario,
+                scale: 0,
+                run: 0,
+            },
+        };
+        plan.filters
+            .iter()
+            .enumerate()
+            .map(|(fi, f)| {
+                if f.external {
+                    return None;
+                }
+                let filter = sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, 1.0));
+                filter.run(&sys.model, &prior, &ctx).run.consistency
+            })
+            .collect()
     }
 }
 

@@ -210,6 +210,18 @@ pub trait SystemPlan: Send + Sync + Debug {
     fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a>;
     /// For tests and tools that need the concrete plan back.
     fn as_any(&self) -> &dyn Any;
+    /// The system's analysis for `kfmc describe` ([`crate::analysis`]). Systems built on
+    /// [`additive::AdditivePlan`] get the linearised analysis of their model; the default
+    /// reports the layout and says that the system offers no analysis.
+    fn describe(&self, plan: &Plan) -> crate::analysis::Description {
+        let mut d = crate::analysis::Description::header(plan);
+        d.notes.push(format!(
+            "model.kind = \"{}\" offers no linearised analysis (its world is not one Model); \
+             the layout above is all kfmc describe can show",
+            plan.kind
+        ));
+        d
+    }
 }
 
 /// Maps `model.kind` to systems.

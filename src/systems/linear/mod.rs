@@ -355,6 +355,16 @@ impl<const NX: usize, const NZ: usize> SystemPlan for LinearPlan<NX, NZ> {
     fn as_any(&self) -> &dyn Any {
         self
     }
+    fn describe(&self, plan: &Plan) -> crate::analysis::Description {
+        let mut d = self.additive.describe(plan);
+        // G's padding columns are not inputs of the spec.
+        for s in &mut d.scenarios {
+            for row in &mut s.input_matrix {
+                row.truncate(self.inputs);
+            }
+        }
+        d
+    }
 }
 
 /// The additive trial with the padded inputs removed from its traces.
