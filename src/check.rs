@@ -118,9 +118,10 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
         None
     };
     let summary = Table::open(&dir.join("summary.parquet"))?;
-    for a in &plan.assertions {
+    for a in plan.assertions.iter().filter(|a| !a.needs_replications()) {
         let before = out.len();
         let (kind, filter, scenario) = match a {
+            Assertion::RejectionRate { .. } => unreachable!("filtered above"),
             Assertion::TestPasses {
                 kind,
                 filter,
@@ -135,6 +136,7 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
             scenario.as_ref().is_none_or(|s| s == sc) && filter.as_ref().is_none_or(|x| x == f)
         };
         match a {
+            Assertion::RejectionRate { .. } => {}
             Assertion::TestPasses { tests, .. } => {
                 let t = cons.as_ref().expect("opened above");
                 let Cells {
@@ -223,27 +225,123 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                 }
             }
         }
-        if out.len() == before {
-            out.push(CaseResult {
-                kind: kind.into(),
-                name: format!("{kind}[no matching rows]"),
-                pass: false,
-                detail: "no table row matches this assertion (does the filter carry a covariance?)"
-                    .into(),
-            });
-        } else if a.expect_fail() {
-            // A negative control holds when the gate it stands for rejects: its case passes
-            // exactly when the assertion's own case fails.
-            for case in &mut out[before..] {
-                case.name = format!("negative_control:{}", case.name);
-                case.detail = format!(
-                    "expected to fail, and it {}: {}",
-                    if case.pass { "passed" } else { "failed" },
-                    case.detail
-                );
-                case.pass = !case.pass;
-            }
+        settle(a, kind, &mut out, before);
+    }
+    Ok(out)
+}
+
+/// Closes one assertion's cases: none matched is a failure of its own, and a negative
+/// control passes exactly when the assertion's own cases fail.
+fn settle(a: &Assertion, kind: &str, out: &mut Vec<CaseResult>, before: usize) {
+    if out.len() == before {
+        out.push(CaseResult {
+            kind: kind.into(),
+            name: format!("{kind}[no matching rows]"),
+            pass: false,
+            detail: "no table row matches this assertion (does the filter carry a covariance?)"
+                .into(),
+        });
+    } else if a.expect_fail() {
+        for case in &mut out[before..] {
+            case.name = format!("negative_control:{}", case.name);
+            case.detail = format!(
+                "expected to fail, and it {}: {}",
+                if case.pass { "passed" } else { "failed" },
+                case.detail
+            );
+            case.pass = !case.pass;
         }
+    }
+}
+
+/// Evaluates the `rejection_rate` assertions of `plan` against `power.parquet` in `dir`
+/// (written by `kfmc power`).
+pub fn evaluate_power(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError> {
+    crate::output::folder::verify(dir)?;
+    let t = Table::open(&dir.join("power.parquet"))?;
+    let Cells {
+        names,
+        scenario: sc,
+        filter: f,
+    } = t.cells()?;
+    let test = t.str("test")?;
+    let (q, r, runs, alpha) = (
+        t.f64("q_scale")?,
+        t.f64("r_scale")?,
+        t.i64("runs")?,
+        t.f64("alpha")?,
+    );
+    let (reps, rejections) = (t.i64("replications")?, t.i64("rejections")?);
+    let (rate, lo, hi) = (
+        t.f64("rejection_rate")?,
+        t.f64("rejection_ci_lo")?,
+        t.f64("rejection_ci_hi")?,
+    );
+    let mut out = Vec::new();
+    for a in &plan.assertions {
+        let Assertion::RejectionRate {
+            test: want,
+            filter,
+            scenario,
+            q_scale,
+            r_scale,
+            runs: want_runs,
+            min,
+            max,
+            interval,
+            ..
+        } = a
+        else {
+            continue;
+        };
+        let before = out.len();
+        for i in 0..names.len() {
+            let keep = &test[i] == want
+                && scenario.as_ref().is_none_or(|s| s == &sc[i])
+                && filter.as_ref().is_none_or(|x| x == &f[i])
+                && q_scale.is_none_or(|v| q[i] == Some(v))
+                && r_scale.is_none_or(|v| r[i] == Some(v))
+                && want_runs.is_none_or(|n| runs[i] == Some(n as i64));
+            if !keep {
+                continue;
+            }
+            let (Some(p), Some(l), Some(h)) = (rate[i], lo[i], hi[i]) else {
+                continue;
+            };
+            let (low, high) = if *interval { (l, h) } else { (p, p) };
+            let pass = min.is_none_or(|m| low >= m) && max.is_none_or(|m| high <= m);
+            let bounds = match (min, max) {
+                (Some(a), Some(b)) => format!("in [{a}, {b}]"),
+                (Some(a), None) => format!("≥ {a}"),
+                (None, Some(b)) => format!("≤ {b}"),
+                (None, None) => String::new(),
+            };
+            let what = if *interval {
+                "its 95 % interval must lie"
+            } else {
+                "must be"
+            };
+            out.push(CaseResult {
+                kind: "rejection_rate".into(),
+                name: format!(
+                    "rejection_rate[{} N={} α={} {}]",
+                    names[i],
+                    runs[i].unwrap_or(0),
+                    fmt_g(alpha[i]),
+                    test[i]
+                ),
+                pass,
+                detail: format!(
+                    "rejected in {} of {} replications: rate {} [{}, {}] ({what} {bounds})",
+                    rejections[i].unwrap_or(0),
+                    reps[i].unwrap_or(0),
+                    fmt(Some(p)),
+                    fmt(Some(l)),
+                    fmt(Some(h)),
+                ),
+            });
+        }
+        settle(a, "rejection_rate", &mut out, before);
     }
     Ok(out)
 }

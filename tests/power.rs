@@ -114,3 +114,80 @@ fn a_replication_is_the_run_of_its_seed() {
         assert_eq!(rej.get(i) == Some(1), pass.get(i) == Some(false), "row {i}");
     }
 }
+
+/// `kfmc check` judges `rejection_rate` assertions on `kfmc power`'s table: the verdict's
+/// power against Q × 2 (28 of 30 replications above) passes `min = 0.8`; its false-alarm rate
+/// at the true Q passes `max = 0.2`; a negative control asking for power ≥ 0.5 at the true Q
+/// must fail, and does; without replications the spec is refused at `check.replications`.
+#[test]
+fn check_asserts_on_rejection_rates() {
+    let gate = |asserts: &str, replications: Option<usize>| {
+        let text = format!(
+            "{SPEC}\n[check]\n{}{asserts}",
+            replications.map_or(String::new(), |r| format!("replications = {r}\n"))
+        );
+        let (dir, spec) = spec_in_tempdir(&text);
+        let junit = dir.path().join("junit.xml");
+        let o = kfmc()
+            .args(["check", "-q", "--out"])
+            .arg(dir.path().join("out"))
+            .arg("--junit")
+            .arg(&junit)
+            .arg(&spec)
+            .output()
+            .unwrap();
+        let xml = std::fs::read_to_string(&junit).unwrap_or_default();
+        (o, xml, dir)
+    };
+    let passing = r#"
+[[check.assert]]
+kind = "rejection_rate"
+filter = "kf"
+q_scale = 2.0
+min = 0.8
+[[check.assert]]
+kind = "rejection_rate"
+q_scale = 1.0
+max = 0.2
+[[check.assert]]
+kind = "rejection_rate"
+q_scale = 1.0
+min = 0.5
+expect = "fail"
+"#;
+    let (o, xml, dir) = gate(passing, Some(30));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(
+        o.status.code(),
+        Some(0),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(stdout.contains("of 30 replications"), "{stdout}");
+    assert!(xml.contains("negative_control:rejection_rate["), "{xml}");
+    assert!(dir.path().join("out/power/power.parquet").exists());
+
+    // The same power demanded at the true Q is a failing gate (exit 3).
+    let failing = "[[check.assert]]\nkind = \"rejection_rate\"\nq_scale = 1.0\nmin = 0.5\n";
+    let (o, xml, _d) = gate(failing, Some(30));
+    assert_eq!(
+        o.status.code(),
+        Some(3),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    assert!(xml.contains("<failure"), "{xml}");
+
+    let (o, _, _d) = gate(failing, None);
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("check.replications"), "{err}");
+
+    // A rate outside [0, 1] and a min on another kind are named by key.
+    let bad = "[[check.assert]]\nkind = \"rejection_rate\"\nmax = 1.5\n[[check.assert]]\nkind = \"consistent\"\nmin = 0.1\n";
+    let (o, _, _d) = gate(bad, Some(3));
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("check.assert[0].max"), "{err}");
+    assert!(err.contains("check.assert[1].min"), "{err}");
+}

@@ -252,6 +252,10 @@ pub enum Command {
         /// simulate`'s tables of the same spec, runs and seed).
         #[arg(long, num_args = 1..)]
         estimates: Vec<PathBuf>,
+        /// Replications for the `rejection_rate` assertions (overrides `check.replications`):
+        /// they are judged on `kfmc power`'s table, written to `<out>/power`.
+        #[arg(long, short = 'R')]
+        replications: Option<usize>,
     },
     /// Search a filter's Q scale (and R scale with --tune-r) for consistency or minimum RMSE:
     /// a coarse log grid, then a refinement; writes tuning.parquet.
@@ -777,6 +781,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             study,
             junit,
             estimates,
+            replications,
         } => {
             let mut plan = study.plan(registry, None)?;
             if !estimates.is_empty() {
@@ -803,30 +808,68 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     whiteness_lags: 5,
                     subsets: Vec::new(),
                 });
+            let needs_power = plan.assertions.iter().any(|a| a.needs_replications());
+            let replications = replications.or(plan.check_replications);
+            if needs_power && replications.is_none_or(|r| r == 0) {
+                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+                    crate::error::SpecError {
+                        file: spec.clone(),
+                        key_path: "check.replications".into(),
+                        message: "a rejection_rate assertion is judged over replications of the whole study: set check.replications ≥ 1 or pass --replications R".into(),
+                    },
+                ]))
+                .into());
+            }
+            let exec = crate::study::ExecOptions {
+                threads,
+                force,
+                shard: None,
+            };
             let observer = ProgressObserver::new(!quiet);
-            let report = crate::study::run(
-                &plan,
-                &crate::study::ExecOptions {
-                    threads,
-                    force,
-                    shard: None,
-                },
-                &observer,
-            )
-            .map_err(anyhow::Error::from)
-            .map_err(|e| e.context(format!("running {}", spec.display())))?;
-            let cases = crate::check::evaluate(&plan, &report.output)
-                .map_err(KfmcError::from)
-                .map_err(|e| anyhow::Error::from(e).context("evaluating the assertions"))?;
+            let mut cases = Vec::new();
+            let mut wall_s = 0.0;
+            if plan.assertions.iter().any(|a| !a.needs_replications()) {
+                let report = crate::study::run(&plan, &exec, &observer)
+                    .map_err(anyhow::Error::from)
+                    .map_err(|e| e.context(format!("running {}", spec.display())))?;
+                wall_s += report.wall_s;
+                cases.extend(
+                    crate::check::evaluate(&plan, &report.output)
+                        .map_err(KfmcError::from)
+                        .map_err(|e| anyhow::Error::from(e).context("evaluating the assertions"))?,
+                );
+            }
+            if let Some(r) = replications.filter(|_| needs_power) {
+                let out = plan.output.join("power");
+                let mut power_plan = plan.clone();
+                power_plan.output = out.clone();
+                let report = crate::power::power(
+                    &power_plan,
+                    r,
+                    plan.master_seed,
+                    &out,
+                    &exec,
+                    &ProgressObserver::new(!quiet),
+                )
+                .map_err(anyhow::Error::from)
+                .map_err(|e| {
+                    e.context(format!("running {} replications of {}", r, spec.display()))
+                })?;
+                wall_s += report.wall_s;
+                cases.extend(
+                    crate::check::evaluate_power(&plan, &report.output)
+                        .map_err(KfmcError::from)
+                        .map_err(|e| {
+                            anyhow::Error::from(e)
+                                .context("evaluating the rejection-rate assertions")
+                        })?,
+                );
+            }
             emit(&crate::check::render(&plan.name, &cases));
             if let Some(path) = junit {
-                std::fs::write(
-                    &path,
-                    crate::check::junit(&plan.name, &cases, report.wall_s),
-                )
-                .map_err(|e| {
-                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
-                })?;
+                std::fs::write(&path, crate::check::junit(&plan.name, &cases, wall_s)).map_err(
+                    |e| anyhow::Error::from(e).context(format!("writing {}", path.display())),
+                )?;
             }
             let failed = cases.iter().filter(|c| !c.pass).count();
             if failed > 0 {

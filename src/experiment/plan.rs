@@ -62,6 +62,30 @@ pub enum Assertion {
         /// A negative control (`expect = "fail"`): every case must fail.
         expect_fail: bool,
     },
+    /// A test's rejection rate over `kfmc power` replications stays within bounds (a
+    /// false-alarm rate below, a power above).
+    RejectionRate {
+        /// The test name in power.parquet (default `verdict`).
+        test: String,
+        /// Filter label filter.
+        filter: Option<String>,
+        /// Scenario filter.
+        scenario: Option<String>,
+        /// Q-multiplier filter.
+        q_scale: Option<f64>,
+        /// R-multiplier filter.
+        r_scale: Option<f64>,
+        /// Run-count filter.
+        runs: Option<usize>,
+        /// Smallest rate allowed.
+        min: Option<f64>,
+        /// Largest rate allowed.
+        max: Option<f64>,
+        /// Whether the whole Clopper–Pearson interval must lie within the bounds.
+        interval: bool,
+        /// A negative control (`expect = "fail"`): every case must fail.
+        expect_fail: bool,
+    },
     /// The mean RMSE over runs of a state stays below a bound.
     RmseBelow {
         /// Filter label filter.
@@ -82,8 +106,13 @@ impl Assertion {
     pub fn expect_fail(&self) -> bool {
         match self {
             Assertion::TestPasses { expect_fail, .. }
+            | Assertion::RejectionRate { expect_fail, .. }
             | Assertion::RmseBelow { expect_fail, .. } => *expect_fail,
         }
+    }
+    /// Whether the assertion is judged on `kfmc power`'s replications, not on one study.
+    pub fn needs_replications(&self) -> bool {
+        matches!(self, Assertion::RejectionRate { .. })
     }
 }
 
@@ -162,6 +191,8 @@ pub struct Plan {
     pub consistency: Option<ConsistencyPlan>,
     /// `kfmc check` assertions.
     pub assertions: Vec<Assertion>,
+    /// `check.replications`: the replications of the `rejection_rate` assertions.
+    pub check_replications: Option<usize>,
     /// Whether to write every run's estimates in the exchange format (`estimates.parquet`,
     /// `kfmc run --export-estimates`).
     pub export_estimates: bool,
@@ -966,7 +997,7 @@ pub fn validate(
         // no matching rows after the whole study ran.
         let is_test = matches!(
             a.kind.as_str(),
-            "consistent" | "white" | "unbiased" | "test_passes"
+            "consistent" | "white" | "unbiased" | "test_passes" | "rejection_rate"
         );
         if is_test {
             match &a.filter {
@@ -1021,6 +1052,18 @@ pub fn validate(
         let unused_msg = format!("not used by kind = \"{}\"", a.kind);
         let unused =
             |c: &mut Checker, keys: &[(&str, bool)]| c.reject_present(&key, keys, &unused_msg);
+        if a.kind != "rejection_rate" {
+            unused(
+                &mut c,
+                &[
+                    ("min", a.min.is_some()),
+                    ("q_scale", a.q_scale.is_some()),
+                    ("r_scale", a.r_scale.is_some()),
+                    ("runs", a.runs.is_some()),
+                    ("bound", a.bound.is_some()),
+                ],
+            );
+        }
         let expect_fail = c.choice(
             &format!("{key}.expect"),
             a.expect.as_deref(),
@@ -1088,6 +1131,54 @@ pub fn validate(
                     }
                 }
             }
+            "rejection_rate" => {
+                unused(&mut c, &[("state", a.state.is_some())]);
+                let test = a.test.clone().unwrap_or_else(|| "verdict".into());
+                if configured.is_some() && !test_names.contains(&test) {
+                    c.err(
+                        format!("{key}.test"),
+                        format!(
+                            "unknown test `{test}`; the tests of this system: {}",
+                            test_names.join(", ")
+                        ),
+                    );
+                }
+                let rate = |c: &mut Checker, name: &str, v: Option<f64>| match v {
+                    Some(x) if !(0.0..=1.0).contains(&x) => {
+                        c.err(
+                            format!("{key}.{name}"),
+                            format!("{x} is not a rate in [0, 1]"),
+                        );
+                        None
+                    }
+                    v => v,
+                };
+                let (min, max) = (rate(&mut c, "min", a.min), rate(&mut c, "max", a.max));
+                let interval = c.choice(
+                    &format!("{key}.bound"),
+                    a.bound.as_deref(),
+                    "estimate",
+                    &["estimate", "interval"],
+                ) == "interval";
+                if a.min.is_none() && a.max.is_none() {
+                    c.err(
+                        key.clone(),
+                        "kind = \"rejection_rate\" needs min (a power) or max (a false-alarm rate)",
+                    );
+                }
+                (a.min.is_some() || a.max.is_some()).then(|| Assertion::RejectionRate {
+                    test,
+                    filter: a.filter.clone(),
+                    scenario: a.scenario.clone(),
+                    q_scale: a.q_scale,
+                    r_scale: a.r_scale,
+                    runs: a.runs,
+                    min,
+                    max,
+                    interval,
+                    expect_fail,
+                })
+            }
             "rmse_below" => {
                 unused(&mut c, &[("test", a.test.is_some())]);
                 match (&a.state, a.max) {
@@ -1110,12 +1201,17 @@ pub fn validate(
             other => {
                 c.err(
                     format!("{key}.kind"),
-                    format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below"),
+                    format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below, rejection_rate"),
                 );
                 None
             }
         };
         assertions.extend(parsed);
+    }
+
+    let check_replications = spec.check.as_ref().and_then(|t| t.replications);
+    if check_replications == Some(0) {
+        c.err("check.replications", "must be at least 1");
     }
 
     if runs == 0 {
@@ -1239,6 +1335,7 @@ pub fn validate(
         alpha,
         consistency,
         assertions,
+        check_replications,
         export_estimates: false,
         estimates: None,
         draws,

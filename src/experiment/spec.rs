@@ -78,6 +78,9 @@ pub struct Spec {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CheckSpec {
+    /// Replications of the whole study for the `rejection_rate` assertions (`kfmc check`
+    /// then runs `kfmc power`; `--replications` overrides).
+    pub replications: Option<usize>,
     /// The assertions (`[[check.assert]]`).
     #[serde(default, rename = "assert")]
     pub asserts: Vec<TableOf<AssertSpec>>,
@@ -87,7 +90,7 @@ pub struct CheckSpec {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AssertSpec {
-    /// `consistent`, `white`, `unbiased`, `test_passes` or `rmse_below`.
+    /// `consistent`, `white`, `unbiased`, `test_passes`, `rmse_below` or `rejection_rate`.
     pub kind: String,
     /// Only this filter label (default: every filter).
     pub filter: Option<String>,
@@ -95,8 +98,20 @@ pub struct AssertSpec {
     pub scenario: Option<String>,
     /// The state (`rmse_below`; `unbiased` defaults to every state).
     pub state: Option<String>,
-    /// The bound (`rmse_below`: on the mean RMSE over runs).
+    /// The bound (`rmse_below`: on the mean RMSE over runs; `rejection_rate`: the largest
+    /// rate allowed).
     pub max: Option<f64>,
+    /// The smallest rejection rate allowed (`rejection_rate`).
+    pub min: Option<f64>,
+    /// Only the filter variant with this Q multiplier (`rejection_rate`).
+    pub q_scale: Option<f64>,
+    /// Only the filter variant with this R multiplier (`rejection_rate`).
+    pub r_scale: Option<f64>,
+    /// Only the test at this run count (`rejection_rate`; the study's, or a subset's).
+    pub runs: Option<usize>,
+    /// What `min`/`max` bound (`rejection_rate`): `estimate` (default, the rate) or
+    /// `interval` (the whole Clopper–Pearson 95 % interval must lie within the bounds).
+    pub bound: Option<String>,
     /// A test name of consistency.parquet (`test_passes`).
     pub test: Option<String>,
     /// `pass` (default) or `fail`: a negative control, whose every case must fail, so a
