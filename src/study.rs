@@ -305,10 +305,12 @@ impl Aggregator<'_> {
                     evaluations.push((&all[..upto], alpha, (None, None)));
                 }
                 for (runs, alpha, inside) in evaluations {
+                    // Steps of 1..K dropped before the sums start (step 0, the prior itself,
+                    // is never a test step): 0 when every step counts.
                     let burn_in = runs
                         .iter()
                         .map(|r| r.first_step)
-                        .try_fold(0usize, |m, s| s.map(|s| m.max(s)));
+                        .try_fold(0usize, |m, s| s.map(|s| m.max(s.saturating_sub(1))));
                     for t in cell_tests(runs, self.states.len(), &self.states, alpha, inside) {
                         let mut row = cell_key(sname, noise, f).to_vec();
                         row.extend([
