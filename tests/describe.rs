@@ -171,7 +171,12 @@ fn l1_poles_ranks_and_rho_match_independent_sources() {
         .expect("the KF's NEES row at N = 200");
     let dof = dofs.get(row).unwrap();
     // A sampled prior drops no step: the sums start at step 1, as describe reports.
-    let burn_in = cons.column("burn_in_steps").unwrap().i64().unwrap().get(row);
+    let burn_in = cons
+        .column("burn_in_steps")
+        .unwrap()
+        .i64()
+        .unwrap()
+        .get(row);
     assert_eq!(burn_in, Some(0));
     assert_eq!(kf["first_step"].as_integer(), Some(1));
     let nu = kf["dof"]
