@@ -74,7 +74,7 @@ impl DivergenceTracker {
         let s = scale_index as f64;
         for i in 0..self.nx {
             // NaN (a failed run) never counts as "not exceeding": treat it as a crossing.
-            if (rmse[i] > thr[i] || rmse[i].is_nan()) && !(self.row[i] <= s) {
+            if (rmse[i] > thr[i] || rmse[i].is_nan()) && (self.row[i].is_nan() || s < self.row[i]) {
                 self.row[i] = s;
             }
         }
@@ -158,7 +158,7 @@ mod tests {
                 let h = crate::sim::seed::mix64((r * scales + j) as u64);
                 let rmse = [
                     (h % 1000) as f64 / 400.0,
-                    if h % 13 == 0 {
+                    if h.is_multiple_of(13) {
                         f64::NAN
                     } else {
                         (h >> 20) as f64 % 5.0
