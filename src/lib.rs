@@ -52,6 +52,7 @@ pub mod scenario;
 pub mod score;
 pub mod sim;
 pub mod simulate;
+pub mod spill;
 pub mod study;
 pub mod system;
 pub mod systems;

@@ -299,7 +299,9 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         let states = plan.quantity_names();
         let nq = states.len();
         let nf = plan.filters.len();
-        let mut trackers = vec![DivergenceTracker::new(plan.runs, nq); plan.scenarios.len() * nf];
+        let mut trackers: Vec<DivergenceTracker> = (0..plan.scenarios.len() * nf)
+            .map(|_| DivergenceTracker::new(dir, nq))
+            .collect();
         let scenario_of: HashMap<&str, usize> = plan
             .scenarios
             .iter()
@@ -329,7 +331,7 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
                     };
                     // A null RMSE (a failed run) is NaN, as the single process feeds it.
                     let v: Vec<f64> = rmse.iter().map(|c| c.get(i).unwrap_or(f64::NAN)).collect();
-                    trackers[si * nf + fi].observe_run(r as usize, scale, &v, &thr);
+                    trackers[si * nf + fi].observe_run(r as usize, scale, &v, &thr)?;
                 }
                 Ok(())
             })?;
@@ -351,7 +353,7 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
                 trackers[si * nf + fi].observe_mean(scale, &means, &thr);
             }
         }
-        let (d, dr) = divergence_tables(&plan, dir, &trackers, &states, &thr)?;
+        let (d, dr) = divergence_tables(&plan, dir, &mut trackers, &states, &thr)?;
         finished.push(d.finish()?);
         finished.push(dr.finish()?);
     }

@@ -7,11 +7,12 @@ use crate::error::{KfmcError, OutputError};
 use crate::experiment::{FilterPlan, Plan};
 use crate::metrics::consistency::{BandCache, cell_tests};
 use crate::metrics::divergence::DivergenceTracker;
-use crate::metrics::{RunConsistency, RunStatus, StepAccumulator, mean_std, quantile_sorted};
+use crate::metrics::{RunConsistency, RunStatus, StepAccumulator};
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::{Manifest, QuantityEntry};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute};
+use crate::spill::Spill;
 use crate::trial::{Trial, Unit, UnitResult, build};
 
 /// Options of a study execution that do not change its results.
@@ -76,6 +77,9 @@ fn cell_key<'a>(scenario: &'a str, noise: f64, f: &'a FilterPlan) -> [Value<'a>;
     ]
 }
 
+/// The across-run quantile levels of the summary and sensors tables.
+const LEVELS: [f64; 3] = [0.05, 0.50, 0.95];
+
 /// The per-cell state while its runs are being folded.
 struct CellState {
     acc: Vec<StepAccumulator>,
@@ -83,11 +87,12 @@ struct CellState {
     consistency: Vec<Vec<RunConsistency>>,
     /// Per filter: the run index of each entry of `consistency` (for the subset tests).
     consistency_runs: Vec<Vec<usize>>,
-    /// Per filter: RMSE rows of the runs that completed (failures excluded).
-    rmse: Vec<Vec<Vec<f64>>>,
+    /// Per filter: RMSE rows of the runs that completed (failures excluded), in bounded
+    /// memory for the exact quantiles of the summary.
+    rmse: Vec<Spill>,
     failed: Vec<u64>,
-    /// Per world metric: its value in each run so far.
-    world: Vec<Vec<f64>>,
+    /// One row per run: each world metric's value.
+    world: Spill,
 }
 
 struct Aggregator<'a> {
@@ -106,6 +111,8 @@ struct Aggregator<'a> {
     /// Per (scenario, filter).
     divergence: Vec<DivergenceTracker>,
     cell: Option<(usize, usize, CellState)>,
+    /// Where the cells' spills put their scratch files (the folder being written).
+    scratch: PathBuf,
 }
 
 impl Aggregator<'_> {
@@ -129,19 +136,19 @@ impl Aggregator<'_> {
                 scale,
                 CellState {
                     acc: vec![StepAccumulator::new(nx, steps); nf],
-                    rmse: vec![Vec::with_capacity(plan.runs); nf],
+                    rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
                     consistency: vec![Vec::new(); nf],
                     consistency_runs: vec![Vec::new(); nf],
                     failed: vec![0; nf],
-                    world: vec![Vec::with_capacity(plan.runs); self.trial.world_metrics().len()],
+                    world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
                 },
             ));
         }
         let sname = plan.scenarios[scenario].name.as_str();
         let noise = plan.noise_scales[scale];
         let (_, _, cell) = self.cell.as_mut().expect("set above");
-        for (values, v) in cell.world.iter_mut().zip(&r.world_metrics) {
-            values.push(*v);
+        if !r.world_metrics.is_empty() {
+            cell.world.push(&r.world_metrics)?;
         }
         for (fi, fr) in r.filters.iter().enumerate() {
             let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
@@ -168,7 +175,7 @@ impl Aggregator<'_> {
             if failed {
                 cell.failed[fi] += 1;
             } else {
-                cell.rmse[fi].push(fr.rmse.clone());
+                cell.rmse[fi].push(&fr.rmse)?;
             }
             if let Some(thr) = &plan.rmse_thresholds {
                 let rmse: Vec<f64> = if failed {
@@ -176,7 +183,7 @@ impl Aggregator<'_> {
                 } else {
                     fr.rmse.clone()
                 };
-                self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr);
+                self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr)?;
             }
         }
         if let (Some(tr), Some(w)) = (&r.trace, self.estimates.as_mut()) {
@@ -220,7 +227,7 @@ impl Aggregator<'_> {
 
     fn finish_cell(&mut self) -> Result<(), OutputError> {
         let plan = self.plan;
-        let Some((scenario, scale, cell)) = self.cell.take() else {
+        let Some((scenario, scale, mut cell)) = self.cell.take() else {
             return Ok(());
         };
         let sname = plan.scenarios[scenario].name.as_str();
@@ -229,20 +236,18 @@ impl Aggregator<'_> {
         let nf = plan.filters.len();
         let n = self.states.len() as u64;
         if let Some(w) = self.sensors.as_mut() {
-            for (name, values) in self.trial.world_metrics().iter().zip(&cell.world) {
-                let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-                let (mean, std) = mean_std(&v);
-                v.sort_by(f64::total_cmp);
+            let sums = cell.world.summarise(|_, x| x.is_finite(), &LEVELS)?;
+            for (name, s) in self.trial.world_metrics().iter().zip(&sums) {
                 w.push(&[
                     Value::Str(sname),
                     Value::F64(Some(noise)),
                     Value::Str(name),
-                    Value::I64(Some(v.len() as i64)),
-                    Value::F64(mean),
-                    Value::F64(std),
-                    Value::F64(quantile_sorted(&v, 0.05)),
-                    Value::F64(quantile_sorted(&v, 0.50)),
-                    Value::F64(quantile_sorted(&v, 0.95)),
+                    Value::I64(Some(s.n as i64)),
+                    Value::F64(s.mean),
+                    Value::F64(s.std),
+                    Value::F64(s.quantiles[0]),
+                    Value::F64(s.quantiles[1]),
+                    Value::F64(s.quantiles[2]),
                 ])?;
             }
         }
@@ -331,21 +336,19 @@ impl Aggregator<'_> {
                 }
             }
             let mut means = Vec::with_capacity(self.states.len());
-            for (i, state) in self.states.iter().enumerate() {
-                let mut v: Vec<f64> = cell.rmse[fi].iter().map(|r| r[i]).collect();
-                let (mean, std) = mean_std(&v);
-                v.sort_by(f64::total_cmp);
-                means.push(mean.unwrap_or(f64::NAN));
+            let sums = cell.rmse[fi].summarise(|_, _| true, &LEVELS)?;
+            for (state, s) in self.states.iter().zip(&sums) {
+                means.push(s.mean.unwrap_or(f64::NAN));
                 let mut row = cell_key(sname, noise, f).to_vec();
                 row.extend([
                     Value::Str(state),
-                    Value::I64(Some(v.len() as i64)),
+                    Value::I64(Some(s.n as i64)),
                     Value::I64(Some(cell.failed[fi] as i64)),
-                    Value::F64(mean),
-                    Value::F64(std),
-                    Value::F64(quantile_sorted(&v, 0.05)),
-                    Value::F64(quantile_sorted(&v, 0.50)),
-                    Value::F64(quantile_sorted(&v, 0.95)),
+                    Value::F64(s.mean),
+                    Value::F64(s.std),
+                    Value::F64(s.quantiles[0]),
+                    Value::F64(s.quantiles[1]),
+                    Value::F64(s.quantiles[2]),
                 ]);
                 self.summary.push(&row)?;
             }
@@ -452,12 +455,12 @@ pub fn run(
             None
         },
         bands: BandCache::new(plan.alpha),
-        divergence: vec![
-            DivergenceTracker::new(plan.runs, states.len());
-            plan.scenarios.len() * nf
-        ],
+        divergence: (0..plan.scenarios.len() * nf)
+            .map(|_| DivergenceTracker::new(dir, states.len()))
+            .collect(),
         states,
         cell: None,
+        scratch: dir.clone(),
     };
 
     // Unit i ↔ (scenario, scale, run) in scenario-major order, so cells complete in order.
@@ -480,7 +483,7 @@ pub fn run(
     // Divergence points look across every noise scale of a scenario: a part has only some,
     // so `kfmc merge` computes them from the merged runs and summary.
     if let (Some(thr), None) = (&plan.rmse_thresholds, opts.shard) {
-        let (d, dr) = divergence_tables(plan, dir, &agg.divergence, &agg.states, thr)?;
+        let (d, dr) = divergence_tables(plan, dir, &mut agg.divergence, &agg.states, thr)?;
         written.extend([d, dr]);
     }
     let Aggregator {
@@ -615,7 +618,7 @@ fn write_estimates(
 pub(crate) fn divergence_tables(
     plan: &Plan,
     dir: &std::path::Path,
-    trackers: &[DivergenceTracker],
+    trackers: &mut [DivergenceTracker],
     states: &[&str],
     thr: &[f64],
 ) -> Result<(TableWriter, TableWriter), OutputError> {
@@ -626,7 +629,7 @@ pub(crate) fn divergence_tables(
     let scale_of = |j: Option<usize>| j.map(|j| plan.noise_scales[j]);
     for (si, s) in plan.scenarios.iter().enumerate() {
         for (fi, f) in plan.filters.iter().enumerate() {
-            let tracker = &trackers[si * nf + fi];
+            let tracker = &mut trackers[si * nf + fi];
             let key = [
                 Value::Str(&s.name),
                 Value::Str(&f.label),
@@ -643,22 +646,25 @@ pub(crate) fn divergence_tables(
                 } else {
                     f64::INFINITY
                 };
-                let crossing: Vec<Option<f64>> = (0..plan.runs)
-                    .map(|r| scale_of(tracker.run_crossing(r, i)))
-                    .collect();
-                let mut per_run: Vec<f64> = crossing.iter().map(|c| c.unwrap_or(never)).collect();
-                for (r, v) in per_run.iter().enumerate() {
+                // One pass over the runs per state writes its rows and spills the values
+                // whose exact quantiles the summary row needs.
+                let mut per_run = Spill::new(dir, 1);
+                let mut diverged = 0i64;
+                tracker.for_each_run(|r, crossings| {
+                    let crossing = scale_of(crossings[i]);
+                    let v = crossing.unwrap_or(never);
+                    diverged += crossing.is_some() as i64;
+                    per_run.push(&[v])?;
                     let mut row = key.to_vec();
                     row.extend([
                         Value::I64(Some(r as i64)),
                         Value::Str(state),
-                        Value::F64(v.is_finite().then_some(*v)),
-                        Value::Bool(Some(crossing[r].is_none())),
+                        Value::F64(v.is_finite().then_some(v)),
+                        Value::Bool(Some(crossing.is_none())),
                     ]);
-                    dr.push(&row)?;
-                }
-                per_run.sort_by(f64::total_cmp);
-                let diverged = crossing.iter().filter(|c| c.is_some()).count();
+                    dr.push(&row)
+                })?;
+                let q = &per_run.summarise(|_, _| true, &LEVELS)?[0].quantiles;
                 let mut row = key.to_vec();
                 row.extend([
                     Value::Str(state),
@@ -666,10 +672,10 @@ pub(crate) fn divergence_tables(
                     Value::F64(max_scale),
                     Value::F64(scale_of(tracker.mc_crossing(i))),
                     Value::I64(Some(plan.runs as i64)),
-                    Value::I64(Some(diverged as i64)),
-                    Value::F64(quantile_sorted(&per_run, 0.05)),
-                    Value::F64(quantile_sorted(&per_run, 0.50)),
-                    Value::F64(quantile_sorted(&per_run, 0.95)),
+                    Value::I64(Some(diverged)),
+                    Value::F64(q[0]),
+                    Value::F64(q[1]),
+                    Value::F64(q[2]),
                 ]);
                 d.push(&row)?;
             }

@@ -244,11 +244,15 @@ pub mod limits {
     pub const MAX_WHITENESS_LAGS: u64 = 50;
     /// Estimated peak memory, bytes (lifted by `--allow-large`).
     pub const MAX_MEMORY_BYTES: u128 = 8 << 30;
-    /// Estimated disk use of the tables, bytes (lifted by `--allow-large`).
+    /// Estimated disk use of the tables and scratch files, bytes (lifted by `--allow-large`).
     pub const MAX_DISK_BYTES: u128 = 100 << 30;
     /// Simulated filter steps in total (lifted by `--allow-large`).
     pub const MAX_FILTER_STEPS: u128 = 100_000_000_000_000;
 }
+
+/// World metrics assumed per run by the estimate (systems declare a handful at most); their
+/// spill is a small part of the total either way.
+const WORLD_METRICS_ESTIMATE: u128 = 16;
 
 /// What a plan will take, estimated in exact (128-bit) arithmetic before it runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -261,6 +265,9 @@ pub struct Resources {
     pub memory_bytes: u128,
     /// Uncompressed size of the tables, bytes (an upper estimate of the disk they take).
     pub disk_bytes: u128,
+    /// Largest scratch file space alive at once (one cell's per-run values beyond what is
+    /// kept in memory, see [`crate::spill`]), bytes; freed when the cell is summarised.
+    pub scratch_bytes: u128,
 }
 
 fn human_bytes(b: u128) -> String {
@@ -278,9 +285,10 @@ impl Resources {
     /// One line for `validate`.
     pub fn describe(&self) -> String {
         format!(
-            "estimated peak memory {}, tables up to {} uncompressed, {} filter steps",
+            "estimated peak memory {}, tables up to {} uncompressed, scratch up to {}, {} filter steps",
             human_bytes(self.memory_bytes),
             human_bytes(self.disk_bytes),
+            human_bytes(self.scratch_bytes),
             self.filter_steps
         )
     }
@@ -366,15 +374,34 @@ impl Plan {
         let unit = nf * max_k * (8 * nq + 17) + max_k * 8 * (2 * nq + nz + nu);
         let traced = (self.trace_runs > 0) as u128 * nf * max_k * 8 * (nq * (nq + 3) / 2);
         let executor = 512 * (unit + traced);
-        // Per cell being folded: per-step sums and the |e| sketches per filter, per-run RMSE
-        // and consistency sums; per (scenario, filter): the runs' divergence crossings.
+        // Per cell being folded: per-step sums and the |e| sketches per filter; the per-run
+        // RMSE and world metrics in spills (at most SPILL_ROWS rows in memory each, the rest
+        // in scratch files) and the selection's counts and candidates while summarising.
+        let spill_rows = crate::spill::SPILL_ROWS as u128;
+        let spilled_cols = nf * nq + WORLD_METRICS_ESTIMATE;
+        let select = nq.max(WORLD_METRICS_ESTIMATE) * 6 * (8 << crate::spill::DIGIT_BITS as u128)
+            + 6 * nq.max(WORLD_METRICS_ESTIMATE) * 8 * crate::spill::COLLECT_CAP as u128;
         let cell = nf * max_k * (8 * nq + 48)
             + nf * max_k.div_ceil(5) * nq * 320
-            + nf * runs * (8 * nq + 320);
+            + spill_rows.min(runs) * 8 * spilled_cols
+            + select;
+        // What still grows with the runs, and only when asked for: the consistency tests'
+        // per-run sums, and per (scenario, filter) the runs' divergence crossings.
+        let consistency = self
+            .consistency
+            .as_ref()
+            .map_or(0, |_| nf * runs * (16 * nq + 320));
         let divergence = self.rmse_thresholds.as_ref().map_or(0, |_| {
             self.scenarios.len() as u128 * nf * (runs * 16 * nq + scales * 16 * nq)
         });
         let row = |cols: u128| cols * 8 + 32;
+        // The tables' row buffers: one row group each (runs, steps, summary, traces).
+        let writers = crate::output::FLUSH_ROWS as u128
+            * (row(nq + 12)
+                + row(3 * nq + 16)
+                + row(12)
+                + (self.trace_runs > 0) as u128 * row(nq * (nq + 5) / 2 + nz + nu + 8));
+        let scratch = runs.saturating_sub(spill_rows) * 8 * spilled_cols;
         let disk = cells * nf * runs * row(nq + 12)
             + cells * nf * max_k * row(3 * nq + 16)
             + cells * nf * 64 * row(12)
@@ -386,8 +413,9 @@ impl Plan {
         Resources {
             runs: cells * runs,
             filter_steps: sum_k.saturating_sub(self.scenarios.len() as u128) * scales * runs * nf,
-            memory_bytes: (64 << 20) + executor + cell + divergence,
+            memory_bytes: (64 << 20) + executor + writers + cell + consistency + divergence,
             disk_bytes: disk,
+            scratch_bytes: scratch,
         }
     }
 
@@ -411,10 +439,11 @@ impl Plan {
                         human_bytes(limits::MAX_MEMORY_BYTES)
                     )
                 }),
-                (r.disk_bytes > limits::MAX_DISK_BYTES).then(|| {
+                (r.disk_bytes + r.scratch_bytes > limits::MAX_DISK_BYTES).then(|| {
                     format!(
-                        "writes up to {} of tables (limit {})",
+                        "writes up to {} of tables and {} of scratch files (limit {} together)",
                         human_bytes(r.disk_bytes),
+                        human_bytes(r.scratch_bytes),
                         human_bytes(limits::MAX_DISK_BYTES)
                     )
                 }),

@@ -2,46 +2,92 @@
 //! multiplier (in increasing order) whose RMSE exceeds the state's threshold — once for the
 //! Monte Carlo mean RMSE and once per run, giving a distribution over runs.
 
+use std::path::Path;
+
+use crate::error::OutputError;
+use crate::spill::{Spill, SpillReader};
+
+/// Rows of crossings a tracker keeps in memory per pass before it writes to its scratch file;
+/// small, as every (scenario, filter) has a tracker alive until the tables are written.
+const TRACKER_ROWS: usize = 4_096;
+
 /// Tracks the first crossing per (run, state) and for the Monte Carlo mean, for one
-/// (scenario, filter).
-#[derive(Clone, Debug, PartialEq)]
+/// (scenario, filter), in memory independent of the runs: the runs' crossings so far are a
+/// [`Spill`], rewritten once per noise scale as that scale's runs arrive in run order (as a
+/// study and `kfmc merge` feed them).
 pub struct DivergenceTracker {
     nx: usize,
-    /// Per run and state: index of the smallest noise scale that crossed.
-    per_run: Vec<Option<usize>>,
+    dir: std::path::PathBuf,
+    /// The crossings after the previous noise scales, read in step with the current one.
+    previous: Option<SpillReader>,
+    /// The crossings including the current noise scale: per run and state, the index of the
+    /// smallest noise scale that crossed, NaN for none.
+    current: Spill,
+    next_run: usize,
+    row: Vec<f64>,
     /// Per state: index of the smallest noise scale whose mean RMSE crossed.
     mc: Vec<Option<usize>>,
 }
 
 impl DivergenceTracker {
-    /// A tracker for `runs` runs of `nx` states.
-    pub fn new(runs: usize, nx: usize) -> Self {
+    /// A tracker of `nx` states whose scratch files go into `dir`.
+    pub fn new(dir: &Path, nx: usize) -> Self {
         DivergenceTracker {
             nx,
-            per_run: vec![None; runs * nx],
+            dir: dir.to_path_buf(),
+            previous: None,
+            current: Spill::with_capacity(dir, nx, TRACKER_ROWS),
+            next_run: 0,
+            row: vec![f64::NAN; nx],
             mc: vec![None; nx],
         }
     }
 
-    fn lower(slot: &mut Option<usize>, scale_index: usize) {
-        *slot = Some(slot.map_or(scale_index, |s| s.min(scale_index)));
-    }
-
-    /// Records a run's RMSE at noise scale `scale_index`.
-    pub fn observe_run(&mut self, run: usize, scale_index: usize, rmse: &[f64], thr: &[f64]) {
+    /// Records a run's RMSE at noise scale `scale_index`. Each noise scale's runs come in
+    /// run order, from run 0 up.
+    ///
+    /// # Panics
+    /// On a run out of order (a programming error in the caller).
+    pub fn observe_run(
+        &mut self,
+        run: usize,
+        scale_index: usize,
+        rmse: &[f64],
+        thr: &[f64],
+    ) -> Result<(), OutputError> {
+        if run == 0 && self.next_run > 0 {
+            let done = std::mem::replace(
+                &mut self.current,
+                Spill::with_capacity(&self.dir, self.nx, TRACKER_ROWS),
+            );
+            self.previous = Some(done.into_reader()?);
+            self.next_run = 0;
+        }
+        assert_eq!(run, self.next_run, "a noise scale's runs arrive in order");
+        let seen = match self.previous.as_mut() {
+            Some(p) => p.next_row(&mut self.row)?,
+            None => false,
+        };
+        if !seen {
+            self.row.fill(f64::NAN);
+        }
+        let s = scale_index as f64;
         for i in 0..self.nx {
             // NaN (a failed run) never counts as "not exceeding": treat it as a crossing.
-            if rmse[i] > thr[i] || rmse[i].is_nan() {
-                Self::lower(&mut self.per_run[run * self.nx + i], scale_index);
+            if (rmse[i] > thr[i] || rmse[i].is_nan()) && (self.row[i].is_nan() || s < self.row[i]) {
+                self.row[i] = s;
             }
         }
+        self.current.push(&self.row)?;
+        self.next_run += 1;
+        Ok(())
     }
 
     /// Records the Monte Carlo mean RMSE at noise scale `scale_index`.
     pub fn observe_mean(&mut self, scale_index: usize, mean_rmse: &[f64], thr: &[f64]) {
         for i in 0..self.nx {
             if mean_rmse[i] > thr[i] || mean_rmse[i].is_nan() {
-                Self::lower(&mut self.mc[i], scale_index);
+                self.mc[i] = Some(self.mc[i].map_or(scale_index, |s| s.min(scale_index)));
             }
         }
     }
@@ -51,9 +97,22 @@ impl DivergenceTracker {
         self.mc[i]
     }
 
-    /// First crossing of run `run`, for state `i`.
-    pub fn run_crossing(&self, run: usize, i: usize) -> Option<usize> {
-        self.per_run[run * self.nx + i]
+    /// Calls `f(run, crossings)` for every run in order, `crossings[i]` being the first
+    /// crossing of state `i` (the smallest noise-scale index), once every scale was observed.
+    pub fn for_each_run(
+        &mut self,
+        mut f: impl FnMut(usize, &[Option<usize>]) -> Result<(), OutputError>,
+    ) -> Result<(), OutputError> {
+        let mut c = vec![None; self.nx];
+        let mut run = 0;
+        self.current.for_each_row(|row| {
+            for (c, x) in c.iter_mut().zip(row) {
+                *c = (!x.is_nan()).then_some(*x as usize);
+            }
+            f(run, &c)?;
+            run += 1;
+            Ok(())
+        })
     }
 }
 
@@ -61,15 +120,60 @@ impl DivergenceTracker {
 mod tests {
     use super::*;
 
+    fn crossings(t: &mut DivergenceTracker) -> Vec<Vec<Option<usize>>> {
+        let mut v = Vec::new();
+        t.for_each_run(|r, c| {
+            assert_eq!(r, v.len());
+            v.push(c.to_vec());
+            Ok(())
+        })
+        .unwrap();
+        v
+    }
+
     #[test]
     fn keeps_the_smallest_crossing_whatever_the_order() {
-        let mut t = DivergenceTracker::new(2, 1);
-        t.observe_run(0, 5, &[2.0], &[1.0]);
-        t.observe_run(0, 3, &[1.5], &[1.0]);
-        t.observe_run(0, 1, &[0.5], &[1.0]);
-        assert_eq!(t.run_crossing(0, 0), Some(3));
-        assert_eq!(t.run_crossing(1, 0), None);
+        let dir = tempfile::tempdir().unwrap();
+        let mut t = DivergenceTracker::new(dir.path(), 1);
+        for (scale, rmse0) in [(5, 2.0), (3, 1.5), (1, 0.5)] {
+            t.observe_run(0, scale, &[rmse0], &[1.0]).unwrap();
+            t.observe_run(1, scale, &[0.5], &[1.0]).unwrap();
+        }
+        assert_eq!(crossings(&mut t), vec![vec![Some(3)], vec![None]]);
         t.observe_mean(4, &[1.1], &[1.0]);
         assert_eq!(t.mc_crossing(0), Some(4));
+    }
+
+    /// Against a dense table of crossings, with more runs than the tracker keeps in memory
+    /// (its passes go through scratch files) and failed runs (NaN).
+    #[test]
+    fn matches_a_dense_table_across_many_runs_and_scales() {
+        let dir = tempfile::tempdir().unwrap();
+        let (runs, nx, scales) = (3 * TRACKER_ROWS + 17, 2, 4);
+        let mut t = DivergenceTracker::new(dir.path(), nx);
+        let mut dense = vec![vec![None; nx]; runs];
+        let thr = [1.0, 2.0];
+        for j in 0..scales {
+            for (r, d) in dense.iter_mut().enumerate() {
+                let h = crate::sim::seed::mix64((r * scales + j) as u64);
+                let rmse = [
+                    (h % 1000) as f64 / 400.0,
+                    if h.is_multiple_of(13) {
+                        f64::NAN
+                    } else {
+                        (h >> 20) as f64 % 5.0
+                    },
+                ];
+                for i in 0..nx {
+                    if rmse[i] > thr[i] || rmse[i].is_nan() {
+                        d[i] = Some(d[i].map_or(j, |s: usize| s.min(j)));
+                    }
+                }
+                t.observe_run(r, j, &rmse, &thr).unwrap();
+            }
+        }
+        assert_eq!(crossings(&mut t), dense);
+        drop(t);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
     }
 }

@@ -11,4 +11,4 @@ pub mod manifest;
 pub mod schema;
 pub mod table;
 
-pub use table::{TableWriter, Value};
+pub use table::{FLUSH_ROWS, TableWriter, Value};

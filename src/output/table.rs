@@ -32,7 +32,7 @@ enum Buffer {
 }
 
 /// Rows per Parquet row group; bounds the writer's memory.
-const FLUSH_ROWS: usize = 65_536;
+pub const FLUSH_ROWS: usize = 65_536;
 
 /// Writes one table to `<dir>/.<name>.parquet.partial` and renames it to `<name>.parquet` on
 /// [`TableWriter::commit`]. Dropped without a commit, it deletes its temporary file.
