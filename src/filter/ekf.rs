@@ -15,7 +15,7 @@
 //! Welch & Bishop, *An Introduction to the Kalman Filter*, TR 95-041 (2002) — the seeds' source.
 
 use super::{Filter, FilterError, Innovation};
-use crate::linalg::{Matrix, SmallCholesky, Vector};
+use crate::linalg::{Matrix, SmallCholesky, Vector, select_rows, select_update, sparse_sandwich};
 use crate::model::{Measurement, Model};
 
 /// How the covariance is updated after a measurement.
@@ -98,7 +98,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     fn predict(&self, model: &M, b: &mut Gaussian<NX>, u: &Vector<NU>) -> Result<(), FilterError> {
         let f = model.transition_jacobian(&b.x, u);
         b.x = model.propagate(&b.x, u);
-        b.p = f * b.p * f.transpose() + self.q;
+        b.p = match model.transition_pattern() {
+            Some(pattern) => sparse_sandwich(&f, pattern, &b.p) + self.q,
+            None => f * b.p * f.transpose() + self.q,
+        };
         b.f = f;
         b.i_kh = Matrix::<NX, NX>::identity();
         check_finite(b)
@@ -115,11 +118,27 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         if z.available.count() == 0 {
             return Ok(None);
         }
-        let mut h = model.measurement_jacobian(&b.x, u);
         let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
-        let r = super::mask_rows(&self.r, z.available, &mut h, &mut nu);
-        let hp = h * b.p;
-        let s = hp * h.transpose() + r;
+        // A selection H with every component reporting: H P⁻ is rows of P⁻ and (I − K H) P⁻
+        // is formed over its non-zero entries, the dense results at a fraction of the cost.
+        // Missing components (masked rows) take the dense path.
+        let selection = model
+            .measurement_selection()
+            .filter(|_| z.available == crate::model::Availability::all(NZ));
+        // `dense` holds H and the masked R when the dense path is taken.
+        let (hp, s, dense) = match &selection {
+            Some(sel) => {
+                let hp = select_rows(sel, &b.p);
+                let s = Matrix::<NZ, NZ>::from_fn(|i, j| hp[(i, sel[j])]) + self.r;
+                (hp, s, None)
+            }
+            None => {
+                let mut h = model.measurement_jacobian(&b.x, u);
+                let r = super::mask_rows(&self.r, z.available, &mut h, &mut nu);
+                let hp = h * b.p;
+                (hp, hp * h.transpose() + r, Some((h, r)))
+            }
+        };
         let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
             which: "innovation covariance S",
         })?;
@@ -127,10 +146,20 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let k = chol.solve(&hp).transpose();
         let whitened = chol.solve_lower(&nu);
         b.x += k * nu;
-        let i_kh = Matrix::<NX, NX>::identity() - k * h;
+        let (i_kh, standard) = match (&selection, &dense) {
+            (Some(sel), _) => {
+                let (i_kh, p) = select_update(&k, sel, &b.p);
+                (i_kh, Some(p))
+            }
+            (None, Some((h, _))) => (Matrix::<NX, NX>::identity() - k * h, None),
+            (None, None) => unreachable!("the dense path keeps its H"),
+        };
         b.p = match self.update_form {
-            CovarianceUpdate::Standard => i_kh * b.p,
-            CovarianceUpdate::Joseph => i_kh * b.p * i_kh.transpose() + k * r * k.transpose(),
+            CovarianceUpdate::Standard => standard.unwrap_or_else(|| i_kh * b.p),
+            CovarianceUpdate::Joseph => {
+                let r = dense.map_or(self.r, |(_, r)| r);
+                i_kh * b.p * i_kh.transpose() + k * r * k.transpose()
+            }
         };
         b.i_kh = i_kh;
         check_finite(b)?;
