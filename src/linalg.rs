@@ -114,9 +114,10 @@ pub fn sparse_sandwich<const N: usize>(
     p: &Matrix<N, N>,
 ) -> Matrix<N, N> {
     let mut fp = Matrix::<N, N>::zeros();
-    for c in 0..N {
-        for &(i, j) in pattern {
-            fp[(i, c)] += f[(i, j)] * p[(j, c)];
+    for &(i, j) in pattern {
+        let v = f[(i, j)];
+        for c in 0..N {
+            fp[(i, c)] += v * p[(j, c)];
         }
     }
     let mut out = Matrix::<N, N>::zeros();
@@ -161,24 +162,35 @@ pub fn select_rows<const NX: usize, const NZ: usize>(
     Matrix::<NZ, NX>::from_fn(|l, c| p[(sel[l], c)])
 }
 
-/// I − K H for H the row selection `sel`, and (I − K H) P with the dense product's sums in
-/// its order over the entries of I − K H that may be non-zero (its diagonal and the selected
-/// columns), so both equal the dense results.
+/// I − K H for H the row selection `sel` (the dense result: each entry is 1 or 0 minus the
+/// same sum of entries of K, in the same order).
 #[inline]
-pub fn select_update<const NX: usize, const NZ: usize>(
+pub fn select_i_kh<const NX: usize, const NZ: usize>(
     k: &Matrix<NX, NZ>,
     sel: &[usize; NZ],
-    p: &Matrix<NX, NX>,
-) -> (Matrix<NX, NX>, Matrix<NX, NX>) {
+) -> Matrix<NX, NX> {
     let mut kh = Matrix::<NX, NX>::zeros();
-    let mut selected = [false; NX];
     for (l, &j) in sel.iter().enumerate() {
-        selected[j] = true;
         for i in 0..NX {
             kh[(i, j)] += k[(i, l)];
         }
     }
-    let i_kh = Matrix::<NX, NX>::identity() - kh;
+    Matrix::<NX, NX>::identity() - kh
+}
+
+/// (I − K H) P for H the row selection `sel`, given `i_kh` = I − K H: the dense product's
+/// sums in its order over the entries of I − K H that may be non-zero (its diagonal and the
+/// selected columns), so the result is the dense one.
+#[inline]
+pub fn select_product<const NX: usize, const NZ: usize>(
+    i_kh: &Matrix<NX, NX>,
+    sel: &[usize; NZ],
+    p: &Matrix<NX, NX>,
+) -> Matrix<NX, NX> {
+    let mut selected = [false; NX];
+    for &j in sel {
+        selected[j] = true;
+    }
     let mut out = Matrix::<NX, NX>::zeros();
     for c in 0..NX {
         for i in 0..NX {
@@ -191,7 +203,7 @@ pub fn select_update<const NX: usize, const NZ: usize>(
             out[(i, c)] = acc;
         }
     }
-    (i_kh, out)
+    out
 }
 
 /// Diagonal matrix from standard deviations: `diag(σ²)`.

@@ -15,7 +15,9 @@
 //! Welch & Bishop, *An Introduction to the Kalman Filter*, TR 95-041 (2002) — the seeds' source.
 
 use super::{Filter, FilterError, Innovation};
-use crate::linalg::{Matrix, SmallCholesky, Vector, select_rows, select_update, sparse_sandwich};
+use crate::linalg::{
+    Matrix, SmallCholesky, Vector, select_i_kh, select_product, select_rows, sparse_sandwich,
+};
 use crate::model::{Measurement, Model};
 
 /// How the covariance is updated after a measurement.
@@ -39,7 +41,8 @@ pub struct Ekf<const NX: usize, const NZ: usize> {
 }
 
 /// The EKF's belief: mean and covariance, plus the last step's F and I − KH (kept so the
-/// error transition A_k can be formed on demand without costing every step a product).
+/// error transition A_k can be formed on demand without costing every step a product; a
+/// step without an update has I − KH = I, which is not written out).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Gaussian<const NX: usize> {
     /// x̂
@@ -48,6 +51,8 @@ pub struct Gaussian<const NX: usize> {
     pub p: Matrix<NX, NX>,
     f: Matrix<NX, NX>,
     i_kh: Matrix<NX, NX>,
+    /// Whether `i_kh` belongs to the last step (false after a prediction alone).
+    updated: bool,
 }
 
 impl<const NX: usize> Gaussian<NX> {
@@ -58,6 +63,7 @@ impl<const NX: usize> Gaussian<NX> {
             p,
             f: Matrix::<NX, NX>::identity(),
             i_kh: Matrix::<NX, NX>::identity(),
+            updated: false,
         }
     }
 }
@@ -96,14 +102,13 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 
     #[inline]
     fn predict(&self, model: &M, b: &mut Gaussian<NX>, u: &Vector<NU>) -> Result<(), FilterError> {
-        let f = model.transition_jacobian(&b.x, u);
+        b.f = model.transition_jacobian(&b.x, u);
         b.x = model.propagate(&b.x, u);
         b.p = match model.transition_pattern() {
-            Some(pattern) => sparse_sandwich(&f, pattern, &b.p) + self.q,
-            None => f * b.p * f.transpose() + self.q,
+            Some(pattern) => sparse_sandwich(&b.f, pattern, &b.p) + self.q,
+            None => b.f * b.p * b.f.transpose() + self.q,
         };
-        b.f = f;
-        b.i_kh = Matrix::<NX, NX>::identity();
+        b.updated = false;
         check_finite(b)
     }
 
@@ -146,22 +151,20 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let k = chol.solve(&hp).transpose();
         let whitened = chol.solve_lower(&nu);
         b.x += k * nu;
-        let (i_kh, standard) = match (&selection, &dense) {
-            (Some(sel), _) => {
-                let (i_kh, p) = select_update(&k, sel, &b.p);
-                (i_kh, Some(p))
-            }
-            (None, Some((h, _))) => (Matrix::<NX, NX>::identity() - k * h, None),
+        b.i_kh = match (&selection, &dense) {
+            (Some(sel), _) => select_i_kh(&k, sel),
+            (None, Some((h, _))) => Matrix::<NX, NX>::identity() - k * h,
             (None, None) => unreachable!("the dense path keeps its H"),
         };
-        b.p = match self.update_form {
-            CovarianceUpdate::Standard => standard.unwrap_or_else(|| i_kh * b.p),
-            CovarianceUpdate::Joseph => {
+        b.updated = true;
+        b.p = match (self.update_form, &selection) {
+            (CovarianceUpdate::Standard, Some(sel)) => select_product(&b.i_kh, sel, &b.p),
+            (CovarianceUpdate::Standard, None) => b.i_kh * b.p,
+            (CovarianceUpdate::Joseph, _) => {
                 let r = dense.map_or(self.r, |(_, r)| r);
-                i_kh * b.p * i_kh.transpose() + k * r * k.transpose()
+                b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose()
             }
         };
-        b.i_kh = i_kh;
         check_finite(b)?;
         Ok(Some(
             Innovation::new(nu, whitened, z.available).with_covariance(s),
@@ -177,7 +180,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     }
 
     fn error_transition(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
-        Some(b.i_kh * b.f)
+        Some(if b.updated { b.i_kh * b.f } else { b.f })
     }
 
     fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {
