@@ -101,18 +101,21 @@ impl<const N: usize> SmallCholesky<N> {
     }
 }
 
-/// F P Fᵀ for an F whose only entries that may be non-zero are at `pattern` (row, column),
-/// with the columns of each row in ascending order ([`crate::model::Model::transition_pattern`]).
+/// P ← F P Fᵀ + Q for an F whose only entries that may be non-zero are at `pattern` (row,
+/// column), with the columns of each row in ascending order
+/// ([`crate::model::Model::transition_pattern`]).
 ///
 /// Every element is the dense product's sum in the dense product's order (nalgebra's
 /// fixed-size product accumulates over the inner index in ascending order), with the zero
 /// terms left out, so the result is the dense result: a sparse F costs its non-zeros, not N³.
+/// P is overwritten in place (no 8·N² byte copies of the result).
 #[inline]
 pub fn sparse_sandwich<const N: usize>(
     f: &Matrix<N, N>,
     pattern: &[(usize, usize)],
-    p: &Matrix<N, N>,
-) -> Matrix<N, N> {
+    p: &mut Matrix<N, N>,
+    q: &Matrix<N, N>,
+) {
     let mut fp = Matrix::<N, N>::zeros();
     for &(i, j) in pattern {
         let v = f[(i, j)];
@@ -120,14 +123,15 @@ pub fn sparse_sandwich<const N: usize>(
             fp[(i, c)] += v * p[(j, c)];
         }
     }
-    let mut out = Matrix::<N, N>::zeros();
+    p.fill(0.0);
     for &(k, j) in pattern {
         let v = f[(k, j)];
+        let (src, mut dst) = (fp.column(j), p.column_mut(k));
         for r in 0..N {
-            out[(r, k)] += v * fp[(r, j)];
+            dst[r] += v * src[r];
         }
     }
-    out
+    *p += q;
 }
 
 /// The positions of a constant matrix's non-zero entries, row by row in ascending column
@@ -178,32 +182,32 @@ pub fn select_i_kh<const NX: usize, const NZ: usize>(
     Matrix::<NX, NX>::identity() - kh
 }
 
-/// (I − K H) P for H the row selection `sel`, given `i_kh` = I − K H: the dense product's
-/// sums in its order over the entries of I − K H that may be non-zero (its diagonal and the
-/// selected columns), so the result is the dense one.
+/// P ← (I − K H) P for H the row selection `sel`, given `i_kh` = I − K H: the dense
+/// product's sums in its order over the entries of I − K H that may be non-zero (its diagonal
+/// and the selected columns), so the result is the dense one. Column c of the result needs
+/// column c of P alone, so P is overwritten in place, one column at a time.
 #[inline]
 pub fn select_product<const NX: usize, const NZ: usize>(
     i_kh: &Matrix<NX, NX>,
     sel: &[usize; NZ],
-    p: &Matrix<NX, NX>,
-) -> Matrix<NX, NX> {
+    p: &mut Matrix<NX, NX>,
+) {
     let mut selected = [false; NX];
     for &j in sel {
         selected[j] = true;
     }
-    let mut out = Matrix::<NX, NX>::zeros();
     for c in 0..NX {
+        let col: Vector<NX> = p.column(c).into_owned();
         for i in 0..NX {
             let mut acc = 0.0;
             for j in 0..NX {
                 if j == i || selected[j] {
-                    acc += i_kh[(i, j)] * p[(j, c)];
+                    acc += i_kh[(i, j)] * col[j];
                 }
             }
-            out[(i, c)] = acc;
+            p[(i, c)] = acc;
         }
     }
-    out
 }
 
 /// Diagonal matrix from standard deviations: `diag(σ²)`.

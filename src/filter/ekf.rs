@@ -104,10 +104,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     fn predict(&self, model: &M, b: &mut Gaussian<NX>, u: &Vector<NU>) -> Result<(), FilterError> {
         b.f = model.transition_jacobian(&b.x, u);
         b.x = model.propagate(&b.x, u);
-        b.p = match model.transition_pattern() {
-            Some(pattern) => sparse_sandwich(&b.f, pattern, &b.p) + self.q,
-            None => b.f * b.p * b.f.transpose() + self.q,
-        };
+        match model.transition_pattern() {
+            Some(pattern) => sparse_sandwich(&b.f, pattern, &mut b.p, &self.q),
+            None => b.p = b.f * b.p * b.f.transpose() + self.q,
+        }
         b.updated = false;
         check_finite(b)
     }
@@ -157,14 +157,14 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             (None, None) => unreachable!("the dense path keeps its H"),
         };
         b.updated = true;
-        b.p = match (self.update_form, &selection) {
-            (CovarianceUpdate::Standard, Some(sel)) => select_product(&b.i_kh, sel, &b.p),
-            (CovarianceUpdate::Standard, None) => b.i_kh * b.p,
+        match (self.update_form, &selection) {
+            (CovarianceUpdate::Standard, Some(sel)) => select_product(&b.i_kh, sel, &mut b.p),
+            (CovarianceUpdate::Standard, None) => b.p = b.i_kh * b.p,
             (CovarianceUpdate::Joseph, _) => {
                 let r = dense.map_or(self.r, |(_, r)| r);
-                b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose()
+                b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();
             }
-        };
+        }
         check_finite(b)?;
         Ok(Some(
             Innovation::new(nu, whitened, z.available).with_covariance(s),
