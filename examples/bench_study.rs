@@ -778,7 +778,7 @@ fn main() {
         );
         println!("  wall ratio {w:.2}× [{w0:.2}, {w1:.2}]   CPU ratio {c:.2}× [{c0:.2}, {c1:.2}]");
         println!(
-            "  context: median wall kfmc {tlm:.2} s, kernel {tkm:.2} s; CPU per filter step kfmc {:.0} ns, kernel {:.0} ns",
+            "  context: median wall kfmc {tlm:.2} s, kernel {tkm:.2} s; CPU per run step (all filters of the run) kfmc {:.0} ns, kernel {:.0} ns",
             clm / steps as f64 * 1e9,
             ckm / steps as f64 * 1e9,
         );
