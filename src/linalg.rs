@@ -101,6 +101,115 @@ impl<const N: usize> SmallCholesky<N> {
     }
 }
 
+/// P ← F P Fᵀ + Q for an F whose only entries that may be non-zero are at `pattern` (row,
+/// column), with the columns of each row in ascending order
+/// ([`crate::model::Model::transition_pattern`]).
+///
+/// Every element is the dense product's sum in the dense product's order (nalgebra's
+/// fixed-size product accumulates over the inner index in ascending order), with the zero
+/// terms left out, so the result is the dense result: a sparse F costs its non-zeros, not N³.
+/// P is overwritten in place (no 8·N² byte copies of the result).
+#[inline]
+pub fn sparse_sandwich<const N: usize>(
+    f: &Matrix<N, N>,
+    pattern: &[(usize, usize)],
+    p: &mut Matrix<N, N>,
+    q: &Matrix<N, N>,
+) {
+    let mut fp = Matrix::<N, N>::zeros();
+    for &(i, j) in pattern {
+        let v = f[(i, j)];
+        for c in 0..N {
+            fp[(i, c)] += v * p[(j, c)];
+        }
+    }
+    p.fill(0.0);
+    for &(k, j) in pattern {
+        let v = f[(k, j)];
+        let (src, mut dst) = (fp.column(j), p.column_mut(k));
+        for r in 0..N {
+            dst[r] += v * src[r];
+        }
+    }
+    *p += q;
+}
+
+/// The positions of a constant matrix's non-zero entries, row by row in ascending column
+/// order: the [`crate::model::Model::transition_pattern`] of a model with a constant F.
+pub fn nonzero_pattern<const N: usize>(f: &Matrix<N, N>) -> Vec<(usize, usize)> {
+    (0..N)
+        .flat_map(|i| (0..N).map(move |j| (i, j)))
+        .filter(|&(i, j)| f[(i, j)] != 0.0)
+        .collect()
+}
+
+/// The selection s with H[i, s[i]] = 1 and every other entry 0, when a constant H is one: the
+/// [`crate::model::Model::measurement_selection`] of a model with a constant H.
+pub fn row_selection<const NZ: usize, const NX: usize>(h: &Matrix<NZ, NX>) -> Option<[usize; NZ]> {
+    let mut sel = [0; NZ];
+    for (i, s) in sel.iter_mut().enumerate() {
+        let ones: Vec<usize> = (0..NX).filter(|&j| h[(i, j)] != 0.0).collect();
+        match ones.as_slice() {
+            [j] if h[(i, *j)] == 1.0 => *s = *j,
+            _ => return None,
+        }
+    }
+    Some(sel)
+}
+
+/// H P for H the row selection `sel` (H[l, sel[l]] = 1, every other entry 0): the rows of P.
+#[inline]
+pub fn select_rows<const NX: usize, const NZ: usize>(
+    sel: &[usize; NZ],
+    p: &Matrix<NX, NX>,
+) -> Matrix<NZ, NX> {
+    Matrix::<NZ, NX>::from_fn(|l, c| p[(sel[l], c)])
+}
+
+/// I − K H for H the row selection `sel` (the dense result: each entry is 1 or 0 minus the
+/// same sum of entries of K, in the same order).
+#[inline]
+pub fn select_i_kh<const NX: usize, const NZ: usize>(
+    k: &Matrix<NX, NZ>,
+    sel: &[usize; NZ],
+) -> Matrix<NX, NX> {
+    let mut kh = Matrix::<NX, NX>::zeros();
+    for (l, &j) in sel.iter().enumerate() {
+        for i in 0..NX {
+            kh[(i, j)] += k[(i, l)];
+        }
+    }
+    Matrix::<NX, NX>::identity() - kh
+}
+
+/// P ← (I − K H) P for H the row selection `sel`, given `i_kh` = I − K H: the dense
+/// product's sums in its order over the entries of I − K H that may be non-zero (its diagonal
+/// and the selected columns), so the result is the dense one. Column c of the result needs
+/// column c of P alone, so P is overwritten in place, one column at a time.
+#[inline]
+pub fn select_product<const NX: usize, const NZ: usize>(
+    i_kh: &Matrix<NX, NX>,
+    sel: &[usize; NZ],
+    p: &mut Matrix<NX, NX>,
+) {
+    let mut selected = [false; NX];
+    for &j in sel {
+        selected[j] = true;
+    }
+    for c in 0..NX {
+        let col: Vector<NX> = p.column(c).into_owned();
+        for i in 0..NX {
+            let mut acc = 0.0;
+            for j in 0..NX {
+                if j == i || selected[j] {
+                    acc += i_kh[(i, j)] * col[j];
+                }
+            }
+            p[(i, c)] = acc;
+        }
+    }
+}
+
 /// Diagonal matrix from standard deviations: `diag(σ²)`.
 pub fn diag_from_std<const N: usize>(std: &Vector<N>) -> Matrix<N, N> {
     Matrix::<N, N>::from_diagonal(&std.component_mul(std))

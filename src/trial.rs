@@ -423,13 +423,17 @@ where
         }
         let mut nees = f64::NAN;
         if let Some(p) = filter.covariance(&belief) {
-            let chol = match SmallCholesky::new(&eval.covariance(&x, &p)) {
+            // The quantities' covariance, formed once per step (after a repair, the repaired
+            // one): NEES, the consistency sums and the trace all read this one value.
+            let mut p_now = eval.covariance(&x, &p);
+            let chol = match SmallCholesky::new(&p_now) {
                 Some(c) => Some(c),
                 None if filter.repair_covariance(&mut belief) => {
                     repairs += 1;
-                    filter
-                        .covariance(&belief)
-                        .and_then(|p| SmallCholesky::new(&eval.covariance(&x, &p)))
+                    filter.covariance(&belief).and_then(|p| {
+                        p_now = eval.covariance(&x, &p);
+                        SmallCholesky::new(&p_now)
+                    })
                 }
                 None => None,
             };
@@ -441,7 +445,6 @@ where
                 break;
             };
             nees = chol.inverse_quadratic_form(&e);
-            let p_now = eval.covariance(&x, &filter.covariance(&belief).unwrap_or(p));
             if k > 0 && opts.is_some() {
                 let a = filter
                     .error_transition(&belief)
@@ -468,7 +471,9 @@ where
                     );
                 }
             }
-            p_prev = p_now;
+            if opts.is_some() {
+                p_prev = p_now;
+            }
             if let Some(cov) = cov.as_mut() {
                 let row = &mut cov[k * ntri..(k + 1) * ntri];
                 let mut t = 0;

@@ -15,7 +15,9 @@
 //! Welch & Bishop, *An Introduction to the Kalman Filter*, TR 95-041 (2002) — the seeds' source.
 
 use super::{Filter, FilterError, Innovation};
-use crate::linalg::{Matrix, SmallCholesky, Vector};
+use crate::linalg::{
+    Matrix, SmallCholesky, Vector, select_i_kh, select_product, select_rows, sparse_sandwich,
+};
 use crate::model::{Measurement, Model};
 
 /// How the covariance is updated after a measurement.
@@ -39,7 +41,8 @@ pub struct Ekf<const NX: usize, const NZ: usize> {
 }
 
 /// The EKF's belief: mean and covariance, plus the last step's F and I − KH (kept so the
-/// error transition A_k can be formed on demand without costing every step a product).
+/// error transition A_k can be formed on demand without costing every step a product; a
+/// step without an update has I − KH = I, which is not written out).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Gaussian<const NX: usize> {
     /// x̂
@@ -48,6 +51,8 @@ pub struct Gaussian<const NX: usize> {
     pub p: Matrix<NX, NX>,
     f: Matrix<NX, NX>,
     i_kh: Matrix<NX, NX>,
+    /// Whether `i_kh` belongs to the last step (false after a prediction alone).
+    updated: bool,
 }
 
 impl<const NX: usize> Gaussian<NX> {
@@ -58,6 +63,7 @@ impl<const NX: usize> Gaussian<NX> {
             p,
             f: Matrix::<NX, NX>::identity(),
             i_kh: Matrix::<NX, NX>::identity(),
+            updated: false,
         }
     }
 }
@@ -96,11 +102,13 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 
     #[inline]
     fn predict(&self, model: &M, b: &mut Gaussian<NX>, u: &Vector<NU>) -> Result<(), FilterError> {
-        let f = model.transition_jacobian(&b.x, u);
+        b.f = model.transition_jacobian(&b.x, u);
         b.x = model.propagate(&b.x, u);
-        b.p = f * b.p * f.transpose() + self.q;
-        b.f = f;
-        b.i_kh = Matrix::<NX, NX>::identity();
+        match model.transition_pattern() {
+            Some(pattern) => sparse_sandwich(&b.f, pattern, &mut b.p, &self.q),
+            None => b.p = b.f * b.p * b.f.transpose() + self.q,
+        }
+        b.updated = false;
         check_finite(b)
     }
 
@@ -115,11 +123,27 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         if z.available.count() == 0 {
             return Ok(None);
         }
-        let mut h = model.measurement_jacobian(&b.x, u);
         let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
-        let r = super::mask_rows(&self.r, z.available, &mut h, &mut nu);
-        let hp = h * b.p;
-        let s = hp * h.transpose() + r;
+        // A selection H with every component reporting: H P⁻ is rows of P⁻ and (I − K H) P⁻
+        // is formed over its non-zero entries, the dense results at a fraction of the cost.
+        // Missing components (masked rows) take the dense path.
+        let selection = model
+            .measurement_selection()
+            .filter(|_| z.available == crate::model::Availability::all(NZ));
+        // `dense` holds H and the masked R when the dense path is taken.
+        let (hp, s, dense) = match &selection {
+            Some(sel) => {
+                let hp = select_rows(sel, &b.p);
+                let s = Matrix::<NZ, NZ>::from_fn(|i, j| hp[(i, sel[j])]) + self.r;
+                (hp, s, None)
+            }
+            None => {
+                let mut h = model.measurement_jacobian(&b.x, u);
+                let r = super::mask_rows(&self.r, z.available, &mut h, &mut nu);
+                let hp = h * b.p;
+                (hp, hp * h.transpose() + r, Some((h, r)))
+            }
+        };
         let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
             which: "innovation covariance S",
         })?;
@@ -127,12 +151,20 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let k = chol.solve(&hp).transpose();
         let whitened = chol.solve_lower(&nu);
         b.x += k * nu;
-        let i_kh = Matrix::<NX, NX>::identity() - k * h;
-        b.p = match self.update_form {
-            CovarianceUpdate::Standard => i_kh * b.p,
-            CovarianceUpdate::Joseph => i_kh * b.p * i_kh.transpose() + k * r * k.transpose(),
+        b.i_kh = match (&selection, &dense) {
+            (Some(sel), _) => select_i_kh(&k, sel),
+            (None, Some((h, _))) => Matrix::<NX, NX>::identity() - k * h,
+            (None, None) => unreachable!("the dense path keeps its H"),
         };
-        b.i_kh = i_kh;
+        b.updated = true;
+        match (self.update_form, &selection) {
+            (CovarianceUpdate::Standard, Some(sel)) => select_product(&b.i_kh, sel, &mut b.p),
+            (CovarianceUpdate::Standard, None) => b.p = b.i_kh * b.p,
+            (CovarianceUpdate::Joseph, _) => {
+                let r = dense.map_or(self.r, |(_, r)| r);
+                b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();
+            }
+        }
         check_finite(b)?;
         Ok(Some(
             Innovation::new(nu, whitened, z.available).with_covariance(s),
@@ -148,7 +180,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     }
 
     fn error_transition(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
-        Some(b.i_kh * b.f)
+        Some(if b.updated { b.i_kh * b.f } else { b.f })
     }
 
     fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {

@@ -22,6 +22,11 @@ pub const ABS_ERR_QUANTILES: [f64; 3] = [0.05, 0.50, 0.95];
 /// figure needs no more points than this.
 pub const ABS_ERR_MAX_POINTS: usize = 200;
 
+/// Runs whose |e| values are buffered before they are pushed into the quantile sketches: each
+/// sketch then takes this many values in a row (in run order, so the estimates do not change)
+/// while it is in cache, instead of one value per run across a cell's thousand sketches.
+pub const ABS_ERR_BLOCK: usize = 64;
+
 /// The step stride of the |e| quantile grid for K + 1 = `samples` samples.
 pub fn abs_err_stride(samples: usize) -> usize {
     samples.div_ceil(ABS_ERR_MAX_POINTS).max(1)
@@ -230,9 +235,38 @@ pub struct StepAccumulator {
     nis_n: Vec<u32>,
     nis_dof: Vec<u64>,
     /// Per (grid step, state): quantiles of |e| across runs, [`ABS_ERR_QUANTILES`]; the grid
-    /// is every `abs_err_stride`-th step.
-    abs_err: Vec<QuantileSketch>,
+    /// is every `abs_err_stride`-th step. The values of the last runs wait in `pending`
+    /// ([`ABS_ERR_BLOCK`]); reading a row pushes them first, hence the cell.
+    abs_err: std::cell::RefCell<AbsErr>,
     abs_err_stride: usize,
+}
+
+/// The |e| sketches and the values not yet pushed into them.
+#[derive(Clone, Debug, PartialEq)]
+struct AbsErr {
+    sketches: Vec<QuantileSketch>,
+    /// Per sketch, `ABS_ERR_BLOCK` slots: the value of each pending run (NaN for a run that
+    /// did not reach the step; the sketch skips non-finite values).
+    pending: Vec<f64>,
+    /// Runs in `pending`.
+    runs: usize,
+}
+
+impl AbsErr {
+    /// Pushes the pending values, sketch by sketch, each in run order.
+    fn flush(&mut self) {
+        let n = self.runs;
+        for (s, v) in self
+            .sketches
+            .iter_mut()
+            .zip(self.pending.chunks(ABS_ERR_BLOCK))
+        {
+            for &x in &v[..n] {
+                s.push(x);
+            }
+        }
+        self.runs = 0;
+    }
 }
 
 /// One row of the per-step table after folding.
@@ -268,10 +302,17 @@ impl StepAccumulator {
             nis_sum: vec![0.0; steps + 1],
             nis_n: vec![0; steps + 1],
             nis_dof: vec![0; steps + 1],
-            abs_err: vec![
-                QuantileSketch::new(&ABS_ERR_QUANTILES);
-                (steps / abs_err_stride(steps + 1) + 1) * nx
-            ],
+            abs_err: std::cell::RefCell::new(AbsErr {
+                sketches: vec![
+                    QuantileSketch::new(&ABS_ERR_QUANTILES);
+                    (steps / abs_err_stride(steps + 1) + 1) * nx
+                ],
+                pending: vec![
+                    f64::NAN;
+                    (steps / abs_err_stride(steps + 1) + 1) * nx * ABS_ERR_BLOCK
+                ],
+                runs: 0,
+            }),
             abs_err_stride: abs_err_stride(steps + 1),
         }
     }
@@ -279,14 +320,26 @@ impl StepAccumulator {
     /// Adds one run.
     pub fn fold(&mut self, v: &StepValues) {
         let nx = self.nx;
+        let abs = self.abs_err.get_mut();
+        let slot = abs.runs;
+        let stride = self.abs_err_stride;
+        for (g, k) in (0..self.runs.len()).step_by(stride).enumerate() {
+            for i in 0..nx {
+                abs.pending[(g * nx + i) * ABS_ERR_BLOCK + slot] = if k < v.completed {
+                    v.sq_err[k * nx + i].sqrt()
+                } else {
+                    f64::NAN
+                };
+            }
+        }
+        abs.runs += 1;
+        if abs.runs == ABS_ERR_BLOCK {
+            abs.flush();
+        }
         for k in 0..v.completed {
             self.runs[k] += 1;
             for i in 0..nx {
                 self.sum_sq[k * nx + i] += v.sq_err[k * nx + i];
-                if k.is_multiple_of(self.abs_err_stride) {
-                    let g = k / self.abs_err_stride;
-                    self.abs_err[g * nx + i].push(v.sq_err[k * nx + i].sqrt());
-                }
             }
             if !v.nees[k].is_nan() {
                 self.nees_sum[k] += v.nees[k];
@@ -332,7 +385,11 @@ impl StepAccumulator {
                 .collect(),
             abs_err: if k.is_multiple_of(self.abs_err_stride) {
                 let g = k / self.abs_err_stride;
-                self.abs_err[g * self.nx..(g + 1) * self.nx]
+                let mut abs = self.abs_err.borrow_mut();
+                if abs.runs > 0 {
+                    abs.flush();
+                }
+                abs.sketches[g * self.nx..(g + 1) * self.nx]
                     .iter()
                     .map(|q| {
                         let e = q.estimates();

@@ -66,6 +66,23 @@ pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync 
     fn measure(&self, x: &Vector<NX>, u: &Vector<NU>) -> Vector<NZ>;
     /// H_k = ∂h/∂x at (x_k, u_k).
     fn measurement_jacobian(&self, x: &Vector<NX>, u: &Vector<NU>) -> Matrix<NZ, NX>;
+    /// Where F = [`Model::transition_jacobian`] may be non-zero, when the model knows it: the
+    /// (row, column) positions, the columns of each row in ascending order, valid at every
+    /// (x, u). F = I + A·Δt with a sparse A is the common case. The EKF then forms F P Fᵀ over
+    /// these entries only ([`crate::linalg::sparse_sandwich`]: the same sums in the same order
+    /// as the dense product, so the same result). `None` (the default): F is treated as dense.
+    /// An entry outside the pattern must be zero; tests check the declarations at sampled
+    /// points.
+    fn transition_pattern(&self) -> Option<&[(usize, usize)]> {
+        None
+    }
+    /// When H = [`Model::measurement_jacobian`] is a selection of states at every (x, u) —
+    /// H[i, s[i]] = 1 and every other entry 0 — the selection `s`. The EKF then reads H P⁻ as
+    /// rows of P⁻ and forms (I − K H) P⁻ over its non-zero entries (the dense result, see
+    /// [`crate::linalg::select_update`]). `None` (the default): H is treated as dense.
+    fn measurement_selection(&self) -> Option<[usize; NZ]> {
+        None
+    }
     /// The residual z − ẑ, with the [`Model::angle_measurements`] wrapped to [−π, π).
     fn residual(&self, z: &Vector<NZ>, z_pred: &Vector<NZ>) -> Vector<NZ> {
         let mut r = z - z_pred;

@@ -36,6 +36,10 @@ pub struct LinearModel<const NX: usize, const NU: usize, const NZ: usize> {
     groups: Vec<SensorGroup>,
     /// Why the model has no steady state, or `None` when (F, H) is detectable.
     undetectable: Option<String>,
+    /// F's non-zero entries, for [`Model::transition_pattern`].
+    pattern: Vec<(usize, usize)>,
+    /// H as a selection of states, when it is one ([`Model::measurement_selection`]).
+    selection: Option<[usize; NZ]>,
 }
 
 impl<const NX: usize, const NU: usize, const NZ: usize> LinearModel<NX, NU, NZ> {
@@ -66,6 +70,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize> LinearModel<NX, NU, NZ> 
             every_step: Availability(Availability::all(NZ).0 & !grouped),
             groups,
             undetectable: undetectable_reason(&f, &h),
+            pattern: crate::linalg::nonzero_pattern(&f),
+            selection: crate::linalg::row_selection(&h),
         }
     }
 
@@ -212,6 +218,14 @@ impl<const NX: usize, const NU: usize, const NZ: usize> Model<NX, NU, NZ>
     #[inline]
     fn measurement_jacobian(&self, _x: &Vector<NX>, _u: &Vector<NU>) -> Matrix<NZ, NX> {
         self.h
+    }
+
+    fn transition_pattern(&self) -> Option<&[(usize, usize)]> {
+        Some(&self.pattern)
+    }
+
+    fn measurement_selection(&self) -> Option<[usize; NZ]> {
+        self.selection
     }
 
     #[inline]

@@ -143,6 +143,8 @@ pub struct Linear<const NZ: usize> {
     disc: Discrete,
     h: Matrix<NZ, 6>,
     sensor: LinearSensor,
+    /// F's non-zero entries (F is constant), for [`Model::transition_pattern`].
+    pattern: Vec<(usize, usize)>,
 }
 
 /// L1 measuring positions or velocities.
@@ -176,9 +178,11 @@ impl<const NZ: usize> Linear<NZ> {
         for (i, &j) in sensor.rows().iter().enumerate() {
             h[(i, j)] = 1.0;
         }
+        let disc = ContinuousLinear::seed().discretise(dt_s);
         Ok(Linear {
             dt_s,
-            disc: ContinuousLinear::seed().discretise(dt_s),
+            pattern: crate::linalg::nonzero_pattern(&disc.f),
+            disc,
             h,
             sensor,
         })
@@ -264,6 +268,16 @@ impl<const NZ: usize> Model<6, 4, NZ> for Linear<NZ> {
     #[inline]
     fn measurement_jacobian(&self, _x: &Vector<6>, _u: &Vector<4>) -> Matrix<NZ, 6> {
         self.h
+    }
+
+    fn transition_pattern(&self) -> Option<&[(usize, usize)]> {
+        Some(&self.pattern)
+    }
+
+    fn measurement_selection(&self) -> Option<[usize; NZ]> {
+        let mut sel = [0; NZ];
+        sel.copy_from_slice(self.sensor.rows());
+        Some(sel)
     }
 
     fn process_noise_covariance(&self) -> Option<Matrix<6, 6>> {

@@ -128,6 +128,20 @@ pub use crate::model::wrap_angle;
 
 /// θ, the attitude: an angle state of both sensor sets.
 const ANGLE_STATES: [usize; 1] = [4];
+/// Where F = I + A·Δt may be non-zero (eq. 15 of seed 000): the diagonal and five entries of A.
+const TRANSITION_PATTERN: [(usize, usize); 11] = [
+    (0, 0),
+    (0, 1),
+    (1, 1),
+    (1, 4),
+    (2, 2),
+    (2, 3),
+    (3, 3),
+    (3, 4),
+    (4, 4),
+    (4, 5),
+    (5, 5),
+];
 /// P1's θ measurement: its residual is wrapped (line 138 of `simulation_quadrotor.m`).
 const P1_ANGLE_MEASUREMENTS: [usize; 1] = [1];
 
@@ -150,6 +164,12 @@ impl Model<6, 2, 3> for PlanarP1 {
         h[(1, 4)] = 1.0;
         h[(2, 5)] = 1.0;
         h
+    }
+    fn transition_pattern(&self) -> Option<&[(usize, usize)]> {
+        Some(&TRANSITION_PATTERN)
+    }
+    fn measurement_selection(&self) -> Option<[usize; 3]> {
+        Some([2, 4, 5])
     }
     fn angle_states(&self) -> &[usize] {
         &ANGLE_STATES
@@ -184,6 +204,9 @@ impl Model<6, 2, 4> for PlanarImu {
         h[(2, 4)] = -c * thrust / p.mass_kg;
         h[(3, 4)] = -s * thrust / p.mass_kg;
         h
+    }
+    fn transition_pattern(&self) -> Option<&[(usize, usize)]> {
+        Some(&TRANSITION_PATTERN)
     }
     // ẍ and ÿ are accelerations, not angles: only the state θ is.
     fn angle_states(&self) -> &[usize] {
