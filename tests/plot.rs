@@ -450,7 +450,11 @@ fn the_report_of_a_consistency_study_opens_with_the_verdicts() {
     for (row, &i) in body_rows.iter().zip(&verdict_rows) {
         let q = filt[i].unwrap();
         assert!(row.contains(&format!("<td>kf Q×{q}</td>")), "{row}");
-        let class = if pass[i] == Some(true) { "pass" } else { "fail" };
+        let class = if pass[i] == Some(true) {
+            "pass"
+        } else {
+            "fail"
+        };
         assert!(
             row.contains(&format!("<td class=\"{class}\"><b>")),
             "q {q}: {row}"
@@ -520,7 +524,14 @@ fn filter_variants_sharing_a_label_are_separate_series_in_every_figure() {
     // The tuning figure comes from `kfmc tune` on the same spec (one search per noise scale).
     let tuned = tmp.path().join("tuned");
     let o = kfmc()
-        .args(["tune", spec.to_str().unwrap(), "--quiet", "--runs", "4", "--out"])
+        .args([
+            "tune",
+            spec.to_str().unwrap(),
+            "--quiet",
+            "--runs",
+            "4",
+            "--out",
+        ])
         .arg(&tuned)
         .output()
         .unwrap();
@@ -601,7 +612,10 @@ fn filter_variants_sharing_a_label_are_separate_series_in_every_figure() {
         })
         .collect();
     assert_eq!(bars.len(), 8);
-    assert!(bars.windows(2).all(|w| w[0].1 <= w[1].0), "bars overlap: {bars:?}");
+    assert!(
+        bars.windows(2).all(|w| w[0].1 <= w[1].0),
+        "bars overlap: {bars:?}"
+    );
     // rmse_growth: each variant's line is its own summary rows, by noise scale.
     let s = df(&res, "summary");
     let (st, q, mean, nz) = (
@@ -617,7 +631,10 @@ fn filter_variants_sharing_a_label_are_separate_series_in_every_figure() {
             .map(|i| (nz[i].unwrap(), mean[i].unwrap()))
             .collect();
         assert_eq!(rows.len(), 2);
-        assert_eq!(line(&g, "RMSE of x", &format!("{label} mean, p5–p95")), rows);
+        assert_eq!(
+            line(&g, "RMSE of x", &format!("{label} mean, p5–p95")),
+            rows
+        );
     }
 
     // Tuning: one curve per noise scale (each its own search), none joined across them.
@@ -637,7 +654,11 @@ fn filter_variants_sharing_a_label_are_separate_series_in_every_figure() {
             _ => None,
         })
         .collect();
-    assert_eq!(series_labels(&tuning.panels[0]).len(), 2, "kf at noise ×1 and ×2");
+    assert_eq!(
+        series_labels(&tuning.panels[0]).len(),
+        2,
+        "kf at noise ×1 and ×2"
+    );
     assert_eq!(curves.len(), 2);
     for c in curves {
         assert!(c.windows(2).all(|w| w[0].0 < w[1].0), "a sawtooth: {c:?}");
@@ -672,8 +693,15 @@ fn figure_files_never_collide() {
     names.sort();
     names.dedup();
     assert_eq!(names.len(), 4, "{figs:?}");
-    assert_eq!(figs[3].name, "trajectory_z", "names without a clash stay as they are");
-    assert!(figs[..3].iter().all(|f| f.name.len() == "trajectory_x_y".len() + 9));
+    assert_eq!(
+        figs[3].name, "trajectory_z",
+        "names without a clash stay as they are"
+    );
+    assert!(
+        figs[..3]
+            .iter()
+            .all(|f| f.name.len() == "trajectory_x_y".len() + 9)
+    );
     // A figure's name depends on its own title, not on its position among the others.
     let mut reversed = make();
     reversed.reverse();

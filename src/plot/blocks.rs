@@ -284,8 +284,7 @@ pub fn block_consistency_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                 }
                 let mut plotted = Vec::new();
                 for c in &mine {
-                    let points: Vec<(f64, f64)> =
-                        c.series[bi].iter().map(|p| (p.0, p.1)).collect();
+                    let points: Vec<(f64, f64)> = c.series[bi].iter().map(|p| (p.0, p.1)).collect();
                     plotted.extend(points.iter().map(|p| p.1));
                     marks.push(Mark::Line {
                         label: Some(c.filter.clone()),
@@ -300,7 +299,11 @@ pub fn block_consistency_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                     y: d as f64,
                 });
                 Panel {
-                    title: format!("{} ({}), consistent mean {d}", b.name, b.quantities.join(", ")),
+                    title: format!(
+                        "{} ({}), consistent mean {d}",
+                        b.name,
+                        b.quantities.join(", ")
+                    ),
                     x_label: "t [s]".into(),
                     y_label: "block ANEES [–]".into(),
                     log_y: wants_log(plotted.into_iter()),

@@ -270,10 +270,7 @@ fn draw_legend<DB: DrawingBackend>(
         let c = color(en.ink);
         match en.swatch {
             Swatch::Line { dashed: false } => area
-                .draw(&PathElement::new(
-                    vec![(8, y), (36, y)],
-                    c.stroke_width(3),
-                ))
+                .draw(&PathElement::new(vec![(8, y), (36, y)], c.stroke_width(3)))
                 .map_err(e)?,
             Swatch::Line { dashed: true } => {
                 for x in [8, 20, 32] {
@@ -379,7 +376,10 @@ pub fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
     if decades.len() >= 3 {
         return decades;
     }
-    for mantissas in [&[1.0, 2.0, 5.0][..], &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0]] {
+    for mantissas in [
+        &[1.0, 2.0, 5.0][..],
+        &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0],
+    ] {
         let v: Vec<f64> = (d0..=d1)
             .flat_map(|d| mantissas.iter().map(move |m| (m * 10f64.powi(d)).log10()))
             .filter(inside)
@@ -418,7 +418,10 @@ fn fixed(v: f64, decimals: usize) -> String {
         return tick(v);
     }
     let s = format!("{v:.decimals$}");
-    if s.trim_start_matches('-').chars().all(|c| c == '0' || c == '.') {
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
         "0".into()
     } else {
         s
@@ -635,6 +638,9 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
     mesh.draw().map_err(e)?;
 
     let base = if p.log_y { ya.lo } else { 0.0 };
+    // Value texts of successive points alternate above and below them, so that two
+    // divergence points close together do not write over each other.
+    let mut nth_point = 0;
     for m in &p.marks {
         match m {
             Mark::Band { ink, points, .. } => {
@@ -704,11 +710,13 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
                 let c = color(*ink);
                 let font = ("sans-serif", TICK_PX).into_font().color(&c);
                 let note = text.clone().unwrap_or_default();
+                let dy = if nth_point % 2 == 0 { -20 } else { 6 };
+                nth_point += 1;
                 chart
                     .draw_series(std::iter::once(
                         EmptyElement::at((x, y))
                             + Circle::new((0, 0), 5, c.filled())
-                            + Text::new(note, (7, -18), font),
+                            + Text::new(note, (7, dy), font),
                     ))
                     .map_err(e)?;
             }

@@ -111,15 +111,6 @@ fn fixed(v: Option<f64>, decimals: usize) -> String {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 /// `YYYY-MM-DD HH:MM:SS UTC` of a Unix time (proleptic Gregorian, H. Hinnant's
 /// days-to-civil), so the report needs no date library.
 pub fn utc(unix_s: u64) -> String {
@@ -160,12 +151,15 @@ fn rmse_table(t: &Tables) -> Result<String, PlotError> {
         .states
         .iter()
         .map(|st| {
-            decimals_for(median(
+            // The column's smallest mean sets its decimals, so the best filter's value keeps
+            // three significant digits and every row of the column lines up.
+            decimals_for(
                 (0..s.height())
                     .filter(|&i| state[i] == *st)
                     .filter_map(|i| mean[i])
-                    .collect(),
-            ))
+                    .filter(|v| *v > 0.0)
+                    .fold(f64::INFINITY, f64::min),
+            )
         })
         .collect();
     let mut rows: Vec<(String, f64, String)> = Vec::new();
@@ -269,12 +263,11 @@ fn verdict_table(c: &Table) -> Result<String, PlotError> {
         c.f64s("upper")?,
         c.f64s("p_value")?,
     );
-    let pass: Vec<Option<bool>> = c
-        .df
-        .column("pass")
-        .ok()
-        .and_then(|col| col.bool().ok().map(|b| b.iter().collect()))
-        .unwrap_or_else(|| vec![None; c.height()]);
+    let pass: Vec<Option<bool>> =
+        c.df.column("pass")
+            .ok()
+            .and_then(|col| col.bool().ok().map(|b| b.iter().collect()))
+            .unwrap_or_else(|| vec![None; c.height()]);
     let direction = if c.has("direction") {
         c.strs("direction")?
     } else {
@@ -352,14 +345,18 @@ fn verdict_table(c: &Table) -> Result<String, PlotError> {
                         Some(true) => "∈",
                         _ => "∉",
                     };
+                    // Statistic and band with one number of decimals: 4 significant
+                    // digits of the band's larger end.
+                    let scale = hi[i].or(lo[i]).or(stat[i]).unwrap_or(1.0).abs();
+                    let d = (decimals_for(scale) + 1).min(6);
                     let _ = write!(
                         h,
-                        "<td class=\"{}\">{} {} [{}, {}]</td>",
+                        "<td class=\"{}\">{}<small>{} [{}, {}]</small></td>",
                         class(pass[i]),
-                        escape(&num(stat[i])),
+                        escape(&fixed(stat[i], d)),
                         inside,
-                        escape(&num(lo[i])),
-                        escape(&num(hi[i]))
+                        escape(&fixed(lo[i], d)),
+                        escape(&fixed(hi[i], d))
                     );
                 }
                 None => h.push_str("<td class=\"na\">—</td>"),
@@ -482,7 +479,7 @@ figure{margin:1.4rem 0;break-inside:avoid;page-break-inside:avoid}\
 figure svg{display:block;width:100%;height:auto}\
 figcaption{font-size:.9rem;color:#57606a;margin-top:.3rem}\
 @media (max-width:760px){body{padding:0 .6rem 2rem;font-size:15px}\
-figure{overflow-x:auto}figure svg{width:980px;max-width:none}h1{font-size:1.35rem}}\
+figure{overflow-x:auto;max-width:100%!important}figure svg{width:980px;max-width:none}h1{font-size:1.35rem}}\
 @media print{body{max-width:none;padding:0;font-size:11pt}nav.toc{break-after:page}\
 a{color:inherit;text-decoration:none}.scroll{overflow:visible}\
 figure svg{width:100%;max-width:100%}h2{break-after:avoid}h3{break-after:avoid}\
@@ -592,10 +589,12 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
             let _ = writeln!(h, "<h3 id=\"{}\">{}</h3>", anchor("scenario", i), escape(s));
             for f in v {
                 let svg = render::to_svg_string(f)?;
+                // Never wider than drawn: scaled up, a one-panel figure would fill a screen.
                 let _ = writeln!(
                     h,
-                    "<figure id=\"fig-{}\">\n{}\n<figcaption>{} <code>{}</code></figcaption>\n</figure>",
+                    "<figure id=\"fig-{}\" style=\"max-width:{}px\">\n{}\n<figcaption>{} <code>{}</code></figcaption>\n</figure>",
                     escape(&f.name),
+                    render::size(f).0,
                     inline_svg(&svg),
                     escape(&f.title),
                     escape(&f.name)

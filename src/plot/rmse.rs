@@ -290,7 +290,11 @@ pub fn tuning_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         type Curve = (Option<u64>, String, Option<u64>);
         let mut curves: Vec<Curve> = Vec::new();
         for &i in &rows {
-            let k = (noise[i].map(f64::to_bits), filt[i].clone(), r[i].map(f64::to_bits));
+            let k = (
+                noise[i].map(f64::to_bits),
+                filt[i].clone(),
+                r[i].map(f64::to_bits),
+            );
             if !curves.contains(&k) {
                 curves.push(k);
             }
@@ -332,11 +336,7 @@ pub fn tuning_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                     }
                     marks.push(Mark::Line {
                         label: Some(label),
-                        ink: if palette {
-                            Ink::Palette(ci)
-                        } else {
-                            t.ink(f)
-                        },
+                        ink: if palette { Ink::Palette(ci) } else { t.ink(f) },
                         dashed: false,
                         points: pts,
                     });

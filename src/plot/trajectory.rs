@@ -205,18 +205,18 @@ pub fn route_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         tr.f64s("truth_py")?,
         tr.f64s("truth_pz")?,
     );
-    let (en, ee, ed) = (
-        tr.f64s("est_px")?,
-        tr.f64s("est_py")?,
-        tr.f64s("est_pz")?,
-    );
+    let (en, ee, ed) = (tr.f64s("est_px")?, tr.f64s("est_py")?, tr.f64s("est_pz")?);
     let up = |v: &[Option<f64>]| v.iter().map(|x| x.map(|z| -z)).collect::<Vec<_>>();
     let (tu, eu) = (up(&td), up(&ed));
     // Position sensors: z_<sensor>_px with its _py and _pz, sensor named like a GPS.
     let sensors: Vec<String> = tr
         .names()
         .iter()
-        .filter_map(|n| n.strip_prefix("z_")?.strip_suffix("_px").map(str::to_string))
+        .filter_map(|n| {
+            n.strip_prefix("z_")?
+                .strip_suffix("_px")
+                .map(str::to_string)
+        })
         .filter(|s| s.to_lowercase().contains("gps"))
         .filter(|s| tr.has(&format!("z_{s}_py")) && tr.has(&format!("z_{s}_pz")))
         .collect();
