@@ -716,3 +716,150 @@ fn figure_files_never_collide() {
     kfmc::plot::unique_names(&mut same);
     assert_ne!(same[0].name, same[1].name);
 }
+
+/// The 3×3 inverse by the adjugate: independent of the Cholesky solve in `plot::blocks`.
+fn inv3(m: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    let c =
+        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let adj = [
+        [c(1, 2, 1, 2), -c(0, 2, 1, 2), c(0, 1, 1, 2)],
+        [-c(1, 2, 0, 2), c(0, 2, 0, 2), -c(0, 1, 0, 2)],
+        [c(1, 2, 0, 1), -c(0, 2, 0, 1), c(0, 1, 0, 1)],
+    ];
+    let det = m[0][0] * adj[0][0] + m[0][1] * adj[1][0] + m[0][2] * adj[2][0];
+    adj.map(|r| r.map(|v| v / det))
+}
+
+#[test]
+fn block_anees_is_the_traced_runs_mean_of_the_block_nees() {
+    let tmp = tempfile::tempdir().unwrap();
+    let res = tmp.path().join("d");
+    let spec = tmp.path().join("d.toml");
+    std::fs::write(
+        &spec,
+        format!(
+            "name = \"d\"\nmaster_seed = 3\nruns = 3\ntrace_runs = 3\noutput = \"{}\"\n[model]\nkind = \"drone\"\nimu_output = \"specific_force\"\n[[scenarios]]\nname = \"maneuver\"\nduration_s = 3.0\n[[filters]]\nlabel = \"ekf9\"\nkind = \"ekf9\"\n[initial_estimate]\nmode = \"sampled\"\n",
+            res.display()
+        ),
+    )
+    .unwrap();
+    let o = kfmc()
+        .args(["run", spec.to_str().unwrap(), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let t = Tables::load(&res).unwrap();
+    let bl = kfmc::plot::blocks::blocks(&t);
+    let names: Vec<(&str, Vec<String>)> = bl
+        .iter()
+        .map(|b| (b.name.as_str(), b.quantities.clone()))
+        .collect();
+    let q = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    assert_eq!(
+        names,
+        [
+            ("position", q(&["px", "py", "pz"])),
+            ("velocity", q(&["vx", "vy", "vz"])),
+            ("attitude", q(&["roll", "pitch", "yaw"])),
+        ]
+    );
+    let cells = kfmc::plot::blocks::block_cells(&t, &bl).unwrap();
+    assert_eq!(cells.len(), 1);
+
+    // Independently, from the trace columns: per step ≥ 1, the mean over the 3 runs of
+    // eᵀP⁻¹e, angles wrapped to ±180°.
+    let tr = df(&res, "traces");
+    let (step, time) = (f64s(&tr, "step"), f64s(&tr, "t"));
+    let order = ["px", "py", "pz", "vx", "vy", "vz", "roll", "pitch", "yaw"];
+    for (bi, b) in bl.iter().enumerate() {
+        let mut by_step: std::collections::BTreeMap<i64, (f64, f64, usize)> = Default::default();
+        let e: Vec<Vec<Option<f64>>> = b
+            .quantities
+            .iter()
+            .map(|s| {
+                let (x, xh) = (
+                    f64s(&tr, &format!("truth_{s}")),
+                    f64s(&tr, &format!("est_{s}")),
+                );
+                x.iter()
+                    .zip(&xh)
+                    .map(|(a, b)| Some((*a)? - (*b)?))
+                    .collect()
+            })
+            .collect();
+        let p_col = |a: &str, c: &str| {
+            let (ia, ic) = (
+                order.iter().position(|x| *x == a).unwrap(),
+                order.iter().position(|x| *x == c).unwrap(),
+            );
+            let (hi, lo) = if ia >= ic { (a, c) } else { (c, a) };
+            f64s(&tr, &format!("P_{hi}_{lo}"))
+        };
+        let p: Vec<Vec<Vec<Option<f64>>>> = b
+            .quantities
+            .iter()
+            .map(|a| b.quantities.iter().map(|c| p_col(a, c)).collect())
+            .collect();
+        for r in 0..tr.height() {
+            let k = step[r].unwrap();
+            if k < 1.0 {
+                continue;
+            }
+            let mut ev = [0.0; 3];
+            for (j, col) in e.iter().enumerate() {
+                let mut v = col[r].unwrap();
+                if b.name == "attitude" {
+                    v -= 360.0 * (v / 360.0).round();
+                }
+                ev[j] = v;
+            }
+            let m: [[f64; 3]; 3] =
+                std::array::from_fn(|i| std::array::from_fn(|j| p[i][j][r].unwrap()));
+            let mi = inv3(m);
+            let nees: f64 = (0..3)
+                .map(|i| (0..3).map(|j| ev[i] * mi[i][j] * ev[j]).sum::<f64>())
+                .sum();
+            let s = by_step
+                .entry(k as i64)
+                .or_insert((time[r].unwrap(), 0.0, 0));
+            s.1 += nees;
+            s.2 += 1;
+        }
+        let got = &cells[0].series[bi];
+        assert_eq!(got.len(), by_step.len(), "{}", b.name);
+        for (g, (_, w)) in got.iter().zip(&by_step) {
+            assert_eq!((g.0, g.2), (w.0, w.2), "{}", b.name);
+            let want = w.1 / w.2 as f64;
+            assert!(
+                (g.1 - want).abs() <= 1e-9 * want.abs().max(1.0),
+                "{} at t = {}: {} against {want}",
+                b.name,
+                g.0,
+                g.1
+            );
+        }
+    }
+    // The figure draws these series, one panel per block.
+    let figs = FigureKind::BlockConsistency.series(&t).unwrap();
+    assert_eq!(figs.len(), 1);
+    assert_eq!(figs[0].panels.len(), 3);
+    // The route: the GPS fixes of the first traced run, as many as its non-null z_gps_px.
+    let route = FigureKind::Route.series(&t).unwrap();
+    assert_eq!(route.len(), 1, "the drone's route figure");
+    let run = f64s(&tr, "run");
+    let first = run.iter().flatten().copied().fold(f64::INFINITY, f64::min);
+    let gps = f64s(&tr, "z_gps_px");
+    let want = (0..tr.height())
+        .filter(|&i| run[i] == Some(first) && gps[i].is_some())
+        .count();
+    let fixes = route[0].panels[0]
+        .marks
+        .iter()
+        .find_map(|m| match m {
+            Mark::Scatter { points, .. } => Some(points.len()),
+            _ => None,
+        })
+        .unwrap();
+    assert_eq!(fixes, want);
+    assert_eq!(want, 31, "10 Hz over 3 s, from t = 0");
+}

@@ -156,14 +156,18 @@ pub fn errors_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
 }
 
 /// Whether a positive series spans so many orders of magnitude that a linear axis would flatten
-/// the consistent filters into the floor (one ANEES of 45 beside others near 6).
+/// the consistent filters into the floor (one ANEES of 45 beside others near 6). Judged on the
+/// 2nd to 98th percentile, so that one transient (the first update's NIS under a wide P0) does
+/// not turn a whole panel logarithmic.
 pub(crate) fn wants_log(values: impl Iterator<Item = f64>) -> bool {
-    let (lo, hi) = values
-        .filter(|v| v.is_finite())
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| {
-            (a.min(v), b.max(v))
-        });
-    lo > 0.0 && hi / lo > 30.0
+    let mut v: Vec<f64> = values.filter(|v| v.is_finite()).collect();
+    if v.is_empty() {
+        return false;
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    let (lo, hi) = (at(0.02), at(0.98));
+    v[0] > 0.0 && hi / lo > 30.0
 }
 
 /// `consistency`: ANEES and ANIS over time per filter variant with the χ² acceptance band from

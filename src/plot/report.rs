@@ -706,7 +706,7 @@ mod tests {
     #[test]
     fn one_column_one_number_of_decimals() {
         assert_eq!(decimals_for(0.253), 3);
-        assert_eq!(decimals_for(0.0052), 4);
+        assert_eq!(decimals_for(0.0052), 5);
         assert_eq!(decimals_for(12.5), 1);
         assert_eq!(fixed(Some(0.1), 3), "0.100");
         assert_eq!(fixed(Some(2e-9), 3), "2.00e-9");
