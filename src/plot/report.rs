@@ -470,6 +470,7 @@ th,td{border:1px solid #d0d7de;padding:.3em .6em;text-align:right;white-space:no
 th{background:#f6f8fa;font-weight:600}td:first-child,th:first-child,td:nth-child(3),th:nth-child(3){text-align:left}\
 td small{display:block;color:#57606a;font-size:.8em}\
 th .unit{font-weight:400;color:#57606a}\
+table.verdicts td:nth-child(4),table.verdicts th:nth-child(4){text-align:left}\
 td.pass{background:#dafbe1;color:#116329}td.fail{background:#ffebe9;color:#a40e26}td.na{color:#8c959f}\
 table.kv th{text-align:left}table.kv td{text-align:left;white-space:normal}\
 pre,code{font-family:'DejaVu Sans Mono',Consolas,monospace;font-size:.86rem}\
