@@ -276,11 +276,26 @@ pub fn verify(dir: &Path) -> Result<Manifest, OutputError> {
     Ok(manifest)
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename, so a full
-/// disk or a kill never leaves a truncated file under the real name.
+/// Writes `bytes` to `path` atomically: a temporary file beside it, flushed to disk (fsync),
+/// then a rename and an fsync of the folder, so a full disk, a kill or a power cut never leaves
+/// a truncated file under the real name.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let tmp = temp_beside(path);
-    let result = std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, path));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        drop(f);
+        std::fs::rename(&tmp, path)?;
+        // The rename is durable once the folder's entry is; not every platform can open a
+        // folder for syncing, and the file is already complete either way.
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty())
+            && let Ok(d) = std::fs::File::open(dir)
+        {
+            let _ = d.sync_all();
+        }
+        Ok(())
+    })();
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }

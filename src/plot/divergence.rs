@@ -105,14 +105,16 @@ pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                 .collect();
             panels.push(Panel {
                 title: format!("divergence of {s}"),
-                x_label: "divergence multiplier".into(),
-                y_label: "runs".into(),
+                x_label: "divergence multiplier [–]".into(),
+                y_label: "runs [count]".into(),
+                integer_y: true,
                 marks,
                 ..Panel::default()
             });
         }
         figs.push(Figure {
             kind: FigureKind::DivergenceHist,
+            scenario: sc.clone(),
             name: format!("divergence_hist_{}", file_part(sc)),
             title: format!("{sc}: noise multiplier at which each run diverges"),
             panels,

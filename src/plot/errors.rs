@@ -142,6 +142,7 @@ pub fn errors_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         }
         figs.push(Figure {
             kind: FigureKind::Errors,
+            scenario: c.scenario.clone(),
             name: stem("errors", t, &c),
             title: format!(
                 "{}: absolute error across runs (noise ×{})",
@@ -154,15 +155,39 @@ pub fn errors_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
     Ok(figs)
 }
 
-/// `consistency`: ANEES and ANIS over time per filter with the χ² acceptance band from
-/// `anees_lo`/`anees_hi` and `anis_lo`/`anis_hi` when the table has them, and the
-/// consistent filter's mean (n states, p measurement components) as a reference line.
-/// Filters without a covariance (all-null ANEES) are left out; a cell with none is skipped.
+/// Whether a positive series spans so many orders of magnitude that a linear axis would flatten
+/// the consistent filters into the floor (one ANEES of 45 beside others near 6). Judged on the
+/// 2nd to 98th percentile, so that one transient (the first update's NIS under a wide P0) does
+/// not turn a whole panel logarithmic.
+pub(crate) fn wants_log(values: impl Iterator<Item = f64>) -> bool {
+    let mut v: Vec<f64> = values.filter(|v| v.is_finite()).collect();
+    if v.is_empty() {
+        return false;
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    let (lo, hi) = (at(0.02), at(0.98));
+    v[0] > 0.0 && hi / lo > 30.0
+}
+
+/// `consistency`: ANEES and ANIS over time per filter variant with the χ² acceptance band from
+/// `anees_lo`/`anees_hi` and `anis_lo`/`anis_hi` when the table has them, and the consistent
+/// filter's mean (n states, p measurement components) as a reference line. Step 0 is left
+/// out: its "estimate" is the prior x̂0, whose NEES says how x̂0 was drawn (0 when x̂0 = x0),
+/// not how the filter behaves, and its spike would set the axis. Variants whose bands are
+/// equal (the same runs reached every step) share one band, drawn once in grey. A log axis
+/// when the curves span more than a factor of 30. Filters without a covariance (all-null
+/// ANEES) are left out; a cell with none is skipped.
 pub fn consistency_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
     let Some(st) = &t.steps else {
         return Ok(Vec::new());
     };
     let time = st.f64s("t")?;
+    let step = if st.has("step") {
+        st.f64s("step")?
+    } else {
+        vec![None; st.height()]
+    };
     let stat = |name: &str| -> Result<(Column, Option<(Column, Column)>), PlotError> {
         let v = st.f64s(name)?;
         let (lo, hi) = (format!("{name}_lo"), format!("{name}_hi"));
@@ -183,40 +208,70 @@ pub fn consistency_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         let mut any = false;
         for (_, title, (v, b), reference) in &stats {
             let mut marks = Vec::new();
-            let with_values: Vec<&(String, Vec<usize>)> = c
+            let with_values: Vec<(&String, Vec<usize>)> = c
                 .filters
                 .iter()
                 .filter(|(_, rows)| rows.iter().any(|&i| v[i].is_some()))
+                .map(|(f, rows)| {
+                    let after_prior = rows
+                        .iter()
+                        .copied()
+                        .filter(|&i| step[i].is_none_or(|k| k > 0.0))
+                        .collect();
+                    (f, after_prior)
+                })
                 .collect();
-            for (f, rows) in &with_values {
-                if let Some((lo, hi)) = b {
-                    marks.push(Mark::Band {
-                        label: Some(format!("{f} χ² acceptance band")),
-                        ink: t.ink(f),
-                        points: band(rows, &time, lo, hi),
-                    });
+            if let Some((lo, hi)) = b {
+                let bands: Vec<Vec<(f64, f64, f64)>> = with_values
+                    .iter()
+                    .map(|(_, rows)| band(rows, &time, lo, hi))
+                    .collect();
+                if bands.windows(2).all(|w| w[0] == w[1]) {
+                    if let Some(first) = bands.into_iter().next() {
+                        marks.push(Mark::Band {
+                            label: Some("χ² acceptance band".into()),
+                            ink: Ink::Reference,
+                            points: first,
+                        });
+                    }
+                } else {
+                    for ((f, _), points) in with_values.iter().zip(bands) {
+                        marks.push(Mark::Band {
+                            label: Some(format!("{f} χ² acceptance band")),
+                            ink: t.ink(f),
+                            points,
+                        });
+                    }
                 }
             }
+            let mut plotted = Vec::new();
             for (f, rows) in &with_values {
                 any = true;
+                let points = line(rows, &time, v);
+                plotted.extend(points.iter().map(|p| p.1));
                 marks.push(Mark::Line {
-                    label: Some(f.clone()),
+                    label: Some((*f).clone()),
                     ink: t.ink(f),
                     dashed: false,
-                    points: line(rows, &time, v),
+                    points,
                 });
             }
             if let Some(n) = reference {
                 marks.push(Mark::HLine {
-                    label: Some(format!("consistent mean = {n}")),
+                    label: Some("consistent mean (n states, p measurements)".into()),
                     ink: Ink::Reference,
                     y: *n as f64,
                 });
             }
+            let log_y = wants_log(plotted.into_iter());
             panels.push(Panel {
-                title: title.to_string(),
+                title: match reference {
+                    Some(n) => format!("{title} (consistent mean {n})"),
+                    None => title.to_string(),
+                },
                 x_label: "t [s]".into(),
                 y_label: format!("{title} [–]"),
+                log_y,
                 marks,
                 ..Panel::default()
             });
@@ -226,9 +281,10 @@ pub fn consistency_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         }
         figs.push(Figure {
             kind: FigureKind::Consistency,
+            scenario: c.scenario.clone(),
             name: stem("consistency", t, &c),
             title: format!(
-                "{}: ANEES and ANIS across runs (noise ×{})",
+                "{}: ANEES and ANIS across runs, steps ≥ 1 (noise ×{})",
                 c.scenario,
                 short(c.noise_scale)
             ),

@@ -9,6 +9,7 @@
 //! Colours follow the filter label, in order of first appearance in `summary.parquet`, so a
 //! filter has the same colour in every figure of a folder.
 
+pub mod blocks;
 pub mod divergence;
 pub mod errors;
 pub mod render;
@@ -46,11 +47,18 @@ pub enum FigureKind {
     DivergenceHist,
     /// ANEES/ANIS and RMSE against the filter's Q scale (tuning.parquet).
     Tuning,
+    /// The position route as projections: north–east and altitude against time, with the
+    /// truth, every estimate and the GPS fixes (traces.parquet; systems with `px, py, pz`).
+    Route,
+    /// ANEES per block of quantities sharing a unit (position, velocity, attitude), from the
+    /// traced runs' covariances (traces.parquet `P_<qi>_<qj>`).
+    #[value(name = "block_consistency")]
+    BlockConsistency,
 }
 
 impl FigureKind {
     /// Every kind, in drawing order.
-    pub const ALL: [FigureKind; 8] = [
+    pub const ALL: [FigureKind; 10] = [
         FigureKind::Trajectory,
         FigureKind::States,
         FigureKind::Errors,
@@ -59,6 +67,8 @@ impl FigureKind {
         FigureKind::Consistency,
         FigureKind::DivergenceHist,
         FigureKind::Tuning,
+        FigureKind::Route,
+        FigureKind::BlockConsistency,
     ];
 
     /// The file-name prefix and CLI name.
@@ -72,6 +82,8 @@ impl FigureKind {
             FigureKind::Consistency => "consistency",
             FigureKind::DivergenceHist => "divergence_hist",
             FigureKind::Tuning => "tuning",
+            FigureKind::Route => "route",
+            FigureKind::BlockConsistency => "block_consistency",
         }
     }
 
@@ -86,6 +98,8 @@ impl FigureKind {
             FigureKind::Consistency => errors::consistency_series(t),
             FigureKind::DivergenceHist => divergence::divergence_hist_series(t),
             FigureKind::Tuning => rmse::tuning_series(t),
+            FigureKind::Route => trajectory::route_series(t),
+            FigureKind::BlockConsistency => blocks::block_consistency_series(t),
         }
     }
 }
@@ -168,6 +182,15 @@ pub enum Mark {
         /// Height.
         y: f64,
     },
+    /// Marked points without a connecting line (measurement fixes).
+    Scatter {
+        /// Legend entry.
+        label: Option<String>,
+        /// Colour.
+        ink: Ink,
+        /// The points.
+        points: Vec<(f64, f64)>,
+    },
     /// A marked point.
     Point {
         /// Legend entry.
@@ -178,6 +201,8 @@ pub enum Mark {
         x: f64,
         /// Position.
         y: f64,
+        /// Text written beside it (its value), since the legend entry is shared by panels.
+        text: Option<String>,
     },
     /// Bars.
     Bars {
@@ -205,6 +230,10 @@ pub struct Panel {
     pub log_x: bool,
     /// Category names at x = 0, 1, … (bar charts); `None` for a numeric axis.
     pub x_categories: Option<Vec<String>>,
+    /// The y axis counts things: integer ticks only.
+    pub integer_y: bool,
+    /// x and y in the same unit (a map): one metre is as long on both axes.
+    pub equal_aspect: bool,
     /// What is drawn, in order.
     pub marks: Vec<Mark>,
 }
@@ -216,6 +245,8 @@ pub struct Figure {
     pub kind: FigureKind,
     /// File stem, e.g. `states_roll`.
     pub name: String,
+    /// The scenario it shows (the report groups figures by it).
+    pub scenario: String,
     /// Title above the panels.
     pub title: String,
     /// The panels, row-major.
@@ -254,7 +285,8 @@ impl Tables {
     }
 }
 
-/// A name safe in a file name (scenario and filter labels are free text in the spec).
+/// A name safe in a file name (scenario and filter labels are free text in the spec). Not
+/// injective (`x/y` and `x_y` both give `x_y`): [`all_figures`] makes the final names unique.
 pub fn file_part(s: &str) -> String {
     s.chars()
         .map(|c| {
@@ -265,6 +297,51 @@ pub fn file_part(s: &str) -> String {
             }
         })
         .collect()
+}
+
+/// FNV-1a 64 of some text (the spec hash uses the same function).
+fn fnv1a(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+/// Makes figure names unique, also ignoring case (macOS and Windows folders do): readable
+/// names stay as they are, and every figure of a clash gets a suffix from its title, which
+/// holds the raw scenario and filter text (`x/y` and `x_y` differ there), so a name does not
+/// depend on which other figures a folder has. Titles that clash too get a running number.
+pub fn unique_names(figs: &mut [Figure]) {
+    use std::collections::BTreeMap;
+    let mut count: BTreeMap<String, usize> = BTreeMap::new();
+    for f in figs.iter() {
+        *count.entry(f.name.to_lowercase()).or_default() += 1;
+    }
+    for f in figs.iter_mut() {
+        if count[&f.name.to_lowercase()] > 1 {
+            f.name = format!("{}_{:08x}", f.name, fnv1a(&f.title) as u32);
+        }
+    }
+    let mut seen: BTreeMap<String, usize> = BTreeMap::new();
+    for f in figs.iter_mut() {
+        let n = seen.entry(f.name.to_lowercase()).or_default();
+        *n += 1;
+        if *n > 1 {
+            f.name = format!("{}_{}", f.name, n);
+        }
+    }
+}
+
+/// Every figure of the given kinds (all when `only` is empty), with unique file names: what
+/// `kfmc plot` draws and the report shows, in drawing order.
+pub fn all_figures(t: &Tables, only: &[FigureKind]) -> Result<Vec<Figure>, PlotError> {
+    let mut figs = Vec::new();
+    for kind in FigureKind::ALL {
+        if only.is_empty() || only.contains(&kind) {
+            figs.extend(kind.series(t)?);
+        }
+    }
+    unique_names(&mut figs);
+    Ok(figs)
 }
 
 /// A number for titles and file names: `1`, `0.2`, `12.5`.
@@ -498,8 +575,11 @@ pub struct Tables {
     pub consistency: Option<Table>,
     /// `manifest.toml`, when readable.
     pub manifest: Option<Manifest>,
-    /// Filter labels in order of first appearance in the summary: the colour order.
+    /// Filter variants (label with its Q/R scales, see [`Table::strs`]) in order of first
+    /// appearance in the summary: the colour order.
     pub filters: Vec<String>,
+    /// The spec's label of each entry of `filters` (`kf` for `kf Q×2`).
+    pub filter_labels: Vec<String>,
     /// Scenarios in order of first appearance in the summary.
     pub scenarios: Vec<String>,
     /// State names in order of first appearance in the summary.
@@ -520,7 +600,16 @@ impl Tables {
             why: "every figure and the report need it; is this a folder written by `kfmc run`?"
                 .into(),
         })?;
-        let filters = first_appearance(&summary.strs("filter")?);
+        let variants = summary.strs("filter")?;
+        let filters = first_appearance(&variants);
+        let raw = summary.raw_strs("filter")?;
+        let filter_labels = filters
+            .iter()
+            .map(|f| {
+                let i = variants.iter().position(|v| v == f).unwrap_or(0);
+                raw.get(i).cloned().unwrap_or_default()
+            })
+            .collect();
         let scenarios = first_appearance(&summary.strs("scenario")?);
         let states = first_appearance(&summary.strs("state")?);
         let mut noise_scales: Vec<f64> =
@@ -552,11 +641,20 @@ impl Tables {
             consistency: Table::read_optional(dir.join("consistency.parquet"))?,
             manifest,
             filters,
+            filter_labels,
             scenarios,
             states,
             noise_scales,
             n_meas,
         })
+    }
+
+    /// The spec's label of a filter variant.
+    pub fn label_of<'a>(&'a self, variant: &'a str) -> &'a str {
+        self.filters
+            .iter()
+            .position(|f| f == variant)
+            .map_or(variant, |i| self.filter_labels[i].as_str())
     }
 
     /// The colour index of a filter label.
@@ -591,15 +689,10 @@ pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotErro
         source,
     })?;
     let mut written = Vec::new();
-    for kind in FigureKind::ALL {
-        if !opts.only.is_empty() && !opts.only.contains(&kind) {
-            continue;
-        }
-        for fig in kind.series(&tables)? {
-            let path = out.join(format!("{}.{}", fig.name, opts.format.ext()));
-            render::to_file(&fig, &path, opts.format)?;
-            written.push(path);
-        }
+    for fig in all_figures(&tables, &opts.only)? {
+        let path = out.join(format!("{}.{}", fig.name, opts.format.ext()));
+        render::to_file(&fig, &path, opts.format)?;
+        written.push(path);
     }
     Ok(written)
 }

@@ -6,6 +6,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use plotters::coord::Shift;
+use plotters::coord::ranged1d::{DefaultFormatting, KeyPointHint};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
@@ -56,74 +57,155 @@ fn color(ink: Ink) -> RGBColor {
     }
 }
 
-/// (columns, rows) of the panel grid.
+/// (columns, rows) of the panel grid: at most three columns, so that a figure keeps its
+/// text readable when the report scales it to a 1280 px window.
 fn grid(n: usize) -> (usize, usize) {
     match n {
         0 | 1 => (1, 1),
         2 => (2, 1),
-        3 => (3, 1),
         4 => (2, 2),
-        n => {
-            let cols = n.div_ceil(2).min(4);
-            (cols, n.div_ceil(cols))
+        n => (3, n.div_ceil(3)),
+    }
+}
+
+/// Font sizes (px). The legend and tick text stay at 13–14 px so that a figure scaled to 75 %
+/// in the report still reads at about 10 px.
+const TITLE_PX: u32 = 22;
+const CAPTION_PX: u32 = 17;
+const TICK_PX: u32 = 13;
+const AXIS_PX: u32 = 14;
+const LEGEND_PX: u32 = 14;
+/// Rough advance of one DejaVu Sans character at [`LEGEND_PX`], for sizing the legend.
+const LEGEND_CHAR_PX: u32 = 8;
+const LEGEND_ROW_PX: u32 = 22;
+
+/// How a legend entry is drawn.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Swatch {
+    Line { dashed: bool },
+    Area,
+    Dot,
+    Bar,
+}
+
+/// One legend entry of a figure.
+#[derive(Clone, Debug, PartialEq)]
+struct Entry {
+    label: String,
+    ink: Ink,
+    swatch: Swatch,
+}
+
+/// The figure's legend: every labelled mark of every panel, once per label, in order of first
+/// appearance. One legend per figure, beside the panels and never on the data.
+fn legend(fig: &Figure) -> Vec<Entry> {
+    let mut out: Vec<Entry> = Vec::new();
+    for p in &fig.panels {
+        for m in &p.marks {
+            let (label, ink, swatch) = match m {
+                Mark::Line {
+                    label, ink, dashed, ..
+                } => (label, *ink, Swatch::Line { dashed: *dashed }),
+                Mark::Band { label, ink, .. } => (label, *ink, Swatch::Area),
+                Mark::HLine { label, ink, .. } => (label, *ink, Swatch::Line { dashed: true }),
+                Mark::Point { label, ink, .. } | Mark::Scatter { label, ink, .. } => {
+                    (label, *ink, Swatch::Dot)
+                }
+                Mark::Bars { label, ink, .. } => (label, *ink, Swatch::Bar),
+            };
+            if let Some(l) = label
+                && !out.iter().any(|e| e.label == *l)
+            {
+                out.push(Entry {
+                    label: l.clone(),
+                    ink,
+                    swatch,
+                });
+            }
         }
+    }
+    out
+}
+
+/// Pixel layout of a figure.
+struct Layout {
+    cols: usize,
+    rows: usize,
+    panel_w: u32,
+    panel_h: u32,
+    legend_w: u32,
+    title_h: u32,
+}
+
+fn layout(fig: &Figure) -> Layout {
+    let (cols, rows) = grid(fig.panels.len());
+    let single = fig.panels.len() <= 1;
+    let entries = legend(fig);
+    let longest = entries
+        .iter()
+        .map(|e| e.label.chars().count() as u32)
+        .max()
+        .unwrap_or(0);
+    let legend_w = if entries.is_empty() {
+        0
+    } else {
+        (48 + LEGEND_CHAR_PX * longest).clamp(140, 380)
+    };
+    let (panel_w, panel_h) = if single { (720, 520) } else { (450, 340) };
+    let title_h = 40;
+    // A long legend lengthens the figure rather than running off its bottom.
+    let needed = entries.len() as u32 * LEGEND_ROW_PX + 20;
+    let panel_h = panel_h.max(needed.div_ceil(rows as u32));
+    Layout {
+        cols,
+        rows,
+        panel_w,
+        panel_h,
+        legend_w,
+        title_h,
     }
 }
 
 /// Pixel size of a figure.
 pub fn size(fig: &Figure) -> (u32, u32) {
-    let (c, r) = grid(fig.panels.len());
-    if c == 1 && r == 1 {
-        (860, 620)
-    } else {
-        (c as u32 * 520, r as u32 * 400 + 40)
-    }
+    let l = layout(fig);
+    (
+        l.cols as u32 * l.panel_w + l.legend_w,
+        l.rows as u32 * l.panel_h + l.title_h,
+    )
 }
 
-/// Draws `fig` into a file of the given format.
+/// Draws `fig` into a file of the given format, atomically: the image is made in memory and
+/// written by [`crate::output::folder::write_atomic`] (temporary file beside it, fsync,
+/// rename), so a full disk or a kill never leaves a truncated figure under its real name.
 pub fn to_file(fig: &Figure, path: &Path, format: Format) -> Result<(), PlotError> {
-    ensure_font()?;
-    let err = |message: String| PlotError::Draw {
+    let bytes = match format {
+        Format::Png => to_png(fig)?,
+        Format::Svg => to_svg_string(fig)?.into_bytes(),
+    };
+    crate::output::folder::write_atomic(path, &bytes).map_err(|source| PlotError::Io {
+        action: "cannot write the figure",
         path: path.to_path_buf(),
-        message,
+        source,
+    })
+}
+
+/// Draws `fig` as PNG bytes.
+pub fn to_png(fig: &Figure) -> Result<Vec<u8>, PlotError> {
+    let (buf, w, h) = to_rgb(fig)?;
+    let err = |e: png::EncodingError| PlotError::Draw {
+        path: format!("<png of {}>", fig.name).into(),
+        message: e.to_string(),
     };
-    let dims = size(fig);
-    // Drawn under a temporary name (keeping the extension, which picks the encoder) and
-    // renamed into place, so a full disk or a kill never leaves a truncated figure.
-    let stem = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let ext = path
-        .extension()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = path.with_file_name(format!(".{stem}.partial.{ext}"));
-    let drawn = match format {
-        Format::Png => {
-            let root = BitMapBackend::new(&tmp, dims).into_drawing_area();
-            draw(&root, fig)
-                .map_err(err)
-                .and_then(|()| root.present().map_err(|e| err(e.to_string())))
-        }
-        Format::Svg => {
-            let root = SVGBackend::new(&tmp, dims).into_drawing_area();
-            draw(&root, fig)
-                .map_err(err)
-                .and_then(|()| root.present().map_err(|e| err(e.to_string())))
-        }
-    };
-    let moved = drawn.and_then(|()| {
-        std::fs::rename(&tmp, path).map_err(|source| PlotError::Io {
-            action: "cannot move the figure to",
-            path: path.to_path_buf(),
-            source,
-        })
-    });
-    if moved.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, w, h);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut writer = enc.write_header().map_err(err)?;
+        writer.write_image_data(&buf).map_err(err)?;
     }
-    moved
+    Ok(out)
 }
 
 /// Draws `fig` as SVG text (for the HTML report).
@@ -162,12 +244,63 @@ pub fn to_rgb(fig: &Figure) -> Result<(Vec<u8>, u32, u32), PlotError> {
 
 fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, fig: &Figure) -> Result<(), String> {
     root.fill(&WHITE).map_err(|e| e.to_string())?;
+    let l = layout(fig);
     let body = root
-        .titled(&fig.title, ("sans-serif", 22))
+        .titled(&fig.title, ("sans-serif", TITLE_PX))
         .map_err(|e| e.to_string())?;
-    let (cols, rows) = grid(fig.panels.len());
-    for (area, panel) in body.split_evenly((rows, cols)).iter().zip(&fig.panels) {
+    let plots_w = l.cols as u32 * l.panel_w;
+    let (plots, legend_area) = body.split_horizontally(plots_w);
+    for (area, panel) in plots.split_evenly((l.rows, l.cols)).iter().zip(&fig.panels) {
         draw_panel(area, panel)?;
+    }
+    if l.legend_w > 0 {
+        draw_legend(&legend_area, &legend(fig))?;
+    }
+    Ok(())
+}
+
+fn draw_legend<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    entries: &[Entry],
+) -> Result<(), String> {
+    let e = |e: DrawingAreaErrorKind<DB::ErrorType>| e.to_string();
+    let font = ("sans-serif", LEGEND_PX).into_font().color(&BLACK);
+    for (i, en) in entries.iter().enumerate() {
+        let y = 30 + i as i32 * LEGEND_ROW_PX as i32;
+        let c = color(en.ink);
+        match en.swatch {
+            Swatch::Line { dashed: false } => area
+                .draw(&PathElement::new(vec![(8, y), (36, y)], c.stroke_width(3)))
+                .map_err(e)?,
+            Swatch::Line { dashed: true } => {
+                for x in [8, 20, 32] {
+                    area.draw(&PathElement::new(
+                        vec![(x, y), (x + 6, y)],
+                        c.stroke_width(2),
+                    ))
+                    .map_err(e)?;
+                }
+            }
+            Swatch::Area => area
+                .draw(&Rectangle::new(
+                    [(8, y - 7), (36, y + 7)],
+                    c.mix(0.3).filled(),
+                ))
+                .map_err(e)?,
+            Swatch::Bar => area
+                .draw(&Rectangle::new(
+                    [(12, y - 8), (32, y + 8)],
+                    c.mix(0.85).filled(),
+                ))
+                .map_err(e)?,
+            Swatch::Dot => area.draw(&Circle::new((22, y), 5, c.filled())).map_err(e)?,
+        }
+        area.draw(&Text::new(
+            en.label.clone(),
+            (44, y - LEGEND_PX as i32 / 2 - 1),
+            font.clone(),
+        ))
+        .map_err(e)?;
     }
     Ok(())
 }
@@ -190,6 +323,74 @@ fn range(values: impl Iterator<Item = f64>, pad: f64) -> (f64, f64) {
     (lo - d, hi + d)
 }
 
+/// A 1-2-5 step giving about `target` intervals over `span`.
+fn nice_step(span: f64, target: f64) -> f64 {
+    let raw = span / target;
+    let mag = 10f64.powf(raw.log10().floor());
+    let f = raw / mag;
+    let m = if f < 1.5 {
+        1.0
+    } else if f < 3.5 {
+        2.0
+    } else if f < 7.5 {
+        5.0
+    } else {
+        10.0
+    };
+    m * mag
+}
+
+/// Ticks of a linear axis over [lo, hi]: multiples of a 1-2-5 step (of at least 1 for counts),
+/// and the decimals that show that step.
+pub fn linear_ticks(lo: f64, hi: f64, integer: bool) -> (Vec<f64>, usize) {
+    let mut step = nice_step(hi - lo, 5.0);
+    if integer {
+        step = step.max(1.0);
+    }
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    // Each tick is i·step, so zero is exactly 0 and no tick reads 8.7e-19.
+    let ticks = (first..=last).map(|i| i as f64 * step).collect();
+    let decimals = if step >= 1.0 {
+        0
+    } else {
+        (-step.log10().floor()) as usize
+    };
+    (ticks, decimals)
+}
+
+/// Ticks of a log axis, as log10 values over [lo, hi] (log10 units): powers of ten, with 2
+/// and 5 between them when the axis spans less than about two decades, and every k-th power
+/// when it spans many.
+pub fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
+    let inside = |v: &f64| *v >= lo - 1e-9 && *v <= hi + 1e-9;
+    let (d0, d1) = (lo.floor() as i32, hi.ceil() as i32);
+    let decades: Vec<f64> = (d0..=d1).map(f64::from).filter(inside).collect();
+    if decades.len() > 7 {
+        let k = decades.len().div_ceil(6);
+        return decades
+            .into_iter()
+            .filter(|d| (*d as i32).rem_euclid(k as i32) == 0)
+            .collect();
+    }
+    if decades.len() >= 3 {
+        return decades;
+    }
+    for mantissas in [
+        &[1.0, 2.0, 5.0][..],
+        &[1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0],
+    ] {
+        let v: Vec<f64> = (d0..=d1)
+            .flat_map(|d| mantissas.iter().map(move |m| (m * 10f64.powi(d)).log10()))
+            .filter(inside)
+            .collect();
+        if v.len() >= 3 {
+            return v;
+        }
+    }
+    linear_ticks(lo, hi, false).0
+}
+
 /// A tick label: up to 4 significant digits, scientific notation for extremes.
 fn tick(v: f64) -> String {
     if v == 0.0 {
@@ -197,7 +398,7 @@ fn tick(v: f64) -> String {
     }
     let a = v.abs();
     if !(1e-3..1e5).contains(&a) {
-        return format!("{v:.1e}");
+        return format!("{v:.1e}").replace(".0e", "e");
     }
     let s = format!(
         "{:.*}",
@@ -208,6 +409,98 @@ fn tick(v: f64) -> String {
         s.trim_end_matches('0').trim_end_matches('.').to_string()
     } else {
         s
+    }
+}
+
+/// A linear tick label with a fixed number of decimals ("-0" shown as "0").
+fn fixed(v: f64, decimals: usize) -> String {
+    if v.abs() >= 1e5 || (v != 0.0 && v.abs() < 1e-4) {
+        return tick(v);
+    }
+    let s = format!("{v:.decimals$}");
+    if s.trim_start_matches('-')
+        .chars()
+        .all(|c| c == '0' || c == '.')
+    {
+        "0".into()
+    } else {
+        s
+    }
+}
+
+/// A linear axis whose tick positions are given (plotters' own picks give 0.03162 on log
+/// axes and 0.5 on count axes). Log axes use it in log10 units.
+#[derive(Clone, Debug)]
+struct Ticked {
+    lo: f64,
+    hi: f64,
+    keys: Vec<f64>,
+}
+
+impl Ranged for Ticked {
+    type FormatOption = DefaultFormatting;
+    type ValueType = f64;
+
+    fn map(&self, v: &f64, limit: (i32, i32)) -> i32 {
+        if self.hi == self.lo {
+            return (limit.0 + limit.1) / 2;
+        }
+        let f = (v - self.lo) / (self.hi - self.lo);
+        let px = limit.0 as f64 + f * (limit.1 - limit.0) as f64;
+        // Far-off points (clipped anyway) must not overflow the pixel type.
+        px.clamp(-1e6, 1e6).round() as i32
+    }
+
+    fn key_points<H: KeyPointHint>(&self, hint: H) -> Vec<f64> {
+        if hint.weight().allow_light_points() {
+            Vec::new()
+        } else {
+            self.keys.clone()
+        }
+    }
+
+    fn range(&self) -> std::ops::Range<f64> {
+        self.lo..self.hi
+    }
+}
+
+/// Key points and labels of one axis.
+struct Axis {
+    lo: f64,
+    hi: f64,
+    keys: Vec<f64>,
+    decimals: usize,
+    log: bool,
+}
+
+impl Axis {
+    fn new(lo: f64, hi: f64, log: bool, integer: bool) -> Axis {
+        if log {
+            Axis {
+                lo,
+                hi,
+                keys: log_ticks(lo, hi),
+                decimals: 0,
+                log,
+            }
+        } else {
+            let (keys, decimals) = linear_ticks(lo, hi, integer);
+            Axis {
+                lo,
+                hi,
+                keys,
+                decimals,
+                log,
+            }
+        }
+    }
+
+    fn label(&self, v: f64) -> String {
+        if self.log {
+            tick(10f64.powf(v))
+        } else {
+            fixed(v, self.decimals)
+        }
     }
 }
 
@@ -234,7 +527,7 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
     let mut has_bars = false;
     for m in &p.marks {
         match m {
-            Mark::Line { points, .. } => {
+            Mark::Line { points, .. } | Mark::Scatter { points, .. } => {
                 xs.extend(points.iter().filter_map(|q| tx(q.0)));
                 ys.extend(points.iter().filter_map(|q| ty(q.1)));
             }
@@ -259,21 +552,67 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
             }
         }
     }
+    let bars_from_zero = has_bars && !p.log_y && ys.iter().all(|v| *v >= 0.0);
     if has_bars && !p.log_y {
         ys.push(0.0);
     }
-    let (x0, x1) = match &p.x_categories {
+    let (mut x0, mut x1) = match &p.x_categories {
         Some(c) => (-0.5, c.len() as f64 - 0.5),
         None => range(xs.into_iter(), 0.0),
     };
-    let (y0, y1) = range(ys.into_iter(), 0.05);
+    // Time and multiplier axes that start just after 0 start at 0 (the ANIS has no step 0).
+    if p.x_categories.is_none() && !p.log_x && x0 > 0.0 && x0 <= 0.05 * (x1 - x0) {
+        x0 = 0.0;
+    }
+    let (mut y0, mut y1) = range(ys.into_iter(), 0.05);
+    if bars_from_zero {
+        y0 = 0.0;
+    }
+    let (caption_h, x_label_h, y_label_w, margin) = (CAPTION_PX as f64 + 14.0, 46.0, 72.0, 10.0);
+    if p.equal_aspect && !p.log_x && !p.log_y {
+        // Widen the range of the shorter side so that a metre is as long on both axes.
+        let (w, h) = area.dim_in_pixel();
+        let pw = (w as f64 - y_label_w - 2.0 * margin).max(1.0);
+        let ph = (h as f64 - caption_h - x_label_h - 2.0 * margin).max(1.0);
+        let (sx, sy) = ((x1 - x0) / pw, (y1 - y0) / ph);
+        if sx > sy {
+            let c = (y0 + y1) / 2.0;
+            (y0, y1) = (c - sx * ph / 2.0, c + sx * ph / 2.0);
+        } else {
+            let c = (x0 + x1) / 2.0;
+            (x0, x1) = (c - sy * pw / 2.0, c + sy * pw / 2.0);
+        }
+    }
+    let xa = match &p.x_categories {
+        Some(c) => Axis {
+            lo: x0,
+            hi: x1,
+            keys: (0..c.len()).map(|i| i as f64).collect(),
+            decimals: 0,
+            log: false,
+        },
+        None => Axis::new(x0, x1, p.log_x, false),
+    };
+    let ya = Axis::new(y0, y1, p.log_y, p.integer_y);
     let mut chart = ChartBuilder::on(area)
-        .caption(&p.title, ("sans-serif", 16))
-        .margin(10)
-        .x_label_area_size(42)
-        .y_label_area_size(64)
-        .build_cartesian_2d(x0..x1, y0..y1)
+        .caption(&p.title, ("sans-serif", CAPTION_PX))
+        .margin(margin as u32)
+        .x_label_area_size(x_label_h as u32)
+        .y_label_area_size(y_label_w as u32)
+        .build_cartesian_2d(
+            Ticked {
+                lo: xa.lo,
+                hi: xa.hi,
+                keys: xa.keys.clone(),
+            },
+            Ticked {
+                lo: ya.lo,
+                hi: ya.hi,
+                keys: ya.keys.clone(),
+            },
+        )
         .map_err(e)?;
+    let (x0, x1) = (xa.lo, xa.hi);
     let cats = p.x_categories.clone();
     let fx = move |v: &f64| match &cats {
         Some(c) => {
@@ -284,34 +623,27 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
                 String::new()
             }
         }
-        None if p.log_x => tick(10f64.powf(*v)),
-        None => tick(*v),
+        None => xa.label(*v),
     };
-    let fy = |v: &f64| {
-        if p.log_y {
-            tick(10f64.powf(*v))
-        } else {
-            tick(*v)
-        }
-    };
+    let fy = |v: &f64| ya.label(*v);
     let mut mesh = chart.configure_mesh();
     mesh.x_desc(p.x_label.as_str())
         .y_desc(p.y_label.as_str())
-        .label_style(("sans-serif", 12))
-        .axis_desc_style(("sans-serif", 14))
+        .label_style(("sans-serif", TICK_PX))
+        .axis_desc_style(("sans-serif", AXIS_PX))
+        .bold_line_style(BLACK.mix(0.12))
         .light_line_style(TRANSPARENT)
         .x_label_formatter(&fx)
         .y_label_formatter(&fy);
-    if let Some(c) = &p.x_categories {
-        mesh.x_labels(c.len() + 1);
-    }
     mesh.draw().map_err(e)?;
 
-    let mut labelled = false;
-    let base = if p.log_y { y0 } else { 0.0 };
+    let base = if p.log_y { ya.lo } else { 0.0 };
+    // Value texts of successive points alternate above and below them, so that two
+    // divergence points close together do not write over each other.
+    let mut nth_point = 0;
     for m in &p.marks {
         match m {
-            Mark::Band { label, ink, points } => {
+            Mark::Band { ink, points, .. } => {
                 let c = color(*ink);
                 let upper = points.iter().filter_map(|q| Some((tx(q.0)?, ty(q.2)?)));
                 let lower = points
@@ -322,21 +654,15 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
                 if poly.len() < 3 {
                     continue;
                 }
-                let a = chart
+                chart
                     .draw_series(std::iter::once(Polygon::new(poly, c.mix(0.18).filled())))
                     .map_err(e)?;
-                if let Some(l) = label {
-                    labelled = true;
-                    a.label(l.as_str()).legend(move |(x, y)| {
-                        Rectangle::new([(x, y - 5), (x + 20, y + 5)], c.mix(0.3).filled())
-                    });
-                }
             }
             Mark::Line {
-                label,
                 ink,
                 dashed,
                 points,
+                ..
             } => {
                 let c = color(*ink);
                 let style = ShapeStyle {
@@ -348,50 +674,53 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
                     .iter()
                     .filter_map(|q| Some((tx(q.0)?, ty(q.1)?)))
                     .collect();
-                let a = if *dashed {
+                if *dashed {
                     chart
                         .draw_series(DashedLineSeries::new(pts, 6, 4, style))
-                        .map_err(e)?
+                        .map_err(e)?;
                 } else {
-                    chart.draw_series(LineSeries::new(pts, style)).map_err(e)?
-                };
-                if let Some(l) = label {
-                    labelled = true;
-                    a.label(l.as_str())
-                        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
+                    chart.draw_series(LineSeries::new(pts, style)).map_err(e)?;
                 }
             }
-            Mark::HLine { label, ink, y } => {
+            Mark::Scatter { ink, points, .. } => {
+                let c = color(*ink);
+                let dots: Vec<Circle<(f64, f64), i32>> = points
+                    .iter()
+                    .filter_map(|q| Some(Circle::new((tx(q.0)?, ty(q.1)?), 2, c.mix(0.7).filled())))
+                    .collect();
+                chart.draw_series(dots).map_err(e)?;
+            }
+            Mark::HLine { ink, y, .. } => {
                 let Some(y) = ty(*y) else { continue };
                 let style = ShapeStyle {
                     color: color(*ink).to_rgba(),
                     filled: false,
                     stroke_width: 1,
                 };
-                let a = chart
+                chart
                     .draw_series(DashedLineSeries::new([(x0, y), (x1, y)], 6, 4, style))
                     .map_err(e)?;
-                if let Some(l) = label {
-                    labelled = true;
-                    a.label(l.as_str())
-                        .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], style));
-                }
             }
-            Mark::Point { label, ink, x, y } => {
+            Mark::Point {
+                ink, x, y, text, ..
+            } => {
                 let (Some(x), Some(y)) = (tx(*x), ty(*y)) else {
                     continue;
                 };
                 let c = color(*ink);
-                let a = chart
-                    .draw_series(std::iter::once(Circle::new((x, y), 5, c.filled())))
+                let font = ("sans-serif", TICK_PX).into_font().color(&c);
+                let note = text.clone().unwrap_or_default();
+                let dy = if nth_point % 2 == 0 { -20 } else { 6 };
+                nth_point += 1;
+                chart
+                    .draw_series(std::iter::once(
+                        EmptyElement::at((x, y))
+                            + Circle::new((0, 0), 5, c.filled())
+                            + Text::new(note, (7, dy), font),
+                    ))
                     .map_err(e)?;
-                if let Some(l) = label {
-                    labelled = true;
-                    a.label(l.as_str())
-                        .legend(move |(x, y)| Circle::new((x + 10, y), 4, c.filled()));
-                }
             }
-            Mark::Bars { label, ink, bars } => {
+            Mark::Bars { ink, bars, .. } => {
                 let c = color(*ink);
                 let rects: Vec<Rectangle<(f64, f64)>> = bars
                     .iter()
@@ -402,20 +731,14 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
                         ))
                     })
                     .collect();
-                let a = chart.draw_series(rects).map_err(e)?;
-                if let Some(l) = label {
-                    labelled = true;
-                    a.label(l.as_str()).legend(move |(x, y)| {
-                        Rectangle::new([(x, y - 5), (x + 20, y + 5)], c.mix(0.85).filled())
-                    });
-                }
+                chart.draw_series(rects).map_err(e)?;
                 let whiskers: Vec<PathElement<(f64, f64)>> = bars
                     .iter()
                     .filter_map(|b| {
                         let (lo, hi) = b.whisker?;
                         let xm = tx((b.x0 + b.x1) / 2.0)?;
                         Some(PathElement::new(
-                            vec![(xm, ty(lo).unwrap_or(y0)), (xm, ty(hi)?)],
+                            vec![(xm, ty(lo).unwrap_or(ya.lo)), (xm, ty(hi)?)],
                             BLACK.stroke_width(1),
                         ))
                     })
@@ -423,16 +746,6 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
                 chart.draw_series(whiskers).map_err(e)?;
             }
         }
-    }
-    if labelled {
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK.mix(0.4))
-            .label_font(("sans-serif", 12))
-            .position(SeriesLabelPosition::UpperLeft)
-            .draw()
-            .map_err(e)?;
     }
     Ok(())
 }
@@ -447,7 +760,42 @@ mod tests {
         assert_eq!(tick(1.0), "1");
         assert_eq!(tick(0.25), "0.25");
         assert_eq!(tick(12.5), "12.5");
-        assert_eq!(tick(1e-5), "1.0e-5");
+        assert_eq!(tick(1e-5), "1e-5");
+        assert_eq!(tick(2.5e-5), "2.5e-5");
+    }
+
+    #[test]
+    fn linear_ticks_are_multiples_of_a_1_2_5_step() {
+        let (t, d) = linear_ticks(-0.05, 1.05, false);
+        assert_eq!(t, [0.0, 0.2, 0.4, 0.6000000000000001, 0.8, 1.0]);
+        assert_eq!(d, 1);
+        assert_eq!(fixed(t[3], d), "0.6");
+        // A tiny negative range end never gives a "-0" or an 8.7e-19 tick.
+        let (t, d) = linear_ticks(-1e-18, 3.0, false);
+        assert_eq!(t[0], 0.0);
+        assert_eq!(fixed(t[0], d), "0");
+        // Counts: integer ticks only, even over a short range.
+        let (t, d) = linear_ticks(-0.1, 2.1, true);
+        assert_eq!((t, d), (vec![0.0, 1.0, 2.0], 0));
+    }
+
+    #[test]
+    fn log_ticks_are_powers_of_ten_or_1_2_5() {
+        // 0.03 … 30: powers of ten only.
+        let t: Vec<String> = log_ticks(0.03f64.log10(), 30f64.log10())
+            .iter()
+            .map(|v| tick(10f64.powf(*v)))
+            .collect();
+        assert_eq!(t, ["0.1", "1", "10"]);
+        // 0.15 … 1.8: 1-2-5.
+        let t: Vec<String> = log_ticks(0.15f64.log10(), 1.8f64.log10())
+            .iter()
+            .map(|v| tick(10f64.powf(*v)))
+            .collect();
+        assert_eq!(t, ["0.2", "0.5", "1"]);
+        // Twelve decades: every second power at most seven ticks.
+        let t = log_ticks(-6.0, 6.0);
+        assert!(t.len() <= 7 && t.iter().all(|v| v.fract() == 0.0), "{t:?}");
     }
 
     #[test]

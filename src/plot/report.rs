@@ -1,12 +1,14 @@
-//! `kfmc report`: one self-contained HTML file — spec, provenance, tables and every figure
-//! (inline SVG) — with no external resource, so it can be mailed or attached to a CI run.
+//! `kfmc report`: one self-contained HTML file that reads as a study — the consistency
+//! verdicts and the headline RMSE first, then every figure (inline SVG) by scenario with a
+//! table of contents, the divergence tables, and provenance with the spec folded away — with
+//! no external resource, so it can be mailed or attached to a CI run.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use polars::prelude::DataType;
 
-use super::{FigureKind, Table, Tables, plotted_scales, render, short};
+use super::{Table, Tables, plotted_scales, render, short};
 use crate::error::PlotError;
 
 /// Escapes text for HTML element content and attribute values.
@@ -88,7 +90,52 @@ fn html_table(t: &Table) -> Result<String, PlotError> {
     Ok(h)
 }
 
-/// RMSE per (scenario, noise scale, filter) × state: "mean (p5–p95)".
+/// Decimals that show 3 significant digits of a column whose typical magnitude is `typical`:
+/// one column, one number of decimals, so values line up and compare at a glance.
+fn decimals_for(typical: f64) -> usize {
+    if !(typical.is_finite() && typical > 0.0) {
+        return 3;
+    }
+    (2 - typical.log10().floor() as i32).clamp(0, 6) as usize
+}
+
+/// A number with fixed decimals; scientific beyond what fixed decimals can show; "—" for null.
+fn fixed(v: Option<f64>, decimals: usize) -> String {
+    match v {
+        None => "—".into(),
+        Some(x) if !x.is_finite() => format!("{x}"),
+        Some(x) if x != 0.0 && (x.abs() >= 1e6 || x.abs() < 10f64.powi(-(decimals as i32))) => {
+            format!("{x:.2e}")
+        }
+        Some(x) => format!("{x:.decimals$}"),
+    }
+}
+
+/// `YYYY-MM-DD HH:MM:SS UTC` of a Unix time (proleptic Gregorian, H. Hinnant's
+/// days-to-civil), so the report needs no date library.
+pub fn utc(unix_s: u64) -> String {
+    let days = (unix_s / 86_400) as i64;
+    let rem = unix_s % 86_400;
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02} {:02}:{:02}:{:02} UTC",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+/// The headline RMSE: one row per (scenario, noise scale, filter variant), one column per
+/// quantity with its unit, "mean" over runs and p5–p95 below it in smaller type; each column
+/// with one number of decimals.
 fn rmse_table(t: &Tables) -> Result<String, PlotError> {
     let s = &t.summary;
     let (scen, filt, state) = (s.strs("scenario")?, s.strs("filter")?, s.strs("state")?);
@@ -99,13 +146,32 @@ fn rmse_table(t: &Tables) -> Result<String, PlotError> {
         s.f64s("rmse_p95")?,
     );
     let shown = plotted_scales(&t.noise_scales);
+    let many = t.noise_scales.len() > 12;
+    let decimals: Vec<usize> = t
+        .states
+        .iter()
+        .map(|st| {
+            // The column's smallest mean sets its decimals, so the best filter's value keeps
+            // three significant digits and every row of the column lines up.
+            decimals_for(
+                (0..s.height())
+                    .filter(|&i| state[i] == *st)
+                    .filter_map(|i| mean[i])
+                    .filter(|v| *v > 0.0)
+                    .fold(f64::INFINITY, f64::min),
+            )
+        })
+        .collect();
     let mut rows: Vec<(String, f64, String)> = Vec::new();
-    let mut cells: Vec<(usize, String, String)> = Vec::new();
+    let mut cells: std::collections::BTreeMap<(usize, usize), String> = Default::default();
     for i in 0..s.height() {
         let Some(nz) = noise[i] else { continue };
-        if t.noise_scales.len() > 12 && !shown.contains(&nz) {
+        if many && !shown.contains(&nz) {
             continue;
         }
+        let Some(si) = t.states.iter().position(|x| *x == state[i]) else {
+            continue;
+        };
         let key = (scen[i].clone(), nz, filt[i].clone());
         let ri = match rows.iter().position(|r| *r == key) {
             Some(p) => p,
@@ -114,11 +180,29 @@ fn rmse_table(t: &Tables) -> Result<String, PlotError> {
                 rows.len() - 1
             }
         };
-        let text = format!("{} ({}–{})", num(mean[i]), num(p05[i]), num(p95[i]));
-        cells.push((ri, state[i].clone(), text));
+        let d = decimals[si];
+        cells.insert(
+            (ri, si),
+            format!(
+                "{}<small>{}–{}</small>",
+                escape(&fixed(mean[i], d)),
+                escape(&fixed(p05[i], d)),
+                escape(&fixed(p95[i], d))
+            ),
+        );
     }
+    // Scenario order, then noise, then filter colour order.
+    let pos = |v: &[String], x: &str| v.iter().position(|y| y == x);
+    let mut order: Vec<usize> = (0..rows.len()).collect();
+    order.sort_by(|&a, &b| {
+        let (ra, rb) = (&rows[a], &rows[b]);
+        pos(&t.scenarios, &ra.0)
+            .cmp(&pos(&t.scenarios, &rb.0))
+            .then(ra.1.total_cmp(&rb.1))
+            .then(pos(&t.filters, &ra.2).cmp(&pos(&t.filters, &rb.2)))
+    });
     let mut h = String::new();
-    if t.noise_scales.len() > 12 {
+    if many {
         let _ = writeln!(
             h,
             "<p>{} noise scales; the table shows {}. summary.parquet has them all.</p>",
@@ -132,12 +216,21 @@ fn rmse_table(t: &Tables) -> Result<String, PlotError> {
             )
         );
     }
-    h.push_str("<table>\n<thead><tr><th>scenario</th><th>noise scale</th><th>filter</th>");
+    h.push_str("<div class=\"scroll\"><table class=\"rmse\">\n<thead><tr><th>scenario</th><th>noise ×</th><th>filter</th>");
     for st in &t.states {
-        let _ = write!(h, "<th>rmse_{}</th>", escape(st));
+        let _ = write!(
+            h,
+            "<th>{}{}</th>",
+            escape(st),
+            match t.unit(st) {
+                "" => String::new(),
+                u => format!(" <span class=\"unit\">[{}]</span>", escape(u)),
+            }
+        );
     }
     h.push_str("</tr></thead>\n<tbody>\n");
-    for (ri, (sc, nz, f)) in rows.iter().enumerate() {
+    for ri in order {
+        let (sc, nz, f) = &rows[ri];
         let _ = write!(
             h,
             "<tr><td>{}</td><td>{}</td><td>{}</td>",
@@ -145,48 +238,392 @@ fn rmse_table(t: &Tables) -> Result<String, PlotError> {
             escape(&short(*nz)),
             escape(f)
         );
-        for st in &t.states {
-            let c = cells
-                .iter()
-                .find(|(r, s, _)| *r == ri && s == st)
-                .map_or("—", |c| c.2.as_str());
-            let _ = write!(h, "<td>{}</td>", escape(c));
+        for si in 0..t.states.len() {
+            let _ = write!(
+                h,
+                "<td>{}</td>",
+                cells.get(&(ri, si)).map_or("—", |c| c.as_str())
+            );
         }
         h.push_str("</tr>\n");
     }
-    h.push_str("</tbody>\n</table>\n");
+    h.push_str("</tbody>\n</table></div>\n");
     Ok(h)
 }
 
-const STYLE: &str = "body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}\
-table{border-collapse:collapse;font-size:0.85em;margin:1em 0}\
-th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right}\
-th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}\
-pre{background:#f6f6f6;padding:1em;overflow-x:auto}\
-figure{margin:1.5em 0}svg{max-width:100%;height:auto}figcaption{font-size:0.85em;color:#555}";
+/// The consistency verdicts: one row per (scenario, noise scale, filter variant), the verdict
+/// first (pass/fail in colour, with its direction and p-value), then each calibrated test's
+/// statistic against its acceptance band, and the bias tests as a count.
+fn verdict_table(c: &Table) -> Result<String, PlotError> {
+    let (scen, filt, test) = (c.strs("scenario")?, c.strs("filter")?, c.strs("test")?);
+    let noise = c.f64s("noise_scale")?;
+    let (stat, lo, hi, p) = (
+        c.f64s("statistic")?,
+        c.f64s("lower")?,
+        c.f64s("upper")?,
+        c.f64s("p_value")?,
+    );
+    let pass: Vec<Option<bool>> =
+        c.df.column("pass")
+            .ok()
+            .and_then(|col| col.bool().ok().map(|b| b.iter().collect()))
+            .unwrap_or_else(|| vec![None; c.height()]);
+    let direction = if c.has("direction") {
+        c.strs("direction")?
+    } else {
+        vec![String::new(); c.height()]
+    };
+    let mut keys: Vec<(String, u64, String)> = Vec::new();
+    for i in 0..c.height() {
+        let k = (
+            scen[i].clone(),
+            noise[i].unwrap_or(f64::NAN).to_bits(),
+            filt[i].clone(),
+        );
+        if !keys.contains(&k) {
+            keys.push(k);
+        }
+    }
+    let find = |k: &(String, u64, String), name: &str| {
+        (0..c.height()).find(|&i| {
+            scen[i] == k.0
+                && noise[i].unwrap_or(f64::NAN).to_bits() == k.1
+                && filt[i] == k.2
+                && test[i] == name
+        })
+    };
+    let class = |ok: Option<bool>| match ok {
+        Some(true) => "pass",
+        Some(false) => "fail",
+        None => "na",
+    };
+    let columns = [
+        ("nees_time_average", "NEES time average"),
+        ("nis_time_average", "NIS time average"),
+        ("nees_run_average_t", "NEES run averages (t)"),
+        ("innovation_whiteness", "innovation whiteness"),
+    ];
+    let mut h = String::from(
+        "<div class=\"scroll\"><table class=\"verdicts\" id=\"verdict-table\">\n<thead><tr><th>scenario</th><th>noise ×</th><th>filter</th><th>verdict</th>",
+    );
+    for (_, title) in columns {
+        let _ = write!(h, "<th>{}</th>", escape(title));
+    }
+    h.push_str("<th>bias tests passed</th></tr></thead>\n<tbody>\n");
+    for k in &keys {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td>{}</td>",
+            escape(&k.0),
+            escape(&short(f64::from_bits(k.1))),
+            escape(&k.2)
+        );
+        match find(k, "verdict") {
+            Some(i) => {
+                let word = match pass[i] {
+                    Some(true) => "consistent".to_string(),
+                    Some(false) if !direction[i].is_empty() => {
+                        format!("inconsistent ({})", direction[i])
+                    }
+                    Some(false) => "inconsistent".to_string(),
+                    None => "—".to_string(),
+                };
+                let _ = write!(
+                    h,
+                    "<td class=\"{}\"><b>{}</b><small>p = {}</small></td>",
+                    class(pass[i]),
+                    escape(&word),
+                    escape(&num(p[i]))
+                );
+            }
+            None => h.push_str("<td class=\"na\">—</td>"),
+        }
+        for (name, _) in columns {
+            match find(k, name) {
+                Some(i) => {
+                    let inside = match pass[i] {
+                        Some(true) => "∈",
+                        _ => "∉",
+                    };
+                    // Statistic and band with one number of decimals: 4 significant
+                    // digits of the band's larger end.
+                    let scale = hi[i].or(lo[i]).or(stat[i]).unwrap_or(1.0).abs();
+                    let d = (decimals_for(scale) + 1).min(6);
+                    let _ = write!(
+                        h,
+                        "<td class=\"{}\">{}<small>{} [{}, {}]</small></td>",
+                        class(pass[i]),
+                        escape(&fixed(stat[i], d)),
+                        inside,
+                        escape(&fixed(lo[i], d)),
+                        escape(&fixed(hi[i], d))
+                    );
+                }
+                None => h.push_str("<td class=\"na\">—</td>"),
+            }
+        }
+        let bias: Vec<usize> = (0..c.height())
+            .filter(|&i| {
+                scen[i] == k.0
+                    && noise[i].unwrap_or(f64::NAN).to_bits() == k.1
+                    && filt[i] == k.2
+                    && test[i].starts_with("bias_")
+            })
+            .collect();
+        if bias.is_empty() {
+            h.push_str("<td class=\"na\">—</td>");
+        } else {
+            let ok = bias.iter().filter(|&&i| pass[i] == Some(true)).count();
+            let _ = write!(
+                h,
+                "<td class=\"{}\">{ok} of {}</td>",
+                class(Some(ok == bias.len())),
+                bias.len()
+            );
+        }
+        h.push_str("</tr>\n");
+    }
+    h.push_str("</tbody>\n</table></div>\n");
+    Ok(h)
+}
 
-/// The whole report as HTML text.
+/// Per-block ANEES over the traced runs: time average and the fraction of steps inside the
+/// per-step band, per (scenario, filter variant) × block.
+fn block_table(t: &Tables) -> Result<Option<String>, PlotError> {
+    let bl = super::blocks::blocks(t);
+    let cells = super::blocks::block_cells(t, &bl)?;
+    if cells.is_empty() {
+        return Ok(None);
+    }
+    let alpha = super::blocks::alpha(t);
+    let mut h = String::from(
+        "<div class=\"scroll\"><table class=\"blocks\">\n<thead><tr><th>scenario</th><th>filter</th>",
+    );
+    for b in &bl {
+        let _ = write!(
+            h,
+            "<th>{} ({}) <span class=\"unit\">consistent: {}</span></th>",
+            escape(&b.name),
+            escape(&b.quantities.join(", ")),
+            b.quantities.len()
+        );
+    }
+    h.push_str("</tr></thead>\n<tbody>\n");
+    for c in &cells {
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>{}</td>",
+            escape(&c.scenario),
+            escape(&c.filter)
+        );
+        for (bi, b) in bl.iter().enumerate() {
+            let (mean, inside) = c.time_average(bi, b.quantities.len(), alpha);
+            let _ = write!(
+                h,
+                "<td>{}<small>{:.0} % of steps in band</small></td>",
+                escape(&fixed(Some(mean), decimals_for(mean.abs()).min(2))),
+                inside * 100.0
+            );
+        }
+        h.push_str("</tr>\n");
+    }
+    h.push_str("</tbody>\n</table></div>\n");
+    Ok(Some(h))
+}
+
+/// The command that reproduces the study from its spec, as the manifest records it.
+pub fn reproduce_command(t: &Tables) -> Option<String> {
+    let m = t.manifest.as_ref()?;
+    let cmd = if t.tuning.is_some() {
+        "tune"
+    } else if m.exchange.is_some() {
+        "simulate"
+    } else if t.dir.join("power.parquet").exists() {
+        "power"
+    } else {
+        "run"
+    };
+    let mut c = format!(
+        "kfmc {cmd} {} --seed {} --runs {} --out {}",
+        m.spec_path,
+        m.master_seed,
+        m.runs_per_cell,
+        t.dir.display()
+    );
+    if let Some(s) = &m.shard {
+        let _ = write!(c, " --shard {}/{}", s.index + 1, s.count);
+    }
+    Some(c)
+}
+
+const STYLE: &str = "\
+*{box-sizing:border-box}\
+body{font-family:'DejaVu Sans',Verdana,sans-serif;max-width:1320px;margin:0 auto;padding:0 1.2rem 3rem;color:#1f2328;line-height:1.45;font-size:16px}\
+h1{font-size:1.7rem;margin:1.2rem 0 .3rem}h2{font-size:1.35rem;margin-top:2.2rem;border-bottom:1px solid #d0d7de;padding-bottom:.2rem}h3{font-size:1.1rem;margin-top:1.6rem}\
+p.lead{font-size:1.05rem;color:#444;margin-top:0}\
+nav.toc{background:#f6f8fa;border:1px solid #d0d7de;border-radius:6px;padding:.6rem 1rem;margin:1rem 0}\
+nav.toc ol{margin:.2rem 0;padding-left:1.4rem}nav.toc li{margin:.1rem 0}nav.toc ol ol{font-size:.92em}\
+a{color:#0969da}\
+.scroll{overflow-x:auto;max-width:100%}\
+table{border-collapse:collapse;font-size:.88rem;margin:.8rem 0;font-variant-numeric:tabular-nums}\
+th,td{border:1px solid #d0d7de;padding:.3em .6em;text-align:right;white-space:nowrap;vertical-align:top}\
+th{background:#f6f8fa;font-weight:600}td:first-child,th:first-child,td:nth-child(3),th:nth-child(3){text-align:left}\
+td small{display:block;color:#57606a;font-size:.8em}\
+th .unit{font-weight:400;color:#57606a}\
+table.verdicts td:nth-child(4),table.verdicts th:nth-child(4){text-align:left}\
+td.pass{background:#dafbe1;color:#116329}td.fail{background:#ffebe9;color:#a40e26}td.na{color:#8c959f}\
+table.kv th{text-align:left}table.kv td{text-align:left;white-space:normal}\
+pre,code{font-family:'DejaVu Sans Mono',Consolas,monospace;font-size:.86rem}\
+pre{background:#f6f8fa;padding:.8rem;overflow-x:auto;border-radius:6px}\
+details{margin:1rem 0}summary{cursor:pointer;font-weight:600}\
+figure{margin:1.4rem 0;break-inside:avoid;page-break-inside:avoid}\
+figure svg{display:block;width:100%;height:auto}\
+figcaption{font-size:.9rem;color:#57606a;margin-top:.3rem}\
+@media (max-width:760px){body{padding:0 .6rem 2rem;font-size:15px}\
+figure{overflow-x:auto;max-width:100%!important}figure svg{width:980px;max-width:none}h1{font-size:1.35rem}}\
+@media print{body{max-width:none;padding:0;font-size:11pt}nav.toc{break-after:page}\
+a{color:inherit;text-decoration:none}.scroll{overflow:visible}\
+figure svg{width:100%;max-width:100%}h2{break-after:avoid}h3{break-after:avoid}\
+td.pass,td.fail{-webkit-print-color-adjust:exact;print-color-adjust:exact}}";
+
+/// An id safe in a URL fragment, unique per index.
+fn anchor(prefix: &str, i: usize) -> String {
+    format!("{prefix}-{i}")
+}
+
+/// The whole report as HTML text: the question and the answer first (verdicts, headline RMSE),
+/// then the figures by scenario, the divergence tables, and provenance with the spec folded.
 pub fn render_html(t: &Tables) -> Result<String, PlotError> {
     let name = t
         .manifest
         .as_ref()
         .map_or_else(|| t.dir.display().to_string(), |m| m.experiment.clone());
+    let spec: Option<toml::Table> = t.manifest.as_ref().and_then(|m| m.spec.parse().ok());
+    let description = spec
+        .as_ref()
+        .and_then(|s| s.get("description")?.as_str().map(str::to_string));
+    let figs = super::all_figures(t, &[])?;
+    let blocks = block_table(t)?;
+
     let mut h = String::new();
     let _ = write!(
         h,
-        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<title>kfmc report: {n}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n<h1>kfmc report: {n}</h1>\n",
+        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n<title>kfmc report: {n}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n<h1>kfmc report: {n}</h1>\n",
         n = escape(&name)
     );
+    // The question.
+    let mut lead = String::new();
+    if let Some(d) = &description {
+        let _ = write!(lead, "{}. ", escape(d.trim_end_matches('.')));
+    }
+    if let Some(m) = &t.manifest {
+        let _ = write!(
+            lead,
+            "System <code>{}</code>; {} scenario{} × {} noise scale{} × {} filter variant{}, {} runs per cell.",
+            escape(&m.system),
+            t.scenarios.len(),
+            if t.scenarios.len() == 1 { "" } else { "s" },
+            t.noise_scales.len(),
+            if t.noise_scales.len() == 1 { "" } else { "s" },
+            t.filters.len(),
+            if t.filters.len() == 1 { "" } else { "s" },
+            m.runs_per_cell
+        );
+    }
+    let _ = writeln!(h, "<p class=\"lead\">{lead}</p>");
+
+    // Table of contents.
+    let mut by_scenario: Vec<(String, Vec<&super::Figure>)> = Vec::new();
+    for f in &figs {
+        match by_scenario.iter_mut().find(|(s, _)| *s == f.scenario) {
+            Some((_, v)) => v.push(f),
+            None => by_scenario.push((f.scenario.clone(), vec![f])),
+        }
+    }
+    h.push_str("<nav class=\"toc\"><b>Contents</b>\n<ol>\n");
+    if t.consistency.is_some() {
+        h.push_str("<li><a href=\"#verdicts\">Consistency verdicts</a></li>\n");
+    }
+    h.push_str("<li><a href=\"#rmse\">RMSE</a></li>\n");
+    if blocks.is_some() {
+        h.push_str("<li><a href=\"#blocks\">ANEES per block</a></li>\n");
+    }
+    if !figs.is_empty() {
+        h.push_str("<li><a href=\"#figures\">Figures</a>\n<ol>\n");
+        for (i, (s, v)) in by_scenario.iter().enumerate() {
+            let _ = writeln!(
+                h,
+                "<li><a href=\"#{}\">{}</a> ({} figure{})</li>",
+                anchor("scenario", i),
+                escape(s),
+                v.len(),
+                if v.len() == 1 { "" } else { "s" }
+            );
+        }
+        h.push_str("</ol></li>\n");
+    }
+    if t.divergence.is_some() {
+        h.push_str("<li><a href=\"#divergence\">Divergence points</a></li>\n");
+    }
+    h.push_str("<li><a href=\"#provenance\">Provenance and spec</a></li>\n</ol>\n</nav>\n");
+
+    // The answer.
+    if let Some(c) = &t.consistency {
+        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (the calibrated tests; see the README, “Consistency: what the verdict means”). Each cell gives the statistic and its acceptance band; green passes, red fails.</p>\n");
+        h.push_str(&verdict_table(c)?);
+        let _ = writeln!(
+            h,
+            "<details><summary>Every test row of consistency.parquet</summary>\n{}</details>",
+            html_table(c)?
+        );
+    }
+    h.push_str("<h2 id=\"rmse\">RMSE over runs</h2>\n<p>Mean over runs, with the 5th–95th percentile over runs below it.</p>\n");
+    h.push_str(&rmse_table(t)?);
+    if let Some(b) = &blocks {
+        h.push_str("<h2 id=\"blocks\">ANEES per block</h2>\n<p>NEES of each block of quantities, averaged over the traced runs (smallest noise scale) and over steps ≥ 1, and the share of steps whose ANEES lies in the per-step χ² band. A block size near the average is consistent; descriptive only (steps are correlated and few runs are traced).</p>\n");
+        h.push_str(b);
+    }
+
+    if !figs.is_empty() {
+        h.push_str("<h2 id=\"figures\">Figures</h2>\n");
+        for (i, (s, v)) in by_scenario.iter().enumerate() {
+            let _ = writeln!(h, "<h3 id=\"{}\">{}</h3>", anchor("scenario", i), escape(s));
+            for f in v {
+                let svg = render::to_svg_string(f)?;
+                // Never wider than drawn: scaled up, a one-panel figure would fill a screen.
+                let _ = writeln!(
+                    h,
+                    "<figure id=\"fig-{}\" style=\"max-width:{}px\">\n{}\n<figcaption>{} <code>{}</code></figcaption>\n</figure>",
+                    escape(&f.name),
+                    render::size(f).0,
+                    inline_svg(&svg),
+                    escape(&f.title),
+                    escape(&f.name)
+                );
+            }
+        }
+    }
+    if let Some(d) = &t.divergence {
+        h.push_str("<h2 id=\"divergence\">Divergence points</h2>\n<p>The first truth-noise multiplier whose RMSE exceeds the state's threshold: for the mean over runs (<code>mc_divergence_scale</code>) and as quantiles over runs (— = not reached within the sweep).</p>\n");
+        let _ = writeln!(h, "<div class=\"scroll\">{}</div>", html_table(d)?);
+    }
+
+    h.push_str("<h2 id=\"provenance\">Provenance</h2>\n");
     let _ = writeln!(
         h,
-        "<p>Result folder <code>{}</code>. Every number and figure below is read from its Parquet tables.</p>",
+        "<p>Result folder <code>{}</code>. Every number and figure above is read from its Parquet tables.</p>",
         escape(&t.dir.display().to_string())
     );
-
-    h.push_str("<h2>Provenance</h2>\n");
     match &t.manifest {
         Some(m) => {
-            let started = m.started_unix_s.to_string();
+            if let Some(c) = reproduce_command(t) {
+                let _ = writeln!(
+                    h,
+                    "<p>Reproduce the tables bit for bit (any thread count), then this report:</p>\n<pre>{}\nkfmc report {}</pre>",
+                    escape(&c),
+                    escape(&t.dir.display().to_string())
+                );
+            }
             let tables = m
                 .tables
                 .iter()
@@ -207,52 +644,26 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
                 ),
                 ("filter steps", m.filter_steps.to_string()),
                 ("threads", m.threads.to_string()),
-                ("started (Unix time, s)", started),
+                ("started", utc(m.started_unix_s)),
                 (
                     "wall time",
                     format!("{:.2} s ({:.0} runs/s)", m.wall_s, m.runs_per_s),
                 ),
                 ("tables", tables),
             ];
-            h.push_str("<table>\n<tbody>\n");
+            h.push_str("<table class=\"kv\">\n<tbody>\n");
             for (k, v) in rows {
                 let _ = writeln!(h, "<tr><th>{}</th><td>{}</td></tr>", escape(k), escape(&v));
             }
             h.push_str("</tbody>\n</table>\n");
-            let _ = writeln!(h, "<h2>Spec</h2>\n<pre>{}</pre>", escape(&m.spec));
-        }
-        None => h.push_str("<p>manifest.toml is missing or unreadable.</p>\n"),
-    }
-
-    h.push_str("<h2>RMSE over runs: mean (p5–p95)</h2>\n");
-    h.push_str(&rmse_table(t)?);
-
-    if let Some(c) = &t.consistency {
-        h.push_str("<h2>Consistency verdicts</h2>\n");
-        h.push_str(&html_table(c)?);
-    }
-    if let Some(d) = &t.divergence {
-        h.push_str("<h2>Divergence points</h2>\n<p>The first truth-noise multiplier whose RMSE exceeds the state's threshold: for the mean over runs (<code>mc_divergence_scale</code>) and as quantiles over runs (— = not reached within the sweep).</p>\n");
-        h.push_str(&html_table(d)?);
-    }
-
-    h.push_str("<h2>Figures</h2>\n");
-    for kind in FigureKind::ALL {
-        let figs = kind.series(t)?;
-        if figs.is_empty() {
-            continue;
-        }
-        let _ = writeln!(h, "<h3>{}</h3>", escape(kind.name()));
-        for f in figs {
-            let svg = render::to_svg_string(&f)?;
             let _ = writeln!(
                 h,
-                "<figure>\n{}\n<figcaption>{} ({})</figcaption>\n</figure>",
-                inline_svg(&svg),
-                escape(&f.title),
-                escape(&f.name)
+                "<details><summary>Spec ({})</summary>\n<pre>{}</pre>\n</details>",
+                escape(&m.spec_path),
+                escape(&m.spec)
             );
         }
+        None => h.push_str("<p>manifest.toml is missing or unreadable.</p>\n"),
     }
     h.push_str("</body>\n</html>\n");
     Ok(h)
@@ -283,6 +694,23 @@ mod tests {
             escape("<a href=\"x\">&'</a>"),
             "&lt;a href=&quot;x&quot;&gt;&amp;&#39;&lt;/a&gt;"
         );
+    }
+
+    #[test]
+    fn utc_times_are_civil_dates() {
+        assert_eq!(utc(0), "1970-01-01 00:00:00 UTC");
+        // 2000-02-29 (a leap day of a century divisible by 400) 12:34:56.
+        assert_eq!(utc(951_827_696), "2000-02-29 12:34:56 UTC");
+        assert_eq!(utc(1_796_118_600), "2026-12-01 09:50:00 UTC");
+    }
+
+    #[test]
+    fn one_column_one_number_of_decimals() {
+        assert_eq!(decimals_for(0.253), 3);
+        assert_eq!(decimals_for(0.0052), 5);
+        assert_eq!(decimals_for(12.5), 1);
+        assert_eq!(fixed(Some(0.1), 3), "0.100");
+        assert_eq!(fixed(Some(2e-9), 3), "2.00e-9");
     }
 
     #[test]

@@ -51,8 +51,9 @@ impl Summary {
     }
 }
 
-/// `rmse_cases`: per scenario and filter, RMSE of each state at each noise scale as bars
-/// (`rmse_mean`) with p5–p95 whiskers — the seeds' figures 15–19 with a spread over runs.
+/// `rmse_cases`: per scenario and filter label, RMSE of each state at each noise scale as bars
+/// (`rmse_mean`) with p5–p95 whiskers — the seeds' figures 15–19 with a spread over runs. The
+/// label's variants (Q/R scales) stand side by side within each noise case, one series each.
 pub fn rmse_cases_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
     if t.noise_scales.len() > MAX_BAR_SCALES {
         return Ok(Vec::new());
@@ -63,47 +64,64 @@ pub fn rmse_cases_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         .iter()
         .map(|s| format!("×{}", short(*s)))
         .collect();
+    let labels = super::first_appearance(&t.filter_labels);
     let mut figs = Vec::new();
     for scen in &t.scenarios {
-        for f in &t.filters {
-            if !sm.has(scen, f) {
+        for label in &labels {
+            let variants: Vec<&String> = t
+                .filters
+                .iter()
+                .filter(|f| t.label_of(f) == label && sm.has(scen, f))
+                .collect();
+            if variants.is_empty() {
                 continue;
             }
+            let nv = variants.len() as f64;
+            let width = 0.8 / nv;
             let panels = t
                 .states
                 .iter()
                 .map(|s| {
-                    let bars = sm
-                        .rows(scen, f, s)
-                        .into_iter()
-                        .filter_map(|(nz, mean, lo, hi)| {
-                            let i = t.noise_scales.iter().position(|x| *x == nz)? as f64;
-                            Some(Bar {
-                                x0: i - 0.35,
-                                x1: i + 0.35,
-                                y: mean?,
-                                whisker: lo.zip(hi),
-                            })
+                    let marks = variants
+                        .iter()
+                        .enumerate()
+                        .map(|(j, f)| {
+                            let bars = sm
+                                .rows(scen, f, s)
+                                .into_iter()
+                                .filter_map(|(nz, mean, lo, hi)| {
+                                    let i = t.noise_scales.iter().position(|x| *x == nz)? as f64;
+                                    let x0 = i - 0.4 + j as f64 * width;
+                                    Some(Bar {
+                                        x0: x0 + 0.05 * width,
+                                        x1: x0 + 0.95 * width,
+                                        y: mean?,
+                                        whisker: lo.zip(hi),
+                                    })
+                                })
+                                .collect();
+                            Mark::Bars {
+                                label: Some(format!("{f} mean, p5–p95")),
+                                ink: t.ink(f),
+                                bars,
+                            }
                         })
                         .collect();
                     Panel {
                         title: format!("RMSE of {s}"),
-                        x_label: "truth-noise multiplier".into(),
+                        x_label: "truth-noise multiplier [–]".into(),
                         y_label: format!("RMSE {}", bracket(t, s)),
                         x_categories: Some(cats.clone()),
-                        marks: vec![Mark::Bars {
-                            label: Some(format!("{f} mean, p5–p95")),
-                            ink: t.ink(f),
-                            bars,
-                        }],
+                        marks,
                         ..Panel::default()
                     }
                 })
                 .collect();
             figs.push(Figure {
                 kind: FigureKind::RmseCases,
-                name: format!("rmse_cases_{}_{}", file_part(scen), file_part(f)),
-                title: format!("{scen}, {f}: RMSE per noise case (mean over runs, p5–p95)"),
+                scenario: scen.clone(),
+                name: format!("rmse_cases_{}_{}", file_part(scen), file_part(label)),
+                title: format!("{scen}, {label}: RMSE per noise case (mean over runs, p5–p95)"),
                 panels,
             });
         }
@@ -165,7 +183,7 @@ pub fn rmse_growth_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                     let Some(th) = thr[i] else { continue };
                     if !threshold_drawn {
                         marks.push(Mark::HLine {
-                            label: Some(format!("threshold {}", short(th))),
+                            label: Some("RMSE threshold".into()),
                             ink: Ink::Reference,
                             y: th,
                         });
@@ -173,17 +191,26 @@ pub fn rmse_growth_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                     }
                     if let Some(x) = mc[i] {
                         marks.push(Mark::Point {
-                            label: Some(format!("{} diverges at ×{}", df[i], short(x))),
+                            label: Some(format!("{} divergence point", df[i])),
                             ink: t.ink(&df[i]),
                             x,
                             y: th,
+                            text: Some(format!("×{}", short(x))),
                         });
                     }
                 }
             }
+            let threshold = div.as_ref().and_then(|(ds, _, dst, thr, _)| {
+                (0..ds.len())
+                    .find(|&i| ds[i] == *scen && dst[i] == *s)
+                    .and_then(|i| thr[i])
+            });
             panels.push(Panel {
-                title: format!("RMSE of {s}"),
-                x_label: "truth-noise multiplier".into(),
+                title: match threshold {
+                    Some(th) => format!("RMSE of {s} (threshold {})", short(th)),
+                    None => format!("RMSE of {s}"),
+                },
+                x_label: "truth-noise multiplier [–]".into(),
                 y_label: format!("RMSE {}", bracket(t, s)),
                 log_y: s == "x" || s == "xdot",
                 marks,
@@ -192,6 +219,7 @@ pub fn rmse_growth_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         }
         figs.push(Figure {
             kind: FigureKind::RmseGrowth,
+            scenario: scen.clone(),
             name: format!("rmse_growth_{}", file_part(scen)),
             title: format!("{scen}: RMSE against the truth-noise multiplier"),
             panels,
@@ -244,6 +272,11 @@ pub fn tuning_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         (Some(lo), Some(hi)) => hi / lo >= 20.0,
         _ => false,
     };
+    let noise = if tu.has("noise_scale") {
+        tu.f64s("noise_scale")?
+    } else {
+        vec![None; tu.height()]
+    };
     let mut scenarios = t.scenarios.clone();
     scenarios.extend(super::first_appearance(&scen));
     let mut figs = Vec::new();
@@ -252,56 +285,79 @@ pub fn tuning_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         if rows.is_empty() {
             continue;
         }
-        // Curves: (filter, r_scale) in order of first appearance.
-        let mut curves: Vec<(String, Option<f64>)> = Vec::new();
+        // Curves: (noise scale, filter, r_scale) in order of first appearance — each noise
+        // scale has its own search, and joining them makes a sawtooth.
+        type Curve = (Option<u64>, String, Option<u64>);
+        let mut curves: Vec<Curve> = Vec::new();
         for &i in &rows {
-            let k = (filt[i].clone(), r[i]);
+            let k = (
+                noise[i].map(f64::to_bits),
+                filt[i].clone(),
+                r[i].map(f64::to_bits),
+            );
             if !curves.contains(&k) {
                 curves.push(k);
             }
         }
-        let several_r = curves
-            .iter()
-            .map(|c| c.1.map(f64::to_bits))
-            .collect::<Vec<_>>();
-        let several_r = several_r.iter().any(|v| *v != several_r[0]);
+        let distinct = |f: &dyn Fn(&Curve) -> Option<u64>| {
+            let mut v: Vec<Option<u64>> = curves.iter().map(f).collect();
+            v.sort();
+            v.dedup();
+            v.len() > 1
+        };
+        let several_noise = distinct(&|c| c.0);
+        let several_r = distinct(&|c| c.2);
+        let palette = several_noise || several_r;
         let panels = metrics
             .iter()
             .map(|(col, title, v, reference)| {
                 let mut marks = Vec::new();
-                for (ci, (f, rs)) in curves.iter().enumerate() {
+                let mut plotted = Vec::new();
+                for (ci, (nz, f, rs)) in curves.iter().enumerate() {
                     let mut pts: Vec<(f64, f64)> = rows
                         .iter()
-                        .filter(|&&i| filt[i] == *f && r[i] == *rs)
+                        .filter(|&&i| {
+                            noise[i].map(f64::to_bits) == *nz
+                                && filt[i] == *f
+                                && r[i].map(f64::to_bits) == *rs
+                        })
                         .filter_map(|&i| Some((q[i]?, v[i]?)))
                         .collect();
+                    // The coarse grid and the refinement share their common Q scales.
                     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+                    pts.dedup_by(|a, b| a.0 == b.0);
+                    plotted.extend(pts.iter().map(|p| p.1));
+                    let mut label = f.clone();
+                    if several_noise && let Some(n) = nz {
+                        label.push_str(&format!(", noise ×{}", short(f64::from_bits(*n))));
+                    }
+                    if several_r && let Some(rv) = rs {
+                        label.push_str(&format!(", R×{}", short(f64::from_bits(*rv))));
+                    }
                     marks.push(Mark::Line {
-                        label: Some(match (several_r, rs) {
-                            (true, Some(rv)) => format!("{f}, R ×{}", short(*rv)),
-                            _ => f.clone(),
-                        }),
-                        ink: if several_r {
-                            Ink::Palette(ci)
-                        } else {
-                            t.ink(f)
-                        },
+                        label: Some(label),
+                        ink: if palette { Ink::Palette(ci) } else { t.ink(f) },
                         dashed: false,
                         points: pts,
                     });
                 }
                 if let Some(n) = reference {
                     marks.push(Mark::HLine {
-                        label: Some(format!("consistent mean = {n}")),
+                        label: Some("consistent mean (n states, p measurements)".into()),
                         ink: Ink::Reference,
                         y: *n as f64,
                     });
                 }
+                let is_stat = reference.is_some();
                 Panel {
-                    title: col.clone(),
-                    x_label: "Q scale".into(),
+                    title: match reference {
+                        Some(n) => format!("{} (consistent mean {n})", col.to_uppercase()),
+                        None => col.clone(),
+                    },
+                    x_label: "Q scale [–]".into(),
                     y_label: title.clone(),
                     log_x,
+                    log_y: is_stat && super::errors::wants_log(plotted.into_iter()),
                     marks,
                     ..Panel::default()
                 }
@@ -309,6 +365,7 @@ pub fn tuning_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
             .collect();
         figs.push(Figure {
             kind: FigureKind::Tuning,
+            scenario: sc.clone(),
             name: format!("tuning_{}", file_part(&sc)),
             title: format!("{sc}: tuning curves against the filter's Q scale"),
             panels,

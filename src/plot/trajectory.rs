@@ -87,6 +87,7 @@ pub fn trajectory_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         }
         figs.push(Figure {
             kind: FigureKind::Trajectory,
+            scenario: r.scenario.clone(),
             name: format!("trajectory_{}", file_part(&r.scenario)),
             title: format!(
                 "{}: trajectory (run {}, noise ×{})",
@@ -169,6 +170,7 @@ pub fn states_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         }
         figs.push(Figure {
             kind: FigureKind::States,
+            scenario: r.scenario.clone(),
             name: format!("states_{}", file_part(&r.scenario)),
             title: format!(
                 "{}: states and estimates ±3σ (run {}, noise ×{})",
@@ -177,6 +179,134 @@ pub fn states_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                 short(r.noise_scale)
             ),
             panels,
+        });
+    }
+    Ok(figs)
+}
+
+/// `route`: the position of the first traced run per scenario as projections, for systems
+/// whose quantities include `px, py, pz` in a north–east–down frame (the drone): the
+/// north–east plane (equal scales) and the altitude −pz over time, each with the truth, every
+/// filter's estimate and the fixes of the position sensors named `gps` (`z_<gps…>_px/py/pz`,
+/// null between fixes).
+pub fn route_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
+    let Some(tr) = &t.traces else {
+        return Ok(Vec::new());
+    };
+    let need = [
+        "truth_px", "truth_py", "truth_pz", "est_px", "est_py", "est_pz",
+    ];
+    if !need.iter().all(|c| tr.has(c)) {
+        return Ok(Vec::new());
+    }
+    let time = tr.f64s("t")?;
+    let (tn, te, td) = (
+        tr.f64s("truth_px")?,
+        tr.f64s("truth_py")?,
+        tr.f64s("truth_pz")?,
+    );
+    let (en, ee, ed) = (tr.f64s("est_px")?, tr.f64s("est_py")?, tr.f64s("est_pz")?);
+    let up = |v: &[Option<f64>]| v.iter().map(|x| x.map(|z| -z)).collect::<Vec<_>>();
+    let (tu, eu) = (up(&td), up(&ed));
+    // Position sensors: z_<sensor>_px with its _py and _pz, sensor named like a GPS.
+    let sensors: Vec<String> = tr
+        .names()
+        .iter()
+        .filter_map(|n| {
+            n.strip_prefix("z_")?
+                .strip_suffix("_px")
+                .map(str::to_string)
+        })
+        .filter(|s| s.to_lowercase().contains("gps"))
+        .filter(|s| tr.has(&format!("z_{s}_py")) && tr.has(&format!("z_{s}_pz")))
+        .collect();
+    let mut fixes = Vec::new();
+    for s in &sensors {
+        let d = tr.f64s(&format!("z_{s}_pz"))?;
+        fixes.push((
+            s.clone(),
+            tr.f64s(&format!("z_{s}_px"))?,
+            tr.f64s(&format!("z_{s}_py"))?,
+            up(&d),
+        ));
+    }
+    let mut figs = Vec::new();
+    for r in traced_runs(t, tr)? {
+        let mut plane = Vec::new();
+        let mut alt = Vec::new();
+        if let Some((_, rows)) = r.filters.first() {
+            for (i, (s, n, e, u)) in fixes.iter().enumerate() {
+                plane.push(Mark::Scatter {
+                    label: Some(format!("{s} fixes")),
+                    ink: Ink::Palette(7 + i),
+                    points: pairs(rows, e, n),
+                });
+                alt.push(Mark::Scatter {
+                    label: Some(format!("{s} fixes")),
+                    ink: Ink::Palette(7 + i),
+                    points: pairs(rows, &time, u),
+                });
+            }
+        }
+        for (f, rows) in &r.filters {
+            plane.push(Mark::Line {
+                label: Some(f.clone()),
+                ink: t.ink(f),
+                dashed: false,
+                points: pairs(rows, &ee, &en),
+            });
+            alt.push(Mark::Line {
+                label: Some(f.clone()),
+                ink: t.ink(f),
+                dashed: false,
+                points: pairs(rows, &time, &eu),
+            });
+        }
+        if let Some((_, rows)) = r.filters.first() {
+            plane.push(Mark::Line {
+                label: Some("truth".into()),
+                ink: Ink::Truth,
+                dashed: true,
+                points: pairs(rows, &te, &tn),
+            });
+            alt.push(Mark::Line {
+                label: Some("truth".into()),
+                ink: Ink::Truth,
+                dashed: true,
+                points: pairs(rows, &time, &tu),
+            });
+        }
+        let unit = |s: &str| match t.unit(s) {
+            "" => String::new(),
+            u => format!(" [{u}]"),
+        };
+        figs.push(Figure {
+            kind: FigureKind::Route,
+            scenario: r.scenario.clone(),
+            name: format!("route_{}", file_part(&r.scenario)),
+            title: format!(
+                "{}: route (run {}, noise ×{})",
+                r.scenario,
+                r.run,
+                short(r.noise_scale)
+            ),
+            panels: vec![
+                Panel {
+                    title: "north–east plane".into(),
+                    x_label: format!("east py{}", unit("py")),
+                    y_label: format!("north px{}", unit("px")),
+                    equal_aspect: true,
+                    marks: plane,
+                    ..Panel::default()
+                },
+                Panel {
+                    title: "altitude".into(),
+                    x_label: "t [s]".into(),
+                    y_label: format!("altitude −pz{}", unit("pz")),
+                    marks: alt,
+                    ..Panel::default()
+                },
+            ],
         });
     }
     Ok(figs)

@@ -1,0 +1,328 @@
+//! ANEES per block of quantities (position, velocity, attitude), from the traced runs'
+//! estimates, truths and full covariances (traces.parquet `P_<qi>_<qj>`).
+//!
+//! The whole-state ANEES says whether a filter is consistent; the blocks say *where* it is not
+//! (issue 11: a drone filter's excess sits in position when the GPS latency is unmodelled, in
+//! attitude when the gyro bias is). A block is the quantities sharing a unit, in the system's
+//! quantity order: for the drone `px, py, pz` (m), `vx, vy, vz` (m/s), `roll, pitch, yaw` (deg).
+
+use nalgebra::{DMatrix, DVector};
+
+use super::errors::wants_log;
+use super::{Figure, FigureKind, Ink, Mark, Panel, Tables, file_part, short};
+use crate::error::PlotError;
+use crate::metrics::consistency::average_chi2_band;
+
+/// One block: its name and the indices of its quantities in `Tables::states`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Block {
+    /// `position`, `velocity`, `attitude`, or the unit.
+    pub name: String,
+    /// The quantities' unit.
+    pub unit: String,
+    /// The quantities.
+    pub quantities: Vec<String>,
+    idx: Vec<usize>,
+}
+
+/// The blocks of a folder's quantities, or none when blocks would say nothing the whole-state
+/// ANEES does not (fewer than two blocks, or no block of three or more quantities — the planar
+/// quadrotor's pairs), or the traces lack the covariance.
+pub fn blocks(t: &Tables) -> Vec<Block> {
+    let Some(tr) = &t.traces else {
+        return Vec::new();
+    };
+    let angle = |q: &str| {
+        t.manifest
+            .as_ref()
+            .and_then(|m| m.quantities.iter().find(|e| e.name == q))
+            .is_some_and(|e| e.angle)
+    };
+    let mut out: Vec<Block> = Vec::new();
+    for (i, q) in t.states.iter().enumerate() {
+        let unit = t.unit(q).to_string();
+        match out.iter_mut().find(|b| b.unit == unit) {
+            Some(b) => {
+                b.quantities.push(q.clone());
+                b.idx.push(i);
+            }
+            None => out.push(Block {
+                name: match unit.as_str() {
+                    "m" => "position".into(),
+                    "m/s" => "velocity".into(),
+                    _ if angle(q) => "attitude".into(),
+                    "" => "unitless".into(),
+                    u => u.to_string(),
+                },
+                unit,
+                quantities: vec![q.clone()],
+                idx: vec![i],
+            }),
+        }
+    }
+    let covariances = out.iter().all(|b| {
+        b.idx.iter().all(|&i| {
+            b.idx
+                .iter()
+                .all(|&j| tr.has(&p_name(&t.states, i.max(j), i.min(j))))
+        })
+    });
+    if out.len() < 2 || !out.iter().any(|b| b.idx.len() >= 3) || !covariances {
+        return Vec::new();
+    }
+    out
+}
+
+fn p_name(states: &[String], i: usize, j: usize) -> String {
+    format!("P_{}_{}", states[i], states[j])
+}
+
+/// The per-step block ANEES of one (scenario, filter variant) over the traced runs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BlockCell {
+    /// Scenario.
+    pub scenario: String,
+    /// Filter variant.
+    pub filter: String,
+    /// Noise scale of the traces.
+    pub noise_scale: f64,
+    /// Per block: (t, ANEES over the traced runs, runs averaged) for every step ≥ 1.
+    pub series: Vec<Vec<(f64, f64, usize)>>,
+}
+
+impl BlockCell {
+    /// Time average of a block's ANEES and the fraction of steps inside the per-step
+    /// two-sided χ² band at `alpha`.
+    pub fn time_average(&self, b: usize, dof: usize, alpha: f64) -> (f64, f64) {
+        let s = &self.series[b];
+        let mean = s.iter().map(|p| p.1).sum::<f64>() / s.len().max(1) as f64;
+        let inside = s
+            .iter()
+            .filter(|p| {
+                average_chi2_band(dof as f64, p.2 as f64, alpha).is_some_and(|bd| bd.contains(p.1))
+            })
+            .count();
+        (mean, inside as f64 / s.len().max(1) as f64)
+    }
+}
+
+/// The significance level of the folder's spec (`[consistency] alpha`, default 0.05).
+pub fn alpha(t: &Tables) -> f64 {
+    t.manifest
+        .as_ref()
+        .and_then(|m| m.spec.parse::<toml::Table>().ok())
+        .and_then(|s| s.get("consistency")?.get("alpha")?.as_float())
+        .unwrap_or(0.05)
+}
+
+/// Block NEES of every traced (scenario, filter variant), averaged over its traced runs per
+/// step. Angle errors are wrapped to ±180° (±π rad). Steps whose block covariance is missing
+/// or not positive definite are left out.
+pub fn block_cells(t: &Tables, bl: &[Block]) -> Result<Vec<BlockCell>, PlotError> {
+    let Some(tr) = &t.traces else {
+        return Ok(Vec::new());
+    };
+    if bl.is_empty() {
+        return Ok(Vec::new());
+    }
+    let scen = tr.strs("scenario")?;
+    let filt = tr.strs("filter")?;
+    let step = tr.f64s("step")?;
+    let time = tr.f64s("t")?;
+    let noise = tr.f64s("noise_scale")?;
+    let n = t.states.len();
+    let mut truth = Vec::with_capacity(n);
+    let mut est = Vec::with_capacity(n);
+    for s in &t.states {
+        truth.push(tr.f64s(&format!("truth_{s}"))?);
+        est.push(tr.f64s(&format!("est_{s}"))?);
+    }
+    let period = |q: &str| -> Option<f64> {
+        let m = t.manifest.as_ref()?;
+        let e = m.quantities.iter().find(|e| e.name == q)?;
+        e.angle.then(|| {
+            if e.unit == "deg" {
+                360.0
+            } else {
+                std::f64::consts::TAU
+            }
+        })
+    };
+    let periods: Vec<Option<f64>> = t.states.iter().map(|s| period(s)).collect();
+    let mut pcols = std::collections::BTreeMap::new();
+    for b in bl {
+        for &i in &b.idx {
+            for &j in &b.idx {
+                let (a, c) = (i.max(j), i.min(j));
+                if let std::collections::btree_map::Entry::Vacant(v) = pcols.entry((a, c)) {
+                    v.insert(tr.f64s(&p_name(&t.states, a, c))?);
+                }
+            }
+        }
+    }
+    // (scenario, filter) → step → per block (sum of NEES, runs, t).
+    type Acc = std::collections::BTreeMap<i64, (f64, Vec<(f64, usize)>)>;
+    let mut cells: Vec<((String, String), f64, Acc)> = Vec::new();
+    for r in 0..tr.height() {
+        let Some(k) = step[r] else { continue };
+        if k < 1.0 {
+            continue;
+        }
+        let key = (scen[r].clone(), filt[r].clone());
+        let ci = match cells.iter().position(|c| c.0 == key) {
+            Some(p) => p,
+            None => {
+                cells.push((key, noise[r].unwrap_or(f64::NAN), Acc::new()));
+                cells.len() - 1
+            }
+        };
+        let entry = cells[ci]
+            .2
+            .entry(k as i64)
+            .or_insert_with(|| (time[r].unwrap_or(f64::NAN), vec![(0.0, 0); bl.len()]));
+        for (bi, b) in bl.iter().enumerate() {
+            let d = b.idx.len();
+            let mut e = DVector::zeros(d);
+            let mut p = DMatrix::zeros(d, d);
+            let mut ok = true;
+            for (a, &i) in b.idx.iter().enumerate() {
+                match (truth[i][r], est[i][r]) {
+                    (Some(x), Some(xh)) => {
+                        let mut v = x - xh;
+                        if let Some(per) = periods[i] {
+                            v -= per * (v / per).round();
+                        }
+                        e[a] = v;
+                    }
+                    _ => ok = false,
+                }
+                for (c, &j) in b.idx.iter().enumerate() {
+                    match pcols[&(i.max(j), i.min(j))][r] {
+                        Some(v) => p[(a, c)] = v,
+                        None => ok = false,
+                    }
+                }
+            }
+            if !ok {
+                continue;
+            }
+            let Some(ch) = p.cholesky() else { continue };
+            let nees = e.dot(&ch.solve(&e));
+            if nees.is_finite() {
+                entry.1[bi].0 += nees;
+                entry.1[bi].1 += 1;
+            }
+        }
+    }
+    let mut out: Vec<BlockCell> = cells
+        .into_iter()
+        .map(|((scenario, filter), noise_scale, acc)| {
+            let series = (0..bl.len())
+                .map(|bi| {
+                    acc.values()
+                        .filter(|(_, v)| v[bi].1 > 0)
+                        .map(|(tk, v)| (*tk, v[bi].0 / v[bi].1 as f64, v[bi].1))
+                        .collect()
+                })
+                .collect();
+            BlockCell {
+                scenario,
+                filter,
+                noise_scale,
+                series,
+            }
+        })
+        .collect();
+    // Scenario order of the summary, then filter colour order.
+    let pos = |v: &[String], s: &str| v.iter().position(|x| x == s);
+    out.sort_by(|a, b| {
+        pos(&t.scenarios, &a.scenario)
+            .cmp(&pos(&t.scenarios, &b.scenario))
+            .then(pos(&t.filters, &a.filter).cmp(&pos(&t.filters, &b.filter)))
+    });
+    Ok(out)
+}
+
+/// `block_consistency`: per scenario, one panel per block with each filter variant's ANEES
+/// over the traced runs against time (steps ≥ 1), the per-step χ² band for the traced runs and
+/// the consistent mean (the block's size). Nothing unless [`blocks`] finds blocks.
+pub fn block_consistency_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
+    let bl = blocks(t);
+    let cells = block_cells(t, &bl)?;
+    let alpha = alpha(t);
+    let mut figs = Vec::new();
+    for sc in &t.scenarios {
+        let mine: Vec<&BlockCell> = cells.iter().filter(|c| c.scenario == *sc).collect();
+        if mine.is_empty() {
+            continue;
+        }
+        let runs = mine
+            .iter()
+            .flat_map(|c| c.series.iter().flatten().map(|p| p.2))
+            .max()
+            .unwrap_or(0);
+        let panels = bl
+            .iter()
+            .enumerate()
+            .map(|(bi, b)| {
+                let d = b.idx.len();
+                let mut marks = Vec::new();
+                // The band depends on the runs averaged only; draw it from the first cell.
+                if let Some(c) = mine.first() {
+                    let points: Vec<(f64, f64, f64)> = c.series[bi]
+                        .iter()
+                        .filter_map(|p| {
+                            let band = average_chi2_band(d as f64, p.2 as f64, alpha)?;
+                            Some((p.0, band.lo, band.hi))
+                        })
+                        .collect();
+                    marks.push(Mark::Band {
+                        label: Some(format!("χ² acceptance band (α = {})", short(alpha))),
+                        ink: Ink::Reference,
+                        points,
+                    });
+                }
+                let mut plotted = Vec::new();
+                for c in &mine {
+                    let points: Vec<(f64, f64)> = c.series[bi].iter().map(|p| (p.0, p.1)).collect();
+                    plotted.extend(points.iter().map(|p| p.1));
+                    marks.push(Mark::Line {
+                        label: Some(c.filter.clone()),
+                        ink: t.ink(&c.filter),
+                        dashed: false,
+                        points,
+                    });
+                }
+                marks.push(Mark::HLine {
+                    label: Some("consistent mean (block size)".into()),
+                    ink: Ink::Reference,
+                    y: d as f64,
+                });
+                Panel {
+                    title: format!(
+                        "{} ({}), consistent mean {d}",
+                        b.name,
+                        b.quantities.join(", ")
+                    ),
+                    x_label: "t [s]".into(),
+                    y_label: "block ANEES [–]".into(),
+                    log_y: wants_log(plotted.into_iter()),
+                    marks,
+                    ..Panel::default()
+                }
+            })
+            .collect();
+        figs.push(Figure {
+            kind: FigureKind::BlockConsistency,
+            scenario: sc.clone(),
+            name: format!("block_consistency_{}", file_part(sc)),
+            title: format!(
+                "{sc}: ANEES per block over {runs} traced run{} (noise ×{}), steps ≥ 1",
+                if runs == 1 { "" } else { "s" },
+                short(mine[0].noise_scale)
+            ),
+            panels,
+        });
+    }
+    Ok(figs)
+}
