@@ -163,6 +163,9 @@ impl StudyFolder {
         for t in &tables {
             let path = self.dir.join(format!("{}.parquet", t.name));
             let (bytes, checksum) = checksum_file(&t.tmp)?;
+            // The manifest written last vouches for these bytes: they must be on disk before it,
+            // or a power loss could leave a listed table empty under its real name.
+            sync_file(&t.tmp).map_err(io("cannot sync", &t.tmp))?;
             std::fs::rename(&t.tmp, &path)
                 .map_err(io("cannot move the finished table to", &path))?;
             entries.push(super::manifest::TableEntry {
@@ -300,6 +303,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// Flushes a written file's data and metadata to the disk.
+pub fn sync_file(path: &Path) -> std::io::Result<()> {
+    std::fs::File::open(path)?.sync_all()
 }
 
 /// The temporary name used for `path` while it is written: `.<name>.partial` beside it.

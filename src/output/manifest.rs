@@ -122,15 +122,10 @@ impl Manifest {
             path: dir.join("manifest.toml"),
             message: e.to_string(),
         })?;
-        let tmp = dir.join(".manifest.toml.partial");
         let path = dir.join("manifest.toml");
-        std::fs::write(&tmp, text).map_err(|source| OutputError::Io {
+        // The commit record: written, synced and renamed into place, then the folder synced.
+        super::folder::write_atomic(&path, text.as_bytes()).map_err(|source| OutputError::Io {
             action: "cannot write",
-            path: tmp.clone(),
-            source,
-        })?;
-        std::fs::rename(&tmp, &path).map_err(|source| OutputError::Io {
-            action: "cannot move the manifest to",
             path,
             source,
         })

@@ -192,6 +192,11 @@ impl TableWriter {
             source,
         })?;
         drop(writer);
+        super::folder::sync_file(&self.tmp).map_err(|source| OutputError::Io {
+            action: "cannot sync",
+            path: self.tmp.clone(),
+            source,
+        })?;
         std::fs::rename(&self.tmp, &self.path).map_err(|source| OutputError::Io {
             action: "cannot move the finished table to",
             path: self.path.clone(),
