@@ -33,7 +33,8 @@ use crate::model::{Availability, Model};
 use crate::scenario::Scenario;
 use crate::sim::TruthNoise;
 
-/// Relative singular-value threshold of the observability ranks.
+/// Relative singular-value threshold of the observability ranks (L1's sensor sets, the
+/// detectability check of `steady_state`, `kfmc describe`).
 pub const RANK_TOL: f64 = 1e-10;
 
 /// What `kfmc describe` reports of a spec.
@@ -190,6 +191,46 @@ pub struct TestDof {
     pub nees_naive_dof: f64,
     /// N·Σp.
     pub nis_dof: u64,
+}
+
+/// The observability rank of (F, H) and the eigenvalues of F on its unobservable subspace.
+///
+/// O = [H; HF; …; HF^{NX−1}] (faer's SVD); its null space N (orthonormal, from the right
+/// singular vectors) is F-invariant, so the unobservable modes are the eigenvalues of NᵀFN.
+pub fn unobservable_modes<const NX: usize, const NZ: usize>(
+    f: &Matrix<NX, NX>,
+    h: &Matrix<NZ, NX>,
+) -> (usize, Vec<(f64, f64)>) {
+    let mut o = faer::Mat::<f64>::zeros(NX * NZ, NX);
+    let mut hf = *h;
+    for blk in 0..NX {
+        for i in 0..NZ {
+            for j in 0..NX {
+                o[(blk * NZ + i, j)] = hf[(i, j)];
+            }
+        }
+        hf *= f;
+    }
+    let Ok(svd) = o.svd() else {
+        return (0, vec![]);
+    };
+    let s = svd.S().column_vector();
+    let max = (0..s.nrows()).map(|i| s[i]).fold(0.0_f64, f64::max);
+    let rank = (0..s.nrows()).filter(|&i| s[i] > RANK_TOL * max).count();
+    if rank == NX {
+        return (rank, vec![]);
+    }
+    let v = svd.V();
+    let n = nalgebra::DMatrix::<f64>::from_fn(NX, NX - rank, |i, j| v[(i, rank + j)]);
+    let fd = nalgebra::DMatrix::<f64>::from_fn(NX, NX, |i, j| f[(i, j)]);
+    let fu = n.transpose() * fd * &n;
+    let Ok(ev) = faer::Mat::<f64>::from_fn(fu.nrows(), fu.ncols(), |i, j| fu[(i, j)]).eigenvalues()
+    else {
+        return (rank, vec![]);
+    };
+    let mut modes: Vec<(f64, f64)> = ev.into_iter().map(|c| (c.re, c.im)).collect();
+    modes.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    (rank, modes)
 }
 
 /// A fixed-size matrix as rows.
@@ -503,7 +544,7 @@ fn observability<const NX: usize, const NZ: usize>(
             .collect();
     }
     if time_invariant && o.rank < NX {
-        let (_, modes) = crate::systems::linear::model::unobservable_modes(&fs[0], &hs[0]);
+        let (_, modes) = unobservable_modes(&fs[0], &hs[0]);
         o.unobservable_modes = modes.into_iter().map(|(re, im)| [re, im]).collect();
     }
     o

@@ -16,7 +16,6 @@ use std::path::Path;
 
 use common::{kfmc, repo};
 use nalgebra::DMatrix;
-use polars::prelude::*;
 
 fn describe(spec: &Path, out: &Path) -> toml::Table {
     let o = kfmc()
@@ -154,8 +153,7 @@ fn l1_poles_ranks_and_rho_match_independent_sources() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let file = std::fs::File::open(out.join("consistency.parquet")).unwrap();
-    let cons = ParquetReader::new(file).finish().unwrap();
+    let cons = common::read(&out.join("consistency.parquet"));
     let (fl, test, runs, dofs) = (
         cons.column("filter").unwrap().str().unwrap().clone(),
         cons.column("test").unwrap().str().unwrap().clone(),

@@ -12,7 +12,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{kfmc, spec_in_tempdir};
+use common::{kfmc, read, spec_in_tempdir};
 use polars::prelude::*;
 
 fn spec(draws: &str, never: &str) -> String {
@@ -43,12 +43,6 @@ rmse_thresholds = [5.0, 1.0, 0.2, 0.2, 0.2, 0.1]
 never_crossed = "{never}"
 "#
     )
-}
-
-fn read(path: &Path) -> DataFrame {
-    ParquetReader::new(std::fs::File::open(path).unwrap())
-        .finish()
-        .unwrap()
 }
 
 fn study(draws: &str, never: &str) -> (tempfile::TempDir, std::path::PathBuf) {

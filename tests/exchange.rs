@@ -18,7 +18,7 @@ mod common;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use common::{kfmc, repo};
+use common::{kfmc, read, repo};
 use polars::prelude::*;
 
 const RUN_SPEC: &str = r#"
@@ -102,12 +102,6 @@ fn study_of(kind: &str) -> Study {
         dir,
         ext_spec,
     }
-}
-
-fn read(path: &Path) -> DataFrame {
-    ParquetReader::new(fs::File::open(path).unwrap())
-        .finish()
-        .unwrap()
 }
 
 fn write(df: &DataFrame, path: &Path) {

@@ -7,8 +7,7 @@ mod common;
 
 use std::path::Path;
 
-use common::kfmc;
-use polars::prelude::*;
+use common::{kfmc, read};
 
 fn run(args: &[&str]) -> (i32, String, String) {
     let o = kfmc().args(args).output().unwrap();
@@ -17,12 +16,6 @@ fn run(args: &[&str]) -> (i32, String, String) {
         String::from_utf8_lossy(&o.stdout).into_owned(),
         String::from_utf8_lossy(&o.stderr).into_owned(),
     )
-}
-
-fn read(path: &Path) -> DataFrame {
-    ParquetReader::new(std::fs::File::open(path).unwrap())
-        .finish()
-        .unwrap()
 }
 
 /// Two filters on the linear quadrotor, 3 steps a run: cheap enough for 70,000 runs.

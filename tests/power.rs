@@ -11,7 +11,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{kfmc, spec_in_tempdir};
+use common::{kfmc, read, spec_in_tempdir};
 use polars::prelude::*;
 
 const SPEC: &str = r#"
@@ -35,12 +35,6 @@ p0_std = 1.0
 [consistency]
 alpha = 0.05
 "#;
-
-fn read(path: &Path) -> DataFrame {
-    ParquetReader::new(std::fs::File::open(path).unwrap())
-        .finish()
-        .unwrap()
-}
 
 fn power(spec: &Path, out: &Path, r: &str, threads: &str) {
     let o = kfmc()

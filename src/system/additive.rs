@@ -904,6 +904,25 @@ where
         AssumedNoise { q, r }
     }
 
+    /// P_0 for a run of system scenario `si`; with the batch initialiser also x̂_0, set in
+    /// `trajectory` from the run's own measurements (its covariance scaled as the filters'
+    /// noise is).
+    fn initial_estimate(
+        &self,
+        si: usize,
+        trajectory: &mut crate::sim::Trajectory<NX, NZ>,
+        filter_scale: f64,
+    ) -> Matrix<NX, NX> {
+        match &self.sys.batch {
+            Some(batch) => {
+                let b = &batch[si];
+                trajectory.x0_hat = b.estimate(&trajectory.measurements);
+                b.covariance * (filter_scale * filter_scale)
+            }
+            None => self.p0,
+        }
+    }
+
     /// The consistency sums of every filter variant on the clean (noise-free) run of plan
     /// scenario `scenario`, with the filters' Q and R at noise scale 1: what `kfmc describe`
     /// calibrates the tests with. `None` for a variant without a covariance or an external one.
@@ -913,13 +932,7 @@ where
         let sc = &sys.scenarios[si];
         let draws = NoiseDraws::<NX, NZ>::draw(0, sc.steps());
         let mut trajectory = simulate(&sys.model, sc, &sys.truth_noise, 0.0, None, &draws);
-        let p0 = match &sys.batch {
-            Some(batch) => {
-                trajectory.x0_hat = batch[si].estimate(&trajectory.measurements);
-                batch[si].covariance
-            }
-            None => self.p0,
-        };
+        let p0 = self.initial_estimate(si, &mut trajectory, 1.0);
         let prior = Prior {
             x0_hat: &trajectory.x0_hat,
             p0: &p0,
@@ -984,14 +997,7 @@ where
             FilterNoiseMode::Nominal => 1.0,
             FilterNoiseMode::Matched => noise_scale,
         };
-        let p0 = match &sys.batch {
-            Some(batch) => {
-                let b = &batch[si];
-                trajectory.x0_hat = b.estimate(&trajectory.measurements);
-                b.covariance * (filter_scale * filter_scale)
-            }
-            None => self.p0,
-        };
+        let p0 = self.initial_estimate(si, &mut trajectory, filter_scale);
         let prior = Prior {
             x0_hat: &trajectory.x0_hat,
             p0: &p0,

@@ -95,3 +95,11 @@ kind = "ekf"
 label = "running_mean"
 kind = "running_mean"
 "#;
+
+/// A Parquet table, read whole.
+pub fn read(path: &Path) -> polars::prelude::DataFrame {
+    use polars::prelude::SerReader;
+    polars::prelude::ParquetReader::new(std::fs::File::open(path).unwrap())
+        .finish()
+        .unwrap()
+}

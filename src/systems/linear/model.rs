@@ -6,8 +6,6 @@
 
 use std::any::Any;
 
-use nalgebra::DMatrix;
-
 use crate::linalg::{Matrix, Vector};
 use crate::model::{Availability, Model};
 
@@ -116,48 +114,7 @@ pub fn detectable<const NX: usize, const NU: usize, const NZ: usize>(
 /// integrators of a constant-velocity model) is computed only to about √ε ≈ 1e-8.
 const UNIT_CIRCLE_MARGIN: f64 = 1e-6;
 
-/// Relative singular-value threshold of the observability rank (as for L1's sensor sets).
-const RANK_TOL: f64 = 1e-10;
-
-/// The observability rank of (F, H) and the eigenvalues of F on its unobservable subspace.
-///
-/// O = [H; HF; …; HF^{NX−1}] (faer's SVD); its null space N (orthonormal, from the right
-/// singular vectors) is F-invariant, so the unobservable modes are the eigenvalues of NᵀFN.
-pub fn unobservable_modes<const NX: usize, const NZ: usize>(
-    f: &Matrix<NX, NX>,
-    h: &Matrix<NZ, NX>,
-) -> (usize, Vec<(f64, f64)>) {
-    let mut o = faer::Mat::<f64>::zeros(NX * NZ, NX);
-    let mut hf = *h;
-    for blk in 0..NX {
-        for i in 0..NZ {
-            for j in 0..NX {
-                o[(blk * NZ + i, j)] = hf[(i, j)];
-            }
-        }
-        hf *= f;
-    }
-    let Ok(svd) = o.svd() else {
-        return (0, vec![]);
-    };
-    let s = svd.S().column_vector();
-    let max = (0..s.nrows()).map(|i| s[i]).fold(0.0_f64, f64::max);
-    let rank = (0..s.nrows()).filter(|&i| s[i] > RANK_TOL * max).count();
-    if rank == NX {
-        return (rank, vec![]);
-    }
-    let v = svd.V();
-    let n = DMatrix::<f64>::from_fn(NX, NX - rank, |i, j| v[(i, rank + j)]);
-    let fd = DMatrix::<f64>::from_fn(NX, NX, |i, j| f[(i, j)]);
-    let fu = n.transpose() * fd * &n;
-    let Ok(ev) = faer::Mat::<f64>::from_fn(fu.nrows(), fu.ncols(), |i, j| fu[(i, j)]).eigenvalues()
-    else {
-        return (rank, vec![]);
-    };
-    let mut modes: Vec<(f64, f64)> = ev.into_iter().map(|c| (c.re, c.im)).collect();
-    modes.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
-    (rank, modes)
-}
+pub use crate::analysis::unobservable_modes;
 
 /// Why (F, H) is not detectable (an unobservable mode on or outside the unit circle), or
 /// `None` when it is.

@@ -21,7 +21,7 @@
 //! u = 0: it is driven by process noise alone, which is what the seed's NEES/NIS tests
 //! exercise. F and G are still exact, so a control profile can be added later.
 
-use crate::linalg::{Matrix, Vector, numerical_rank};
+use crate::linalg::{Matrix, Vector};
 use crate::model::Model;
 use crate::systems::linear::discretise::zoh_van_loan;
 
@@ -231,17 +231,7 @@ impl<const NZ: usize> Linear<NZ> {
 
     /// Rank of the observability matrix [H; HF; …; HF⁵] (seed eq. 9), by faer's SVD.
     pub fn observability_rank(&self) -> usize {
-        let mut o = faer::Mat::<f64>::zeros(6 * NZ, 6);
-        let mut hf: nalgebra::SMatrix<f64, NZ, 6> = self.h;
-        for blk in 0..6 {
-            for i in 0..NZ {
-                for j in 0..6 {
-                    o[(blk * NZ + i, j)] = hf[(i, j)];
-                }
-            }
-            hf *= self.disc.f;
-        }
-        numerical_rank(o.as_ref(), 1e-10)
+        crate::analysis::unobservable_modes(&self.disc.f, &self.h).0
     }
 }
 
