@@ -750,6 +750,7 @@ fn main() {
                             threads: 0,
                             force: true,
                             shard: None,
+                            checkpoints: None,
                         },
                         &NullObserver,
                     )

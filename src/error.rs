@@ -124,6 +124,19 @@ pub enum OutputError {
     /// The run was interrupted (SIGINT or SIGTERM); nothing was committed.
     #[error("interrupted; no table of this run was committed and the partial files were removed")]
     Interrupted,
+    /// The run was interrupted after a checkpoint: nothing was committed, but the complete
+    /// cells are kept for `kfmc run SPEC --resume`.
+    #[error(
+        "interrupted; no table of this run was committed, and the checkpoint in {dir} keeps {cells_done} of {cells} cells: continue with `kfmc run SPEC --resume`"
+    )]
+    InterruptedCheckpointed {
+        /// The checkpoint's folder.
+        dir: PathBuf,
+        /// Cells the checkpoint holds.
+        cells_done: u64,
+        /// Cells of the run.
+        cells: u64,
+    },
 }
 
 /// Drawing figures or writing the report failed.

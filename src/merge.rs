@@ -103,7 +103,7 @@ struct Part {
 }
 
 /// The part folders under `dir/parts`, each verified, in part order; every problem is named.
-fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<String>), OutputError> {
+fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<(PathBuf, String)>), OutputError> {
     let root = dir.join("parts");
     let entries = std::fs::read_dir(&root).map_err(|source| OutputError::Io {
         action: "cannot list the parts in",
@@ -123,11 +123,14 @@ fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<String>), OutputError> {
                 dir: path,
                 manifest,
             }),
-            Ok(_) => problems.push(format!(
-                "{}: not a part (no shard in its manifest)",
-                path.display()
+            Ok(_) => problems.push((
+                path.clone(),
+                format!("{}: not a part (no shard in its manifest)", path.display()),
             )),
-            Err(e) => problems.push(format!("{}: {e}", path.display())),
+            Err(e) => {
+                let why = format!("{}: {e}", path.display());
+                problems.push((path, why));
+            }
         }
     }
     Ok((found, problems))
@@ -135,6 +138,20 @@ fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<String>), OutputError> {
 
 /// A human-readable list of a sharded study's parts: complete, missing or broken.
 pub fn status(dir: &Path) -> Result<String, OutputError> {
+    let progress = |d: &Path| -> Result<Option<String>, OutputError> {
+        Ok(crate::output::checkpoint::Index::read(d)?.map(|i| {
+            format!(
+                "{} of {} cells checkpointed (continue with `kfmc run SPEC --resume`)",
+                i.cells_done,
+                i.end_cell - i.first_cell
+            )
+        }))
+    };
+    if !dir.join("parts").is_dir()
+        && let Some(p) = progress(dir)?
+    {
+        return Ok(format!("{}: an interrupted run, {p}\n", dir.display()));
+    }
     let (found, problems) = parts(dir)?;
     let mut s = String::new();
     let count = found
@@ -154,17 +171,30 @@ pub fn status(dir: &Path) -> Result<String, OutputError> {
             ));
             for i in 0..n {
                 let state = if done.contains(&i) {
-                    "complete"
+                    "complete".to_string()
                 } else {
-                    "missing"
+                    let folder = crate::study::Shard {
+                        index: i as usize,
+                        count: n as usize,
+                    }
+                    .folder(dir);
+                    progress(&folder)?
+                        .map_or("missing".into(), |p| format!("running or interrupted, {p}"))
                 };
                 s.push_str(&format!("  part {i:>5} of {n}: {state}\n"));
             }
         }
         None => s.push_str(&format!("{}: no complete part\n", dir.display())),
     }
-    for p in &problems {
-        s.push_str(&format!("  incomplete: {p}\n"));
+    for (path, why) in &problems {
+        // A part being computed, or killed, says how far its checkpoint got.
+        match progress(path)? {
+            Some(p) => s.push_str(&format!(
+                "  running or interrupted: {}: {p}\n",
+                path.display()
+            )),
+            None => s.push_str(&format!("  incomplete: {why}\n")),
+        }
     }
     if dir.join("manifest.toml").exists() && verify(dir).is_ok() {
         s.push_str("  merged: yes (manifest.toml verified)\n");
@@ -184,7 +214,7 @@ fn mismatch(dir: &Path, why: String) -> KfmcError {
 pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> {
     let started = Instant::now();
     let (found, problems) = parts(dir)?;
-    if let Some(p) = problems.first() {
+    if let Some((_, p)) = problems.first() {
         return Err(mismatch(
             dir,
             format!("has a part that is not complete: {p}"),
@@ -479,7 +509,7 @@ pub fn slurm_scripts(
         overrides.push_str(&format!(" --seed {s}"));
     }
     let array = format!(
-        "#!/bin/bash\n# One part of {name} per array task: kfmc reads SLURM_ARRAY_TASK_ID (and the\n# array's min and step) and writes {out}/parts/part-<i>-of-{n:05}/.\n{common}#SBATCH --array=0-{last}\n#SBATCH --output={logs}/%x-%A_%a.out\nset -euo pipefail\nexec {kfmc} run {spec} --out {out_q} --shards {n} --quiet --threads \"${{SLURM_CPUS_PER_TASK:-1}}\"{overrides}\n",
+        "#!/bin/bash\n# One part of {name} per array task: kfmc reads SLURM_ARRAY_TASK_ID (and the\n# array's min and step) and writes {out}/parts/part-<i>-of-{n:05}/. A task that is\n# requeued (preempted, node failure) continues from its part's checkpoint (--resume).\n{common}#SBATCH --array=0-{last}\n#SBATCH --output={logs}/%x-%A_%a.out\nset -euo pipefail\nexec {kfmc} run {spec} --out {out_q} --shards {n} --resume --quiet --threads \"${{SLURM_CPUS_PER_TASK:-1}}\"{overrides}\n",
         out = output.display(),
         n = o.shards,
         last = o.shards.saturating_sub(1),
@@ -513,91 +543,4 @@ pub fn slurm_scripts(
         ("merge.sbatch".into(), merge),
         ("submit.sh".into(), submit),
     ]
-}
-
-/// What a resumable run did.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ResumeReport {
-    /// Cells found complete from an earlier, interrupted run (not recomputed).
-    pub cells_reused: usize,
-    /// Cells computed now.
-    pub cells_run: usize,
-    /// The merged study.
-    pub merge: MergeReport,
-}
-
-/// `kfmc run SPEC --resume`: the study runs cell by cell, each cell committed as its own part
-/// (a durable checkpoint), then the parts are merged — byte-identical to an uninterrupted run.
-/// Run again after a kill or Ctrl-C, it reuses every committed cell and recomputes only the
-/// cell that was in progress. A checkpoint of a changed spec, seed or run count is refused,
-/// naming what changed.
-pub fn run_resumable(
-    plan: &crate::experiment::Plan,
-    threads: usize,
-    observer: &dyn crate::runner::RunObserver,
-    registry: &Registry,
-) -> Result<ResumeReport, KfmcError> {
-    let cells = plan.scenarios.len() * plan.noise_scales.len();
-    let (mut reused, mut ran) = (0, 0);
-    for index in 0..cells {
-        let shard = Shard {
-            index,
-            count: cells,
-        };
-        let dir = shard.folder(&plan.output);
-        if dir.join("manifest.toml").exists()
-            && let Ok(m) = verify(&dir)
-        {
-            let count = m.shard.as_ref().map_or(0, |s| s.count as usize);
-            let changed = [
-                (m.spec_hash != plan.spec_hash).then(|| {
-                    format!(
-                        "the spec changed since the checkpoint (hash {} → {})",
-                        m.spec_hash, plan.spec_hash
-                    )
-                }),
-                (m.master_seed != plan.master_seed).then(|| {
-                    format!(
-                        "the master seed changed ({} → {})",
-                        m.master_seed, plan.master_seed
-                    )
-                }),
-                (m.runs_per_cell != plan.runs as u64).then(|| {
-                    format!(
-                        "the runs per cell changed ({} → {})",
-                        m.runs_per_cell, plan.runs
-                    )
-                }),
-                (count != cells)
-                    .then(|| format!("the number of cells changed ({count} → {cells})")),
-            ];
-            if let Some(why) = changed.into_iter().flatten().next() {
-                return Err(mismatch(
-                    &dir,
-                    format!(
-                        "is a checkpoint of another study: {why}; remove {} to start over",
-                        plan.output.join("parts").display()
-                    ),
-                ));
-            }
-            reused += 1;
-            continue;
-        }
-        crate::study::run(
-            plan,
-            &crate::study::ExecOptions {
-                threads,
-                force: false,
-                shard: Some(shard),
-            },
-            observer,
-        )?;
-        ran += 1;
-    }
-    let merge = merge(&plan.output, registry)?;
-    Ok(ResumeReport {
-        cells_reused: reused,
-        cells_run: ran,
-        merge,
-    })
 }

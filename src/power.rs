@@ -187,6 +187,7 @@ pub fn power(
         tables,
         wall_s,
         runs: (replications * plan.size().runs) as u64,
+        cells_resumed: 0,
     })
 }
 

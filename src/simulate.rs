@@ -136,5 +136,6 @@ pub fn simulate(
         tables,
         wall_s,
         runs: ((cells.end - cells.start) * n_runs) as u64,
+        cells_resumed: 0,
     })
 }

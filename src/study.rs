@@ -24,6 +24,32 @@ pub struct ExecOptions {
     pub force: bool,
     /// Run only this part of the plan (`kfmc run --shard i/n`), into its part folder.
     pub shard: Option<Shard>,
+    /// Keep a checkpoint so that an interrupted run can be resumed (`kfmc run`); `None`
+    /// writes the tables alone.
+    pub checkpoints: Option<Checkpoints>,
+}
+
+/// How a study keeps its checkpoint ([`crate::output::checkpoint`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checkpoints {
+    /// Least time between two checkpoints: a checkpoint follows a complete cell once this
+    /// much has passed since the last one (zero: after every cell). A kill loses at most
+    /// this much work plus the cell in progress.
+    pub every: std::time::Duration,
+    /// What to do with a checkpoint an earlier, interrupted run left in the folder.
+    pub existing: ExistingCheckpoint,
+}
+
+/// What a study does with a checkpoint it finds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExistingCheckpoint {
+    /// Refuse to start over a checkpoint of the same study (`kfmc run`): it is work a
+    /// `--resume` would keep. A checkpoint of another spec, seed or run count is discarded.
+    Refuse,
+    /// Continue it (`--resume`); refuse, naming what changed, when it is another study's.
+    Resume,
+    /// Discard it and start over (`--restart`).
+    Discard,
 }
 
 /// One of `count` disjoint, deterministic parts of a plan: a contiguous range of its cells
@@ -62,8 +88,10 @@ pub struct StudyReport {
     pub tables: Vec<(String, u64)>,
     /// Wall-clock seconds.
     pub wall_s: f64,
-    /// Simulated runs.
+    /// Simulated runs (by this process: a resume does not count the checkpoint's).
     pub runs: u64,
+    /// Cells taken from the checkpoint of an interrupted run instead of being computed.
+    pub cells_resumed: u64,
 }
 
 /// The key values of a cell row: scenario, noise scale, filter label, q_scale, r_scale.
@@ -113,6 +141,23 @@ struct Aggregator<'a> {
     cell: Option<(usize, usize, CellState)>,
     /// Where the cells' spills put their scratch files (the folder being written).
     scratch: PathBuf,
+    /// The checkpoint being kept, when the study is resumable.
+    checkpoint: Option<Checkpointer>,
+}
+
+/// Keeps a study's checkpoint: after a complete cell it notes where every journal ends, and
+/// once `every` has passed it makes them durable and writes the index.
+struct Checkpointer {
+    dir: PathBuf,
+    every: std::time::Duration,
+    last: Instant,
+    /// The study's identity; `cells_done` and `tables` describe the last checkpoint written.
+    index: crate::output::checkpoint::Index,
+    /// The last cell boundary: cells done (from the first cell of the run) and the journals'
+    /// positions there.
+    boundary: Option<(u64, Vec<crate::output::checkpoint::JournalEntry>)>,
+    /// First cell of this folder's range.
+    first_cell: usize,
 }
 
 impl Aggregator<'_> {
@@ -221,8 +266,64 @@ impl Aggregator<'_> {
         }
         if run + 1 == plan.runs {
             self.finish_cell()?;
+            self.cell_boundary(scenario * plan.noise_scales.len() + scale + 1)?;
         }
         Ok(())
+    }
+
+    /// The journaled tables, in a fixed order.
+    fn journaled_tables(&mut self) -> impl Iterator<Item = &mut TableWriter> {
+        [&mut self.runs, &mut self.steps, &mut self.summary]
+            .into_iter()
+            .chain(self.traces.as_mut())
+            .chain(self.estimates.as_mut())
+            .chain(self.consistency.as_mut())
+            .chain(self.sensors.as_mut())
+    }
+
+    /// After the last row of cell `end_cell − 1`: notes the boundary, and checkpoints when it
+    /// is time.
+    fn cell_boundary(&mut self, end_cell: usize) -> Result<(), OutputError> {
+        let Some(first_cell) = self.checkpoint.as_ref().map(|c| c.first_cell) else {
+            return Ok(());
+        };
+        let tables = self
+            .journaled_tables()
+            .filter_map(|w| {
+                w.journal_position()
+                    .map(|(bytes, rows)| crate::output::checkpoint::JournalEntry {
+                        name: w.name().to_string(),
+                        bytes,
+                        rows,
+                    })
+            })
+            .collect();
+        let c = self.checkpoint.as_mut().expect("checked above");
+        c.boundary = Some(((end_cell - first_cell) as u64, tables));
+        if c.last.elapsed() >= c.every {
+            self.write_checkpoint()?;
+        }
+        Ok(())
+    }
+
+    /// Makes the journals durable and writes the index of the last cell boundary; returns the
+    /// cells it holds.
+    fn write_checkpoint(&mut self) -> Result<Option<u64>, OutputError> {
+        let Some(boundary) = self.checkpoint.as_mut().and_then(|c| c.boundary.take()) else {
+            return Ok(self
+                .checkpoint
+                .as_ref()
+                .map(|c| c.index.cells_done)
+                .filter(|d| *d > 0));
+        };
+        for w in self.journaled_tables() {
+            w.sync_journal()?;
+        }
+        let c = self.checkpoint.as_mut().expect("a boundary was noted");
+        (c.index.cells_done, c.index.tables) = boundary;
+        c.index.write(&c.dir)?;
+        c.last = Instant::now();
+        Ok(Some(c.index.cells_done))
     }
 
     fn finish_cell(&mut self) -> Result<(), OutputError> {
@@ -411,15 +512,96 @@ pub fn run(
     let layout = plan.layout();
     let states = layout.quantity_names();
     let nf = plan.filters.len();
+    let nq = states.len();
+    let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
+    let journaling = opts.checkpoints.is_some();
+    let mut divergence: Vec<DivergenceTracker> = (0..plan.scenarios.len() * nf)
+        .map(|_| DivergenceTracker::new(dir, nq))
+        .collect();
+    // A table of the study: journaled when the study is resumable, and on a resume first
+    // refilled from its journal, each replayed row also shown to `on_row`.
+    let open = |name: &str,
+                columns: Vec<crate::output::schema::ColumnDef>,
+                on_row: &mut dyn FnMut(&[Value<'_>]) -> Result<(), OutputError>|
+     -> Result<TableWriter, OutputError> {
+        if !journaling {
+            return TableWriter::create(dir, name, columns);
+        }
+        let journal = crate::output::checkpoint::journal_path(dir, name);
+        let from = match &resume {
+            None => None,
+            Some(index) => Some(
+                index
+                    .tables
+                    .iter()
+                    .find(|t| t.name == name)
+                    .map(|t| (t.bytes, t.rows))
+                    .ok_or_else(|| OutputError::Mismatch {
+                        path: journal.clone(),
+                        why: format!(
+                            "is missing: the checkpoint has no journal of table `{name}`; start over with `kfmc run SPEC --restart`"
+                        ),
+                    })?,
+            ),
+        };
+        TableWriter::journaled(dir, name, columns, &journal, from, on_row)
+    };
+    let mut ignore = |_: &[Value<'_>]| Ok(());
+    // The divergence trackers look across cells: a resume rebuilds them from the replayed
+    // runs and summary rows, as `kfmc merge` does from the parts' tables.
+    let cell_of = CellIndex::new(plan);
+    let runs = {
+        let columns = schema::runs(&states);
+        let run_col = position(&columns, "run");
+        let rmse_cols: Vec<usize> = states
+            .iter()
+            .map(|s| position(&columns, &format!("rmse_{s}")))
+            .collect();
+        let mut feed = |row: &[Value<'_>]| -> Result<(), OutputError> {
+            let Some(thr) = &plan.rmse_thresholds else {
+                return Ok(());
+            };
+            let (si, scale, fi) = cell_of.cell(row, dir)?;
+            let rmse: Vec<f64> = rmse_cols
+                .iter()
+                .map(|&c| f64_of(&row[c]).unwrap_or(f64::NAN))
+                .collect();
+            let run = match row[run_col] {
+                Value::I64(Some(r)) => r as usize,
+                _ => return Err(cell_of.bad(dir, "a run row without its run index")),
+            };
+            divergence[si * nf + fi].observe_run(run, scale, &rmse, thr)
+        };
+        open("runs", columns, &mut feed)?
+    };
+    let summary = {
+        let columns = schema::summary();
+        let mean_col = position(&columns, "rmse_mean");
+        // One summary row per state, in state order, per (cell, filter).
+        let mut means: Vec<f64> = Vec::with_capacity(nq);
+        let mut feed = |row: &[Value<'_>]| -> Result<(), OutputError> {
+            let Some(thr) = &plan.rmse_thresholds else {
+                return Ok(());
+            };
+            means.push(f64_of(&row[mean_col]).unwrap_or(f64::NAN));
+            if means.len() == nq {
+                let (si, scale, fi) = cell_of.cell(row, dir)?;
+                divergence[si * nf + fi].observe_mean(scale, &means, thr);
+                means.clear();
+            }
+            Ok(())
+        };
+        open("summary", columns, &mut feed)?
+    };
+    let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
     let mut agg = Aggregator {
         plan,
         trial: trial.as_ref(),
-        runs: TableWriter::create(dir, "runs", schema::runs(&states))?,
-        steps: TableWriter::create(dir, "steps", schema::steps(&states))?,
-        summary: TableWriter::create(dir, "summary", schema::summary())?,
+        runs,
+        steps: open("steps", schema::steps(&states), &mut ignore)?,
+        summary,
         traces: if plan.trace_runs > 0 {
-            Some(TableWriter::create(
-                dir,
+            Some(open(
                 "traces",
                 schema::traces(
                     &states,
@@ -427,40 +609,45 @@ pub fn run(
                     &layout.measurement_names(),
                     &layout.world_state_names(),
                 ),
+                &mut ignore,
             )?)
         } else {
             None
         },
         consistency: if plan.consistency.is_some() {
-            Some(TableWriter::create(
-                dir,
-                "consistency",
-                schema::consistency(),
-            )?)
+            Some(open("consistency", schema::consistency(), &mut ignore)?)
         } else {
             None
         },
         sensors: if trial.world_metrics().is_empty() {
             None
         } else {
-            Some(TableWriter::create(dir, "sensors", schema::sensors())?)
+            Some(open("sensors", schema::sensors(), &mut ignore)?)
         },
         estimates: if plan.export_estimates {
-            Some(TableWriter::create(
-                dir,
+            Some(open(
                 "estimates",
                 crate::score::estimate_columns(&states, &layout.measurement_names()),
+                &mut ignore,
             )?)
         } else {
             None
         },
         bands: BandCache::new(plan.alpha),
-        divergence: (0..plan.scenarios.len() * nf)
-            .map(|_| DivergenceTracker::new(dir, states.len()))
-            .collect(),
+        divergence,
         states,
         cell: None,
         scratch: dir.clone(),
+        checkpoint: opts.checkpoints.as_ref().map(|c| Checkpointer {
+            dir: dir.clone(),
+            every: c.every,
+            last: Instant::now(),
+            index: resume
+                .clone()
+                .unwrap_or_else(|| checkpoint_identity(plan, n_cells, &cells)),
+            boundary: None,
+            first_cell: cells.start,
+        }),
     };
 
     // Unit i ↔ (scenario, scale, run) in scenario-major order, so cells complete in order.
@@ -470,14 +657,25 @@ pub fn run(
         scale: i / n_runs % n_scales,
         run: i % n_runs,
     };
-    let first_unit = cells.start * n_runs;
-    execute::<_, KfmcError>(
-        (cells.end - cells.start) * n_runs,
+    let first_unit = (cells.start + cells_resumed) * n_runs;
+    let executed = execute::<_, KfmcError>(
+        (cells.end - cells.start - cells_resumed) * n_runs,
         opts.threads,
         |i| trial.run(&unit_of(first_unit + i)),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
-    )?;
+    );
+    if let Err(KfmcError::Output(OutputError::Interrupted)) = executed {
+        // Keep every cell that completed: the next `--resume` starts after it.
+        if let Some(done) = agg.write_checkpoint()? {
+            return Err(KfmcError::Output(OutputError::InterruptedCheckpointed {
+                dir: crate::output::checkpoint::dir(dir),
+                cells_done: done,
+                cells: (cells.end - cells.start) as u64,
+            }));
+        }
+    }
+    executed?;
 
     let mut written: Vec<TableWriter> = Vec::new();
     // Divergence points look across every noise scale of a scenario: a part has only some,
@@ -509,13 +707,144 @@ pub fn run(
     let wall_s = started.elapsed().as_secs_f64();
     let manifest = manifest_for(plan, opts, started_unix_s, wall_s, cells.clone());
     let tables = folder.commit(finished, manifest)?;
-    let done = ((cells.end - cells.start) * n_runs) as u64;
+    // Committed: the tables are complete, and a checkpoint of them would only mislead.
+    crate::output::checkpoint::remove(dir)?;
+    let done = ((cells.end - cells.start - cells_resumed) * n_runs) as u64;
     Ok(StudyReport {
         output: dir.clone(),
         tables,
         wall_s,
         runs: done,
+        cells_resumed: cells_resumed as u64,
     })
+}
+
+/// The identity a checkpoint of this run carries, with nothing done yet.
+fn checkpoint_identity(
+    plan: &Plan,
+    n_cells: usize,
+    cells: &std::ops::Range<usize>,
+) -> crate::output::checkpoint::Index {
+    crate::output::checkpoint::Index {
+        kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
+        spec_hash: plan.spec_hash.clone(),
+        master_seed: plan.master_seed,
+        runs_per_cell: plan.runs as u64,
+        cells: n_cells as u64,
+        first_cell: cells.start as u64,
+        end_cell: cells.end as u64,
+        trace_runs: plan.trace_runs as u64,
+        export_estimates: plan.export_estimates,
+        cells_done: 0,
+        tables: Vec::new(),
+    }
+}
+
+/// The checkpoint this run continues from, after applying `opts.checkpoints.existing` to
+/// whatever checkpoint is in `dir`.
+fn existing_checkpoint(
+    plan: &Plan,
+    opts: &ExecOptions,
+    dir: &std::path::Path,
+    n_cells: usize,
+    cells: &std::ops::Range<usize>,
+) -> Result<Option<crate::output::checkpoint::Index>, OutputError> {
+    use crate::output::checkpoint;
+    let Some(c) = &opts.checkpoints else {
+        return Ok(None);
+    };
+    let Some(found) = checkpoint::Index::read(dir)? else {
+        return Ok(None);
+    };
+    let change = found.change_from(&checkpoint_identity(plan, n_cells, cells));
+    let at = checkpoint::dir(dir);
+    match (c.existing, change) {
+        (ExistingCheckpoint::Resume, None) => Ok(Some(found)),
+        (ExistingCheckpoint::Resume, Some(why)) => Err(OutputError::Mismatch {
+            path: at,
+            why: format!(
+                "is a checkpoint of another study: {why}; start over with `kfmc run SPEC --restart`"
+            ),
+        }),
+        (ExistingCheckpoint::Refuse, None) if found.cells_done > 0 => Err(OutputError::Mismatch {
+            path: at,
+            why: format!(
+                "holds the checkpoint of an interrupted run of this study ({} of {} cells complete): continue it with `kfmc run SPEC --resume`, or discard it with `--restart`",
+                found.cells_done,
+                found.end_cell - found.first_cell
+            ),
+        }),
+        _ => {
+            checkpoint::remove(dir)?;
+            Ok(None)
+        }
+    }
+}
+
+/// The position of column `name` in `columns` (a schema kfmc defines).
+fn position(columns: &[crate::output::schema::ColumnDef], name: &str) -> usize {
+    columns
+        .iter()
+        .position(|c| c.name == name)
+        .unwrap_or_else(|| panic!("the schema has a column {name}"))
+}
+
+fn f64_of(v: &Value<'_>) -> Option<f64> {
+    match v {
+        Value::F64(x) => *x,
+        _ => None,
+    }
+}
+
+/// Finds a row's cell from its key columns (scenario, noise scale, filter, q_scale, r_scale).
+struct CellIndex<'a> {
+    plan: &'a Plan,
+}
+
+impl<'a> CellIndex<'a> {
+    fn new(plan: &'a Plan) -> Self {
+        CellIndex { plan }
+    }
+
+    fn bad(&self, dir: &std::path::Path, what: &str) -> OutputError {
+        OutputError::Mismatch {
+            path: crate::output::checkpoint::dir(dir),
+            why: format!(
+                "is a damaged checkpoint: {what}; start over with `kfmc run SPEC --restart`"
+            ),
+        }
+    }
+
+    /// (scenario, noise scale, filter variant) indices of a row keyed by [`cell_key`].
+    fn cell(
+        &self,
+        row: &[Value<'_>],
+        dir: &std::path::Path,
+    ) -> Result<(usize, usize, usize), OutputError> {
+        let p = self.plan;
+        let found = match row {
+            [
+                Value::Str(s),
+                Value::F64(Some(noise)),
+                Value::Str(label),
+                Value::F64(Some(q)),
+                Value::F64(Some(r)),
+                ..,
+            ] => p
+                .scenarios
+                .iter()
+                .position(|x| x.name == *s)
+                .zip(p.noise_scales.iter().position(|x| x == noise))
+                .zip(
+                    p.filters
+                        .iter()
+                        .position(|f| f.label == *label && f.q_scale == *q && f.r_scale == *r),
+                )
+                .map(|((si, scale), fi)| (si, scale, fi)),
+            _ => None,
+        };
+        found.ok_or_else(|| self.bad(dir, "a row names a cell the spec does not have"))
+    }
 }
 
 /// The manifest of a study (or a part, or a simulation) of `plan` over `cells`; the commit

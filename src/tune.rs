@@ -142,6 +142,7 @@ fn stage(
             threads: opts.threads,
             force: false,
             shard: None,
+            checkpoints: None,
         },
         observer,
     )?;

@@ -5,7 +5,8 @@
 //! * 1 — a runtime failure (I/O, an unreadable result folder);
 //! * 2 — an invalid spec or invalid command-line usage;
 //! * 3 — `kfmc check`: the study ran and at least one assertion failed;
-//! * 130 — interrupted by SIGINT or SIGTERM (nothing committed, partial files removed).
+//! * 130 — interrupted by SIGINT or SIGTERM (nothing committed, partial files removed; `kfmc
+//!   run` keeps its checkpoint for `--resume`).
 
 pub mod progress;
 pub mod summary;
@@ -43,7 +44,7 @@ pub struct CheckFailed {
 
 /// kfmc — judge state estimators statistically with seeded Monte Carlo studies.
 #[derive(Debug, Parser)]
-#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed, 130 interrupted (SIGINT/SIGTERM; nothing committed).")]
+#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed, 130 interrupted (SIGINT/SIGTERM; nothing committed; `run --resume` continues).")]
 pub struct Cli {
     /// The command.
     #[command(subcommand)]
@@ -110,6 +111,14 @@ impl StudyArgs {
     }
 }
 
+/// A number of seconds ≥ 0 (clap's value parser for durations).
+fn seconds(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(s) if s.is_finite() && s >= 0.0 => Ok(s),
+        _ => Err(format!("`{text}` is not a number of seconds ≥ 0")),
+    }
+}
+
 /// kfmc's commands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
@@ -133,11 +142,22 @@ pub enum Command {
         /// The number of parts when the index comes from the scheduler's environment.
         #[arg(long, value_name = "N")]
         shards: Option<usize>,
-        /// Run resumably: every cell is committed as a checkpoint and the study merged at the
-        /// end (byte-identical). After a kill or Ctrl-C, the same command continues from the
-        /// committed cells; a checkpoint of a changed spec is refused.
-        #[arg(long, conflicts_with_all = ["shard", "shards"])]
+        /// Continue the interrupted run whose checkpoint is in the output folder: its complete
+        /// cells are kept and the tables come out byte-identical to an uninterrupted run. A
+        /// checkpoint of a changed spec, seed or run count is refused, naming what changed.
+        /// Without a checkpoint, the study runs from the start.
+        #[arg(long, conflicts_with = "restart")]
         resume: bool,
+        /// Discard the checkpoint of an interrupted run and start over.
+        #[arg(long)]
+        restart: bool,
+        /// Least seconds between two checkpoints (one follows each complete cell once this
+        /// much has passed); a kill loses at most this much work plus the cell in progress.
+        #[arg(long, value_name = "SECONDS", default_value_t = 10.0, value_parser = seconds)]
+        checkpoint_every: f64,
+        /// Keep no checkpoint (an interrupted run then starts over).
+        #[arg(long, conflicts_with_all = ["resume", "checkpoint_every"])]
+        no_checkpoint: bool,
         /// Also write every run of kfmc's filters in the estimates exchange format
         /// (`estimates.parquet`: est_*, P_*, nu_*, S_*, A_*), as `kfmc score` reads it.
         #[arg(long)]
@@ -493,7 +513,10 @@ pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
             }
             let code = match e.downcast_ref::<KfmcError>() {
                 Some(KfmcError::Spec(_)) => EXIT_INVALID_SPEC,
-                Some(KfmcError::Output(crate::error::OutputError::Interrupted)) => EXIT_INTERRUPTED,
+                Some(KfmcError::Output(
+                    crate::error::OutputError::Interrupted
+                    | crate::error::OutputError::InterruptedCheckpointed { .. },
+                )) => EXIT_INTERRUPTED,
                 _ => EXIT_FAILURE,
             };
             eprintln!("error: {e:#}");
@@ -538,30 +561,21 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             shard,
             shards,
             resume,
+            restart,
+            checkpoint_every,
+            no_checkpoint,
             export_estimates,
         } => {
-            if resume {
-                let mut plan = study.plan(registry, trace_runs)?;
-                plan.export_estimates = export_estimates;
-                let threads = study.threads(study.quiet);
-                let observer = ProgressObserver::new(!study.quiet);
-                let r = crate::merge::run_resumable(&plan, threads, &observer, registry)
-                    .map_err(anyhow::Error::from)
-                    .map_err(|e| e.context(format!("running {}", study.spec.display())))?;
-                if !study.quiet {
-                    outln!(
-                        "{} cells run, {} reused from the checkpoint, merged → {}",
-                        r.cells_run,
-                        r.cells_reused,
-                        plan.output.display()
-                    );
-                    print_tables(&r.merge.tables);
-                }
-                if plot {
-                    plot_dir(&plan.output, &PlotOptions::default())?;
-                }
-                return Ok(());
-            }
+            let checkpoints = (!no_checkpoint).then(|| crate::study::Checkpoints {
+                every: std::time::Duration::from_secs_f64(checkpoint_every),
+                existing: if resume {
+                    crate::study::ExistingCheckpoint::Resume
+                } else if restart {
+                    crate::study::ExistingCheckpoint::Discard
+                } else {
+                    crate::study::ExistingCheckpoint::Refuse
+                },
+            });
             let shard = shard_arg(&study.spec, shard.as_deref(), shards)?;
             let mut plan = study.plan(registry, trace_runs)?;
             plan.export_estimates = export_estimates;
@@ -576,12 +590,19 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     threads,
                     force,
                     shard,
+                    checkpoints,
                 },
                 &observer,
             )
             .map_err(anyhow::Error::from)
             .map_err(|e| e.context(format!("running {}", spec.display())))?;
             if !quiet {
+                if report.cells_resumed > 0 {
+                    outln!(
+                        "{} cells continued from the checkpoint, not recomputed",
+                        report.cells_resumed
+                    );
+                }
                 outln!(
                     "{} runs in {:.1} s ({:.0} runs/s) → {}",
                     report.runs,
@@ -640,6 +661,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     threads,
                     force: study.force,
                     shard,
+                    checkpoints: None,
                 },
                 &observer,
             )
@@ -711,6 +733,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     threads: if threads == 0 { 0 } else { threads.min(cpus) },
                     force,
                     shard: None,
+                    checkpoints: None,
                 },
                 &observer,
             )
@@ -756,6 +779,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     threads,
                     force: study.force,
                     shard: None,
+                    checkpoints: None,
                 },
                 &observer,
             )
@@ -824,6 +848,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 threads,
                 force,
                 shard: None,
+                checkpoints: None,
             };
             let observer = ProgressObserver::new(!quiet);
             let mut cases = Vec::new();

@@ -285,7 +285,7 @@ impl Resources {
     /// One line for `validate`.
     pub fn describe(&self) -> String {
         format!(
-            "estimated peak memory {}, tables up to {} uncompressed, scratch up to {}, {} filter steps",
+            "estimated peak memory {}, tables up to {} uncompressed (and as much again for the checkpoint of `kfmc run` while it runs), scratch up to {}, {} filter steps",
             human_bytes(self.memory_bytes),
             human_bytes(self.disk_bytes),
             human_bytes(self.scratch_bytes),

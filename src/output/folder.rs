@@ -65,6 +65,7 @@ fn is_kfmc_file(name: &str) -> bool {
         || name == "describe.toml"
         || name.starts_with("tune_")
         || name == "parts"
+        || name == super::checkpoint::CHECKPOINT_DIR
         || name == "slurm"
         || name == "score"
         || name == "power"

@@ -37,6 +37,7 @@ pub const FLUSH_ROWS: usize = 65_536;
 /// Writes one table to `<dir>/.<name>.parquet.partial` and renames it to `<name>.parquet` on
 /// [`TableWriter::commit`]. Dropped without a commit, it deletes its temporary file.
 pub struct TableWriter {
+    name: String,
     path: PathBuf,
     tmp: PathBuf,
     columns: Vec<ColumnDef>,
@@ -44,6 +45,9 @@ pub struct TableWriter {
     buffered: usize,
     rows: u64,
     writer: Option<polars::io::parquet::write::BatchedWriter<File>>,
+    /// The checkpoint journal every pushed row is also appended to, when the study is
+    /// resumable ([`super::checkpoint`]).
+    journal: Option<super::checkpoint::Journal>,
 }
 
 impl TableWriter {
@@ -85,6 +89,7 @@ impl TableWriter {
             })
             .collect();
         Ok(TableWriter {
+            name: name.to_string(),
             path,
             tmp,
             columns,
@@ -92,7 +97,54 @@ impl TableWriter {
             buffered: 0,
             rows: 0,
             writer: Some(writer),
+            journal: None,
         })
+    }
+
+    /// Starts the table as [`TableWriter::create`] does, journaling every row into
+    /// `journal` from now on. With `resume_from = Some((bytes, rows))`, the journal's first
+    /// `bytes` bytes are first replayed into the table, each row also handed to `on_row`, and
+    /// the journal continues after them: the table receives exactly the rows, in the order,
+    /// of the run that wrote the journal.
+    pub(crate) fn journaled(
+        dir: &Path,
+        name: &str,
+        columns: Vec<ColumnDef>,
+        journal: &Path,
+        resume_from: Option<(u64, u64)>,
+        mut on_row: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
+    ) -> Result<Self, OutputError> {
+        let mut w = TableWriter::create(dir, name, columns)?;
+        w.journal = Some(match resume_from {
+            None => super::checkpoint::Journal::create(journal)?,
+            Some((bytes, rows)) => {
+                let columns = w.columns.clone();
+                let replayed = super::checkpoint::replay(journal, bytes, &columns, |row| {
+                    w.push(row)?;
+                    on_row(row)
+                })?;
+                if replayed != rows {
+                    return Err(OutputError::Mismatch {
+                        path: journal.to_path_buf(),
+                        why: format!(
+                            "is a damaged checkpoint journal: it holds {replayed} rows, its checkpoint {rows}; start over with `kfmc run SPEC --restart`"
+                        ),
+                    });
+                }
+                super::checkpoint::Journal::reopen(journal, bytes, rows)?
+            }
+        });
+        Ok(w)
+    }
+
+    /// Makes the journal durable up to the last pushed row; returns its (bytes, rows).
+    pub(crate) fn sync_journal(&mut self) -> Result<Option<(u64, u64)>, OutputError> {
+        self.journal.as_mut().map(|j| j.sync()).transpose()
+    }
+
+    /// The journal's (bytes, rows) after the last pushed row.
+    pub(crate) fn journal_position(&self) -> Option<(u64, u64)> {
+        self.journal.as_ref().map(|j| j.position())
     }
 
     /// Appends one row; values must follow the column order and types.
@@ -118,6 +170,9 @@ impl TableWriter {
                     self.columns[i].name
                 ),
             }
+        }
+        if let Some(j) = self.journal.as_mut() {
+            j.record(row)?;
         }
         self.buffered += 1;
         if self.buffered >= FLUSH_ROWS {
@@ -172,11 +227,7 @@ impl TableWriter {
             source,
         })?;
         Ok(super::folder::FinishedTable {
-            name: self
-                .path
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default(),
+            name: std::mem::take(&mut self.name),
             tmp: std::mem::take(&mut self.tmp),
             rows: self.rows,
         })
@@ -247,6 +298,11 @@ impl TableWriter {
             self.push(&row)?;
         }
         Ok(())
+    }
+
+    /// The table's name (`runs`, `steps`, …).
+    pub fn name(&self) -> &str {
+        &self.name
     }
 
     /// The final path of the table.
