@@ -103,7 +103,10 @@ struct Part {
 }
 
 /// The part folders under `dir/parts`, each verified, in part order; every problem is named.
-fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<(PathBuf, String)>), OutputError> {
+/// A part folder that is not a complete part, and why.
+type Problem = (PathBuf, String);
+
+fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<Problem>), OutputError> {
     let root = dir.join("parts");
     let entries = std::fs::read_dir(&root).map_err(|source| OutputError::Io {
         action: "cannot list the parts in",

@@ -508,6 +508,41 @@ pub fn run(
     let folder = StudyFolder::open(dir, opts.force)?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
     let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
+    let result = run_in(
+        plan,
+        opts,
+        observer,
+        dir,
+        &folder,
+        n_cells,
+        cells,
+        started,
+        started_unix_s,
+    );
+    if result.is_err()
+        && opts.checkpoints.is_some()
+        && matches!(crate::output::checkpoint::Index::read(dir), Ok(None))
+    {
+        // Journals that no index vouches for cannot be resumed: they only take disk (which
+        // may be what ran out).
+        let _ = crate::output::checkpoint::remove(dir);
+    }
+    result
+}
+
+/// [`run`] once the folder is held.
+#[allow(clippy::too_many_arguments)]
+fn run_in(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+    dir: &std::path::Path,
+    folder: &StudyFolder,
+    n_cells: usize,
+    cells: std::ops::Range<usize>,
+    started: Instant,
+    started_unix_s: u64,
+) -> Result<StudyReport, KfmcError> {
     let trial = build(plan);
     let layout = plan.layout();
     let states = layout.quantity_names();
@@ -637,9 +672,9 @@ pub fn run(
         divergence,
         states,
         cell: None,
-        scratch: dir.clone(),
+        scratch: dir.to_path_buf(),
         checkpoint: opts.checkpoints.as_ref().map(|c| Checkpointer {
-            dir: dir.clone(),
+            dir: dir.to_path_buf(),
             every: c.every,
             last: Instant::now(),
             index: resume
@@ -711,7 +746,7 @@ pub fn run(
     crate::output::checkpoint::remove(dir)?;
     let done = ((cells.end - cells.start - cells_resumed) * n_runs) as u64;
     Ok(StudyReport {
-        output: dir.clone(),
+        output: dir.to_path_buf(),
         tables,
         wall_s,
         runs: done,
