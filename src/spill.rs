@@ -37,7 +37,7 @@ pub const COLLECT_CAP: usize = 8_192;
 pub(crate) const DIGIT_BITS: u32 = 11;
 
 /// Read/write buffer of a scratch file.
-const IO_BUFFER: usize = 64 << 10;
+pub(crate) const IO_BUFFER: usize = 64 << 10;
 
 /// Mean, sample standard deviation and quantiles of one column's kept values.
 #[derive(Clone, Debug, PartialEq)]

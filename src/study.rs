@@ -5,9 +5,9 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::{FilterPlan, Plan};
-use crate::metrics::consistency::{BandCache, cell_tests};
+use crate::metrics::consistency::{BandCache, ConsistencyFold};
 use crate::metrics::divergence::DivergenceTracker;
-use crate::metrics::{RunConsistency, RunStatus, StepAccumulator};
+use crate::metrics::{RunStatus, StepAccumulator};
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::{Manifest, QuantityEntry};
 use crate::output::{TableWriter, Value, schema};
@@ -111,10 +111,9 @@ const LEVELS: [f64; 3] = [0.05, 0.50, 0.95];
 /// The per-cell state while its runs are being folded.
 struct CellState {
     acc: Vec<StepAccumulator>,
-    /// Per filter: the runs' consistency sums (when the study asks for the tests).
-    consistency: Vec<Vec<RunConsistency>>,
-    /// Per filter: the run index of each entry of `consistency` (for the subset tests).
-    consistency_runs: Vec<Vec<usize>>,
+    /// Per filter: the runs' consistency sums folded for the whole cell and each subset
+    /// (when the study asks for the tests), in bounded memory.
+    consistency: Vec<ConsistencyFold>,
     /// Per filter: RMSE rows of the runs that completed (failures excluded), in bounded
     /// memory for the exact quantiles of the summary.
     rmse: Vec<Spill>,
@@ -176,14 +175,23 @@ impl Aggregator<'_> {
             .is_none_or(|(s, j, _)| (*s, *j) != (scenario, scale))
         {
             let steps = self.trial.steps(scenario);
+            // The whole cell, then each subset: its first N runs.
+            let consistency_bounds: Vec<usize> = std::iter::once(usize::MAX)
+                .chain(
+                    plan.consistency
+                        .iter()
+                        .flat_map(|c| c.subsets.iter().map(|s| s.0)),
+                )
+                .collect();
             self.cell = Some((
                 scenario,
                 scale,
                 CellState {
                     acc: vec![StepAccumulator::new(nx, steps); nf],
                     rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
-                    consistency: vec![Vec::new(); nf],
-                    consistency_runs: vec![Vec::new(); nf],
+                    consistency: (0..nf)
+                        .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))
+                        .collect(),
                     failed: vec![0; nf],
                     world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
                 },
@@ -214,8 +222,7 @@ impl Aggregator<'_> {
             self.runs.push(&row)?;
             cell.acc[fi].fold(&fr.steps);
             if let Some(c) = &fr.consistency {
-                cell.consistency[fi].push(c.clone());
-                cell.consistency_runs[fi].push(run);
+                cell.consistency[fi].push(run, c)?;
             }
             if failed {
                 cell.failed[fi] += 1;
@@ -398,26 +405,17 @@ impl Aggregator<'_> {
             }
             if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency.as_ref()) {
                 let frac = |i: u64, n: u64| (n > 0).then(|| i as f64 / n as f64);
-                let all = &cell.consistency[fi];
                 // The whole cell at the study's α, then each subset: its first N runs at its α
                 // (the per-step fractions are descriptive and kept for the whole cell only).
                 let mut evaluations = vec![(
-                    all.as_slice(),
                     cp.alpha,
                     (frac(nees_in, nees_steps), frac(nis_in, nis_steps)),
                 )];
-                for &(n_runs, alpha) in &cp.subsets {
-                    let upto = cell.consistency_runs[fi].partition_point(|&r| r < n_runs);
-                    evaluations.push((&all[..upto], alpha, (None, None)));
-                }
-                for (runs, alpha, inside) in evaluations {
-                    // Steps of 1..K dropped before the sums start (step 0, the prior itself,
-                    // is never a test step): 0 when every step counts.
-                    let burn_in = runs
-                        .iter()
-                        .map(|r| r.first_step)
-                        .try_fold(0usize, |m, s| s.map(|s| m.max(s.saturating_sub(1))));
-                    for t in cell_tests(runs, self.states.len(), &self.states, alpha, inside) {
+                evaluations.extend(cp.subsets.iter().map(|&(_, alpha)| (alpha, (None, None))));
+                let folded = cell.consistency[fi].finish()?;
+                for (sums, (alpha, inside)) in folded.into_iter().zip(evaluations) {
+                    let burn_in = sums.burn_in();
+                    for t in sums.tests(&self.states, alpha, inside) {
                         let mut row = cell_key(sname, noise, f).to_vec();
                         row.extend([
                             Value::Str(&t.test),
@@ -429,7 +427,7 @@ impl Aggregator<'_> {
                             Value::Bool(Some(t.pass)),
                             Value::Str(t.direction.map_or("", |d| d.label())),
                             Value::F64(Some(alpha)),
-                            Value::I64(Some(runs.len() as i64)),
+                            Value::I64(Some(sums.runs() as i64)),
                             Value::I64(burn_in.map(|b| b as i64)),
                         ]);
                         w.push(&row)?;

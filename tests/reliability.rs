@@ -329,11 +329,11 @@ fn absurd_plans_are_refused_before_anything_runs() {
             "duration_s = 1e9",
             &["scenarios[0].duration_s", "at most 10000000"],
         ),
-        // Runs alone no longer cost memory (per-run values spill to scratch files), but the
-        // consistency tests' per-run sums still do.
+        // Runs no longer cost memory (per-run values spill to scratch files, the consistency
+        // tests fold their sums), but steps per run do: every unit in flight holds them.
         (
-            "runs = 100000000\n[consistency]\nalpha = 0.05",
-            "",
+            "runs = 100",
+            "duration_s = 100000.0",
             &["(plan)", "memory", "--allow-large"],
         ),
         (

@@ -265,8 +265,9 @@ pub struct Resources {
     pub memory_bytes: u128,
     /// Uncompressed size of the tables, bytes (an upper estimate of the disk they take).
     pub disk_bytes: u128,
-    /// Largest scratch file space alive at once (one cell's per-run values beyond what is
-    /// kept in memory, see [`crate::spill`]), bytes; freed when the cell is summarised.
+    /// Largest scratch file space alive at once, bytes: one cell's per-run values beyond what
+    /// is kept in memory (see [`crate::spill`]), freed when the cell is summarised, and the
+    /// divergence trackers' per-run crossings, freed when the tables are written.
     pub scratch_bytes: u128,
 }
 
@@ -385,15 +386,24 @@ impl Plan {
             + nf * max_k.div_ceil(5) * nq * 320
             + spill_rows.min(runs) * 8 * spilled_cols
             + select;
-        // What still grows with the runs, and only when asked for: the consistency tests'
-        // per-run sums, and per (scenario, filter) the runs' divergence crossings.
-        let consistency = self
-            .consistency
-            .as_ref()
-            .map_or(0, |_| nf * runs * (16 * nq + 320));
-        let divergence = self.rmse_thresholds.as_ref().map_or(0, |_| {
-            self.scenarios.len() as u128 * nf * (runs * 16 * nq + scales * 16 * nq)
+        // Only when asked for, and bounded like the spills: per filter, the consistency tests'
+        // per-run rows (NEES average and a normalised error per state; the sums of each
+        // evaluation are a few hundred bytes); per (scenario, filter), a divergence tracker's
+        // crossings in memory, the previous scale's being read while the current is written.
+        let consistency_cols = 1 + nq;
+        let consistency = self.consistency.as_ref().map_or(0, |c| {
+            nf * (spill_rows.min(runs) * 8 * consistency_cols
+                + (1 + c.subsets.len() as u128) * (256 + 16 * c.whiteness_lags as u128 + 16 * nq))
         });
+        let trackers = self
+            .rmse_thresholds
+            .as_ref()
+            .map_or(0, |_| self.scenarios.len() as u128 * nf);
+        let tracker_rows = crate::metrics::divergence::TRACKER_ROWS as u128;
+        let io_buffer = crate::spill::IO_BUFFER as u128;
+        // …and, while the divergence tables are written, one state's values for the quantiles.
+        let divergence = trackers * 2 * (tracker_rows.min(runs) * 8 * nq + io_buffer)
+            + (trackers > 0) as u128 * spill_rows.min(runs) * 8;
         let row = |cols: u128| cols * 8 + 32;
         // The tables' row buffers: one row group each (runs, steps, summary, traces).
         let writers = crate::output::FLUSH_ROWS as u128
@@ -401,7 +411,12 @@ impl Plan {
                 + row(3 * nq + 16)
                 + row(12)
                 + (self.trace_runs > 0) as u128 * row(nq * (nq + 5) / 2 + nz + nu + 8));
-        let scratch = runs.saturating_sub(spill_rows) * 8 * spilled_cols;
+        // The scratch files alive at once: one cell's spills beyond their buffers, and every
+        // tracker's crossings (current and previous scale) until the tables are written.
+        let scratch = runs.saturating_sub(spill_rows)
+            * 8
+            * (spilled_cols + self.consistency.is_some() as u128 * nf * consistency_cols)
+            + trackers * 2 * runs.saturating_sub(tracker_rows) * 8 * nq;
         let disk = cells * nf * runs * row(nq + 12)
             + cells * nf * max_k * row(3 * nq + 16)
             + cells * nf * 64 * row(12)

@@ -23,10 +23,13 @@
 //! (2001), §5.4 (NEES/NIS tests, whiteness test).
 
 use std::collections::HashMap;
+use std::path::Path;
 
 use statrs::distribution::{ChiSquared, ContinuousCDF, Normal, StudentsT};
 
 use super::RunConsistency;
+use crate::error::OutputError;
+use crate::spill::{SPILL_ROWS, Spill};
 
 /// A two-sided acceptance interval.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -200,6 +203,19 @@ pub fn t_test(
     let nf = n as f64;
     let mean = values.iter().sum::<f64>() / nf;
     let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (nf - 1.0);
+    t_test_of(test, nf, mean, var, mu, alpha, high_is_optimistic)
+}
+
+/// The t-test of `nf` (≥ 2) values with this mean and sample variance.
+fn t_test_of(
+    test: &str,
+    nf: f64,
+    mean: f64,
+    var: f64,
+    mu: f64,
+    alpha: f64,
+    high_is_optimistic: bool,
+) -> Option<TestResult> {
     let se = (var / nf).sqrt();
     let t = if se > 0.0 { (mean - mu) / se } else { 0.0 };
     let crit = t_quantile(1.0 - alpha / 2.0, nf - 1.0)?;
@@ -248,6 +264,9 @@ pub fn test_names(state_names: &[&str]) -> Vec<String> {
 ///
 /// `steps_inside` are the fractions of steps whose ANEES / ANIS lie in their per-step bands
 /// (descriptive: pass when ≥ 1 − α, but no false-alarm rate is claimed for them).
+///
+/// The runs are read twice (the t-tests' variances are about the mean); a study folds its
+/// runs into a [`ConsistencyFold`] instead, which gives the same tests in bounded memory.
 pub fn cell_tests(
     runs: &[RunConsistency],
     n: usize,
@@ -255,166 +274,416 @@ pub fn cell_tests(
     alpha: f64,
     steps_inside: (Option<f64>, Option<f64>),
 ) -> Vec<TestResult> {
-    let mut out = Vec::new();
-    let runs: Vec<&RunConsistency> = runs.iter().filter(|r| r.nees_n > 0).collect();
-    if runs.is_empty() {
-        return out;
+    let mut sums = CellSums::new(n, state_names.len());
+    for r in runs {
+        sums.push(r);
     }
-    let nf = n as f64;
-    let nees_n: u64 = runs.iter().map(|r| r.nees_n).sum();
-    let nees_sum: f64 = runs.iter().map(|r| r.nees_sum).sum();
-    let a_bar = nees_sum / nees_n as f64;
+    let mut row = vec![0.0; sums.row_width()];
+    for r in runs {
+        if CellSums::per_run_row(r, &mut row) {
+            sums.push_deviations(&row);
+        }
+    }
+    sums.tests(state_names, alpha, steps_inside)
+}
 
-    // NEES, run-and-time average with effective dof ν = N·K·n/ρ.
-    let rho: Option<f64> = runs
-        .iter()
-        .map(|r| r.rho_sum.map(|s| 1.0 + 2.0 * s / (nf * r.nees_n as f64)))
-        .sum::<Option<f64>>()
-        .map(|s| s / runs.len() as f64);
-    let nees = rho.and_then(|rho| {
-        scaled_chi2_test(
-            "nees_time_average",
-            a_bar,
-            nf,
-            nf * nees_n as f64 / rho,
+/// The sums over one evaluation's runs that the tests of [`cell_tests`] need, folded one run
+/// at a time in run order, in memory independent of the number of runs.
+///
+/// Runs without NEES steps (`nees_n = 0`) count in [`CellSums::runs`] and the burn-in but in
+/// no test. Every sum has the terms of [`cell_tests`]'s in the same order and starts where
+/// `Iterator::sum` does (−0.0), so the tests are bit-identical.
+///
+/// The t-tests (`nees_run_average_t`, `bias_<state>`) need the sum of squared deviations of
+/// per-run values from their mean, known only after the last run: a second pass gives
+/// [`CellSums::push_deviations`] each counted run's [`CellSums::per_run_row`] again, in the
+/// same order ([`ConsistencyFold`] keeps those rows in a [`Spill`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CellSums {
+    /// State dimension (the NEES dof per step).
+    n: usize,
+    runs: usize,
+    burn_in: Option<usize>,
+    /// Runs with `nees_n > 0`: those the tests use.
+    used: usize,
+    nees_n: u64,
+    nees_sum: f64,
+    /// Σ ρ_r over the runs, `None` once a run has no error transition.
+    rho: Option<f64>,
+    nis_n: u64,
+    nis_dof: u64,
+    nis_sum: f64,
+    /// Σ initial NEES, `None` once a run has none.
+    initial: Option<f64>,
+    w_sq: f64,
+    /// Per lag, sized by the first counted run.
+    lag_prod: Option<Vec<f64>>,
+    lag_pairs: Vec<u64>,
+    /// Per [`CellSums::per_run_row`] column: Σ over the runs.
+    per_run_sum: Vec<f64>,
+    /// Per column: Σ (value − mean)², from the second pass.
+    deviations: Vec<f64>,
+    /// Per column: the mean the deviations are taken from (set by the first deviation row).
+    means: Vec<f64>,
+    deviation_rows: usize,
+}
+
+impl CellSums {
+    /// No runs yet, for `n` states of which `bias_states` get a bias test (the first ones).
+    pub fn new(n: usize, bias_states: usize) -> Self {
+        CellSums {
+            n,
+            runs: 0,
+            burn_in: Some(0),
+            used: 0,
+            nees_n: 0,
+            nees_sum: -0.0,
+            rho: Some(-0.0),
+            nis_n: 0,
+            nis_dof: 0,
+            nis_sum: -0.0,
+            initial: Some(-0.0),
+            w_sq: -0.0,
+            lag_prod: None,
+            lag_pairs: Vec::new(),
+            per_run_sum: vec![-0.0; 1 + bias_states],
+            deviations: vec![-0.0; 1 + bias_states],
+            means: Vec::new(),
+            deviation_rows: 0,
+        }
+    }
+
+    /// Width of a [`CellSums::per_run_row`]: the run's NEES average, then each bias state's
+    /// average normalised error.
+    pub fn row_width(&self) -> usize {
+        self.per_run_sum.len()
+    }
+
+    /// Runs pushed, counted or not (the `runs` column).
+    pub fn runs(&self) -> usize {
+        self.runs
+    }
+
+    /// Steps of 1..K dropped before the sums start (step 0, the prior itself, is never a test
+    /// step): the largest over the runs, 0 when every step counts, `None` when some run never
+    /// forgot its prior.
+    pub fn burn_in(&self) -> Option<usize> {
+        self.burn_in
+    }
+
+    /// Adds one run (first pass), in run order.
+    pub fn push(&mut self, r: &RunConsistency) {
+        self.runs += 1;
+        self.burn_in = self
+            .burn_in
+            .and_then(|m| r.first_step.map(|s| m.max(s.saturating_sub(1))));
+        if r.nees_n == 0 {
+            return;
+        }
+        self.used += 1;
+        let nf = self.n as f64;
+        self.nees_n += r.nees_n;
+        self.nees_sum += r.nees_sum;
+        // NEES effective dof: ρ_r = 1 + (2/(n·K_r)) Σ tr(P⁻¹W), averaged over the runs.
+        self.rho = self.rho.and_then(|a| {
+            r.rho_sum
+                .map(|s| a + (1.0 + 2.0 * s / (nf * r.nees_n as f64)))
+        });
+        self.nis_n += r.nis_n;
+        self.nis_dof += r.nis_dof;
+        self.nis_sum += r.nis_sum;
+        self.initial = self.initial.and_then(|a| r.initial_nees.map(|x| a + x));
+        self.w_sq += r.w_sq;
+        let prod = self.lag_prod.get_or_insert_with(|| {
+            self.lag_pairs = vec![0; r.lag_prod.len()];
+            vec![-0.0; r.lag_prod.len()]
+        });
+        for (a, x) in prod.iter_mut().zip(&r.lag_prod) {
+            *a += x;
+        }
+        for (a, x) in self.lag_pairs.iter_mut().zip(&r.lag_pairs) {
+            *a += x;
+        }
+        let k = r.nees_n as f64;
+        self.per_run_sum[0] += r.nees_sum / k;
+        for (a, e) in self.per_run_sum[1..].iter_mut().zip(&r.nme_sum) {
+            *a += e / k;
+        }
+    }
+
+    /// Writes the run's per-run values into `row` ([`CellSums::row_width`] long); `false`
+    /// (and `row` untouched) for a run the tests do not count.
+    pub fn per_run_row(r: &RunConsistency, row: &mut [f64]) -> bool {
+        if r.nees_n == 0 {
+            return false;
+        }
+        let k = r.nees_n as f64;
+        row[0] = r.nees_sum / k;
+        for (v, e) in row[1..].iter_mut().zip(&r.nme_sum) {
+            *v = e / k;
+        }
+        true
+    }
+
+    /// Adds one counted run's row (second pass, after every run was pushed, in run order).
+    pub fn push_deviations(&mut self, row: &[f64]) {
+        if self.deviation_rows == 0 {
+            let m = self.used as f64;
+            self.means = self.per_run_sum.iter().map(|s| s / m).collect();
+        }
+        self.deviation_rows += 1;
+        for ((d, v), mean) in self.deviations.iter_mut().zip(row).zip(&self.means) {
+            *d += (v - mean).powi(2);
+        }
+    }
+
+    /// The t-test of per-run column `c`, as [`t_test`] of the values gives it.
+    fn t_test(&self, c: usize, test: &str, mu: f64, alpha: f64) -> Option<TestResult> {
+        if self.used < 2 {
+            return None;
+        }
+        assert_eq!(
+            self.deviation_rows, self.used,
+            "the second pass gives every counted run's row"
+        );
+        let m = self.used as f64;
+        let mean = self.per_run_sum[c] / m;
+        t_test_of(
+            test,
+            m,
+            mean,
+            self.deviations[c] / (m - 1.0),
+            mu,
             alpha,
+            true,
         )
-    });
-    out.extend(nees.clone());
+    }
 
-    // NIS, exact: Σ NIS ~ χ²(Σ p).
-    let nis_n: u64 = runs.iter().map(|r| r.nis_n).sum();
-    let nis_dof: u64 = runs.iter().map(|r| r.nis_dof).sum();
-    let nis = (nis_n > 0 && nis_dof > 0)
-        .then(|| {
-            let nis_sum: f64 = runs.iter().map(|r| r.nis_sum).sum();
-            let p_bar = nis_dof as f64 / nis_n as f64;
+    /// Every test of the runs pushed, the verdict last; see [`cell_tests`].
+    pub fn tests(
+        &self,
+        state_names: &[&str],
+        alpha: f64,
+        steps_inside: (Option<f64>, Option<f64>),
+    ) -> Vec<TestResult> {
+        let mut out = Vec::new();
+        if self.used == 0 {
+            return out;
+        }
+        let nf = self.n as f64;
+        let a_bar = self.nees_sum / self.nees_n as f64;
+
+        // NEES, run-and-time average with effective dof ν = N·K·n/ρ.
+        let rho = self.rho.map(|s| s / self.used as f64);
+        let nees = rho.and_then(|rho| {
             scaled_chi2_test(
-                "nis_time_average",
-                nis_sum / nis_n as f64,
-                p_bar,
-                nis_dof as f64,
+                "nees_time_average",
+                a_bar,
+                nf,
+                nf * self.nees_n as f64 / rho,
                 alpha,
             )
-        })
-        .flatten();
-    out.extend(nis.clone());
+        });
+        out.extend(nees.clone());
 
-    // The initial estimate: N independent x̂_0 errors, so Σ NEES_0 ~ χ²(N·n) exactly.
-    let initial: Option<Vec<f64>> = runs.iter().map(|r| r.initial_nees).collect();
-    if let Some(v) = initial {
-        let mean = v.iter().sum::<f64>() / v.len() as f64;
-        out.extend(scaled_chi2_test(
-            "initial_nees",
-            mean,
-            nf,
-            nf * v.len() as f64,
-            alpha,
-        ));
-    }
+        // NIS, exact: Σ NIS ~ χ²(Σ p).
+        let nis = (self.nis_n > 0 && self.nis_dof > 0)
+            .then(|| {
+                let p_bar = self.nis_dof as f64 / self.nis_n as f64;
+                scaled_chi2_test(
+                    "nis_time_average",
+                    self.nis_sum / self.nis_n as f64,
+                    p_bar,
+                    self.nis_dof as f64,
+                    alpha,
+                )
+            })
+            .flatten();
+        out.extend(nis.clone());
 
-    // Model-free NEES check: runs are independent, so a t-test of their averages is valid.
-    let per_run: Vec<f64> = runs.iter().map(|r| r.nees_sum / r.nees_n as f64).collect();
-    out.extend(t_test("nees_run_average_t", &per_run, nf, alpha, true));
+        // The initial estimate: N independent x̂_0 errors, so Σ NEES_0 ~ χ²(N·n) exactly.
+        if let Some(sum) = self.initial {
+            let mean = sum / self.used as f64;
+            out.extend(scaled_chi2_test(
+                "initial_nees",
+                mean,
+                nf,
+                nf * self.used as f64,
+                alpha,
+            ));
+        }
 
-    for (name, frac) in [
-        ("anees_steps_inside", steps_inside.0),
-        ("anis_steps_inside", steps_inside.1),
-    ] {
-        if let Some(f) = frac {
+        // Model-free NEES check: runs are independent, so a t-test of their averages is valid.
+        out.extend(self.t_test(0, "nees_run_average_t", nf, alpha));
+
+        for (name, frac) in [
+            ("anees_steps_inside", steps_inside.0),
+            ("anis_steps_inside", steps_inside.1),
+        ] {
+            if let Some(f) = frac {
+                out.push(TestResult {
+                    test: name.into(),
+                    statistic: f,
+                    lower: Some(1.0 - alpha),
+                    upper: None,
+                    dof: None,
+                    p_value: None,
+                    pass: f >= 1.0 - alpha,
+                    direction: None,
+                });
+            }
+        }
+
+        // Whiteness: z_l = Σ wᵀw_{+l}/√pairs ~ N(0, 1) per lag; Bonferroni over the lags.
+        let lag_prod = self.lag_prod.as_deref().unwrap_or(&[]);
+        let lags = lag_prod.len();
+        let w_sq = self.w_sq;
+        if lags > 0 && w_sq > 0.0 {
+            let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
+            let mut worst: Option<(f64, f64, f64)> = None; // (|z|, ρ, ρ bound)
+            for (&prod, &pairs) in lag_prod.iter().zip(&self.lag_pairs) {
+                if pairs == 0 {
+                    continue;
+                }
+                let z = prod / (pairs as f64).sqrt();
+                let rho_l = prod / w_sq;
+                let bound = crit * (pairs as f64).sqrt() / w_sq;
+                if worst.is_none_or(|(wz, _, _)| z.abs() > wz) {
+                    worst = Some((z.abs(), rho_l, bound));
+                }
+            }
+            if let Some((z, rho_l, bound)) = worst {
+                out.push(TestResult {
+                    test: "innovation_whiteness".into(),
+                    statistic: rho_l,
+                    lower: Some(-bound),
+                    upper: Some(bound),
+                    dof: Some(lags as f64),
+                    p_value: Some((normal_two_sided_p(z) * lags as f64).min(1.0)),
+                    pass: z <= crit,
+                    direction: None,
+                });
+            }
+        }
+
+        // Bias: per state, the per-run mean normalised error e/√P_ii is N(0, ·) across runs.
+        for (i, state) in state_names.iter().enumerate().take(self.row_width() - 1) {
+            if let Some(mut t) = self.t_test(1 + i, &format!("bias_{state}"), 0.0, alpha) {
+                t.direction = None;
+                out.push(t);
+            }
+        }
+
+        // The verdict: both calibrated tests at α/2 (Bonferroni) ⇒ false-alarm rate ≤ α. A
+        // filter without an error transition (a marginal of a larger state, say) has no
+        // calibrated NEES test; with N ≥ 20 runs the model-free run-average t-test, valid for
+        // any filter, stands in for it.
+        let nees = nees.or_else(|| {
+            (self.used >= 20)
+                .then(|| out.iter().find(|t| t.test == "nees_run_average_t").cloned())
+                .flatten()
+        });
+        if let (Some(a), Some(b)) = (&nees, &nis) {
+            let (pa, pb) = (a.p_value.unwrap_or(0.0), b.p_value.unwrap_or(0.0));
+            let pass = pa > alpha / 2.0 && pb > alpha / 2.0;
+            // The failing test's side of its band's centre (its expected value) says which way.
+            let side = |t: &TestResult| {
+                let centre = (t.lower.unwrap_or(0.0) + t.upper.unwrap_or(0.0)) / 2.0;
+                if t.statistic > centre {
+                    Direction::Optimistic
+                } else {
+                    Direction::Pessimistic
+                }
+            };
+            let p = pa.min(pb);
+            let direction = (!pass).then(|| if pa <= pb { side(a) } else { side(b) });
             out.push(TestResult {
-                test: name.into(),
-                statistic: f,
-                lower: Some(1.0 - alpha),
+                test: VERDICT.into(),
+                statistic: p,
+                lower: Some(alpha / 2.0),
                 upper: None,
                 dof: None,
-                p_value: None,
-                pass: f >= 1.0 - alpha,
-                direction: None,
+                p_value: Some((2.0 * pa.min(pb)).min(1.0)),
+                pass,
+                direction,
             });
         }
+        out
+    }
+}
+
+/// One cell and filter's consistency evaluations — the whole cell, then each subset of its
+/// first N runs — folded run by run: a [`CellSums`] per evaluation and the per-run rows of
+/// the second pass in a [`Spill`] shared by all (a subset's counted runs are the first rows),
+/// so memory does not grow with the runs.
+pub struct ConsistencyFold {
+    /// Per evaluation: it counts the runs with index below this bound.
+    evaluations: Vec<(usize, CellSums)>,
+    rows: Spill,
+    row: Vec<f64>,
+    next_run: usize,
+}
+
+impl ConsistencyFold {
+    /// Evaluations of the runs below each bound of `run_bounds` (`usize::MAX`: all), for `n`
+    /// states of which `bias_states` are bias-tested; scratch space (if any) goes into `dir`.
+    pub fn new(dir: &Path, n: usize, bias_states: usize, run_bounds: &[usize]) -> Self {
+        Self::with_capacity(dir, n, bias_states, run_bounds, SPILL_ROWS)
     }
 
-    // Whiteness: z_l = Σ wᵀw_{+l}/√pairs ~ N(0, 1) per lag; Bonferroni over the lags.
-    let lags = runs[0].lag_prod.len();
-    let w_sq: f64 = runs.iter().map(|r| r.w_sq).sum();
-    if lags > 0 && w_sq > 0.0 {
-        let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
-        let mut worst: Option<(f64, f64, f64)> = None; // (|z|, ρ, ρ bound)
-        for l in 0..lags {
-            let prod: f64 = runs.iter().map(|r| r.lag_prod[l]).sum();
-            let pairs: u64 = runs.iter().map(|r| r.lag_pairs[l]).sum();
-            if pairs == 0 {
-                continue;
-            }
-            let z = prod / (pairs as f64).sqrt();
-            let rho_l = prod / w_sq;
-            let bound = crit * (pairs as f64).sqrt() / w_sq;
-            if worst.is_none_or(|(wz, _, _)| z.abs() > wz) {
-                worst = Some((z.abs(), rho_l, bound));
-            }
-        }
-        if let Some((z, rho_l, bound)) = worst {
-            out.push(TestResult {
-                test: "innovation_whiteness".into(),
-                statistic: rho_l,
-                lower: Some(-bound),
-                upper: Some(bound),
-                dof: Some(lags as f64),
-                p_value: Some((normal_two_sided_p(z) * lags as f64).min(1.0)),
-                pass: z <= crit,
-                direction: None,
-            });
-        }
-    }
-
-    // Bias: per state, the per-run mean normalised error e/√P_ii is N(0, ·) across runs.
-    for (i, state) in state_names.iter().enumerate() {
-        let v: Vec<f64> = runs
-            .iter()
-            .map(|r| r.nme_sum[i] / r.nees_n as f64)
-            .collect();
-        if let Some(mut t) = t_test(&format!("bias_{state}"), &v, 0.0, alpha, true) {
-            t.direction = None;
-            out.push(t);
+    /// As [`ConsistencyFold::new`], keeping at most `cap_rows` rows in memory (tests use a
+    /// small one).
+    pub fn with_capacity(
+        dir: &Path,
+        n: usize,
+        bias_states: usize,
+        run_bounds: &[usize],
+        cap_rows: usize,
+    ) -> Self {
+        let sums = CellSums::new(n, bias_states);
+        let width = sums.row_width();
+        ConsistencyFold {
+            evaluations: run_bounds.iter().map(|&b| (b, sums.clone())).collect(),
+            rows: Spill::with_capacity(dir, width, cap_rows),
+            row: vec![0.0; width],
+            next_run: 0,
         }
     }
 
-    // The verdict: both calibrated tests at α/2 (Bonferroni) ⇒ false-alarm rate ≤ α. A filter
-    // without an error transition (a marginal of a larger state, say) has no calibrated NEES
-    // test; with N ≥ 20 runs the model-free run-average t-test, valid for any filter, stands
-    // in for it.
-    let nees = nees.or_else(|| {
-        (runs.len() >= 20)
-            .then(|| out.iter().find(|t| t.test == "nees_run_average_t").cloned())
-            .flatten()
-    });
-    if let (Some(a), Some(b)) = (&nees, &nis) {
-        let (pa, pb) = (a.p_value.unwrap_or(0.0), b.p_value.unwrap_or(0.0));
-        let pass = pa > alpha / 2.0 && pb > alpha / 2.0;
-        // The failing test's side of its band's centre (its expected value) says which way.
-        let side = |t: &TestResult| {
-            let centre = (t.lower.unwrap_or(0.0) + t.upper.unwrap_or(0.0)) / 2.0;
-            if t.statistic > centre {
-                Direction::Optimistic
-            } else {
-                Direction::Pessimistic
+    /// Adds run `run`'s sums; runs come in increasing order.
+    pub fn push(&mut self, run: usize, r: &RunConsistency) -> Result<(), OutputError> {
+        debug_assert!(run >= self.next_run, "runs are folded in order");
+        self.next_run = run + 1;
+        for (bound, sums) in &mut self.evaluations {
+            if run < *bound {
+                sums.push(r);
             }
-        };
-        let p = pa.min(pb);
-        let direction = (!pass).then(|| if pa <= pb { side(a) } else { side(b) });
-        out.push(TestResult {
-            test: VERDICT.into(),
-            statistic: p,
-            lower: Some(alpha / 2.0),
-            upper: None,
-            dof: None,
-            p_value: Some((2.0 * pa.min(pb)).min(1.0)),
-            pass,
-            direction,
-        });
+        }
+        if CellSums::per_run_row(r, &mut self.row) {
+            self.rows.push(&self.row)?;
+        }
+        Ok(())
     }
-    out
+
+    /// The evaluations' sums, in the order of the bounds, after the second pass (which
+    /// leaves none behind).
+    pub fn finish(&mut self) -> Result<Vec<CellSums>, OutputError> {
+        let evaluations = &mut self.evaluations;
+        let mut at = 0usize;
+        self.rows.for_each_row(|row| {
+            for (_, sums) in evaluations.iter_mut() {
+                if at < sums.used {
+                    sums.push_deviations(row);
+                }
+            }
+            at += 1;
+            Ok(())
+        })?;
+        Ok(std::mem::take(&mut self.evaluations)
+            .into_iter()
+            .map(|(_, s)| s)
+            .collect())
+    }
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use crate::spill::{Spill, SpillReader};
 
 /// Rows of crossings a tracker keeps in memory per pass before it writes to its scratch file;
 /// small, as every (scenario, filter) has a tracker alive until the tables are written.
-const TRACKER_ROWS: usize = 4_096;
+pub(crate) const TRACKER_ROWS: usize = 4_096;
 
 /// Tracks the first crossing per (run, state) and for the Monte Carlo mean, for one
 /// (scenario, filter), in memory independent of the runs: the runs' crossings so far are a
