@@ -30,7 +30,20 @@ impl<const N: usize> SmallCholesky<N> {
     /// Factors `a` (only its lower triangle is read); `None` unless numerically SPD.
     #[inline]
     pub fn new(a: &Matrix<N, N>) -> Option<Self> {
-        let mut l = Matrix::<N, N>::zeros();
+        let mut c = SmallCholesky {
+            l: Matrix::<N, N>::zeros(),
+        };
+        c.factor(a).then_some(c)
+    }
+
+    /// Factors `a` into `self` in place (the same factor as [`SmallCholesky::new`]); returns
+    /// whether `a` is numerically SPD. The step loop keeps one factor and refactors it every
+    /// step, so the 8·N² bytes of the factor are not moved out of an `Option` each time.
+    /// After `false`, `self` holds a partial factor and must be refactored before use. Only
+    /// the lower triangle is written, so the upper one stays as it was (zero, from `new`).
+    #[inline]
+    pub fn factor(&mut self, a: &Matrix<N, N>) -> bool {
+        let l = &mut self.l;
         for j in 0..N {
             let mut d = a[(j, j)];
             for k in 0..j {
@@ -38,7 +51,7 @@ impl<const N: usize> SmallCholesky<N> {
             }
             // Rejects NaN too: a NaN pivot is neither positive nor comparable.
             if d.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
-                return None;
+                return false;
             }
             let djj = d.sqrt();
             l[(j, j)] = djj;
@@ -50,7 +63,14 @@ impl<const N: usize> SmallCholesky<N> {
                 l[(i, j)] = v / djj;
             }
         }
-        Some(SmallCholesky { l })
+        true
+    }
+
+    /// A factor to refactor with [`SmallCholesky::factor`] (L = 0, not a valid factor).
+    pub fn unfactored() -> Self {
+        SmallCholesky {
+            l: Matrix::<N, N>::zeros(),
+        }
     }
 
     /// L⁻¹ v by forward substitution.
@@ -166,20 +186,31 @@ pub fn select_rows<const NX: usize, const NZ: usize>(
     Matrix::<NZ, NX>::from_fn(|l, c| p[(sel[l], c)])
 }
 
-/// I − K H for H the row selection `sel` (the dense result: each entry is 1 or 0 minus the
-/// same sum of entries of K, in the same order).
+/// I − K H for H the row selection `sel`, written into `out` (the dense result: each entry is
+/// 1 or 0 minus the same sum of entries of K, in the same order). In place, because the EKF
+/// keeps it in its belief and a returned 8·NX² byte matrix is copied there every update.
 #[inline]
 pub fn select_i_kh<const NX: usize, const NZ: usize>(
     k: &Matrix<NX, NZ>,
     sel: &[usize; NZ],
-) -> Matrix<NX, NX> {
-    let mut kh = Matrix::<NX, NX>::zeros();
+    out: &mut Matrix<NX, NX>,
+) {
+    out.fill_with_identity();
     for (l, &j) in sel.iter().enumerate() {
+        // A state selected twice: its column sums both columns of K, in order.
+        if sel[..l].contains(&j) {
+            continue;
+        }
         for i in 0..NX {
-            kh[(i, j)] += k[(i, l)];
+            let mut kh = 0.0;
+            for (m, &jm) in sel.iter().enumerate().skip(l) {
+                if jm == j {
+                    kh += k[(i, m)];
+                }
+            }
+            out[(i, j)] = if i == j { 1.0 } else { 0.0 } - kh;
         }
     }
-    Matrix::<NX, NX>::identity() - kh
 }
 
 /// P ← (I − K H) P for H the row selection `sel`, given `i_kh` = I − K H: the dense

@@ -180,6 +180,12 @@ pub trait Evaluate<const NX: usize, const NQ: usize>: Sync {
     fn mean(&self, x: &Vector<NX>) -> Vector<NQ>;
     /// Their covariance: the marginal block, or G P Gᵀ with G = ∂g/∂x at x̂.
     fn covariance(&self, x: &Vector<NX>, p: &Matrix<NX, NX>) -> Matrix<NQ, NQ>;
+    /// The covariance by reference when it *is* `p` (the identity evaluation): the step loop
+    /// then reads the filter's P without copying it. `None` (the default): the loop forms
+    /// [`Evaluate::covariance`].
+    fn covariance_ref<'p>(&self, _p: &'p Matrix<NX, NX>) -> Option<&'p Matrix<NQ, NQ>> {
+        None
+    }
     /// The error transition in quantity space, when it exists. The calibrated NEES verdict
     /// and the burn-in rule need it; only an identity evaluation has one (a marginal of a
     /// larger state does not evolve on its own), others leave the model-free test.
@@ -198,6 +204,10 @@ impl<const N: usize> Evaluate<N, N> for Identity {
     #[inline]
     fn covariance(&self, _x: &Vector<N>, p: &Matrix<N, N>) -> Matrix<N, N> {
         *p
+    }
+    #[inline]
+    fn covariance_ref<'p>(&self, p: &'p Matrix<N, N>) -> Option<&'p Matrix<N, N>> {
+        Some(p)
     }
     #[inline]
     fn transition(&self, a: &Matrix<N, N>) -> Option<Matrix<N, N>> {
@@ -391,29 +401,34 @@ where
     let mut g = opts.filter(|o| o.burn_in).map(|_| p0_q);
     let mut p_prev = p0_q;
 
+    // The quantities' covariance when it cannot be borrowed from the belief, and P's factor:
+    // both live across steps, so neither is moved out of a return value every step.
+    let mut p_own = p0_q;
+    let mut chol = SmallCholesky::<NQ>::unfactored();
+
     for k in 0..=steps {
         let mut nis = f64::NAN;
-        let mut innovation = None;
-        if k > 0 {
+        let innovation = if k > 0 {
             let u = &ctx.inputs[k];
             let step = filter
                 .predict(model, &mut belief, u)
                 .and_then(|()| filter.update(model, &mut belief, u, &ctx.measurements[k]));
             match step {
-                Ok(Some(inn)) => {
-                    if let Some(x) = export.as_mut() {
-                        record_innovation(x, k, &inn);
-                    }
-                    nis = inn.nis;
-                    values.nis_dof[k] = inn.dof as u8;
-                    innovation = Some(inn);
-                }
-                Ok(None) => {}
+                Ok(inn) => inn,
                 Err(e) => {
                     failure = Some((k, e.to_string()));
                     break;
                 }
             }
+        } else {
+            None
+        };
+        if let Some(inn) = &innovation {
+            if let Some(x) = export.as_mut() {
+                record_innovation(x, k, inn);
+            }
+            nis = inn.nis;
+            values.nis_dof[k] = inn.dof as u8;
         }
         let x = filter.mean(&belief);
         let mean = eval.mean(&x);
@@ -422,28 +437,30 @@ where
             e[i] = wrap_angle(e[i], degrees);
         }
         let mut nees = f64::NAN;
-        if let Some(p) = filter.covariance(&belief) {
-            // The quantities' covariance, formed once per step (after a repair, the repaired
-            // one): NEES, the consistency sums and the trace all read this one value.
-            let mut p_now = eval.covariance(&x, &p);
-            let chol = match SmallCholesky::new(&p_now) {
-                Some(c) => Some(c),
-                None if filter.repair_covariance(&mut belief) => {
-                    repairs += 1;
-                    filter.covariance(&belief).and_then(|p| {
-                        p_now = eval.covariance(&x, &p);
-                        SmallCholesky::new(&p_now)
-                    })
-                }
-                None => None,
-            };
-            let Some(chol) = chol else {
+        // The quantities' covariance, formed once per step (after a repair, the repaired
+        // one): NEES, the consistency sums and the trace all read this one value.
+        let mut factored = quantity_covariance(model, filter, eval, &belief, &x, &mut p_own)
+            .map(|p| chol.factor(p));
+        if factored == Some(false) && filter.repair_covariance(&mut belief) {
+            repairs += 1;
+            factored = Some(
+                quantity_covariance(model, filter, eval, &belief, &x, &mut p_own)
+                    .is_some_and(|p| chol.factor(p)),
+            );
+        }
+        if let Some(ok) = factored {
+            if !ok {
                 let err = FilterError::NotPositiveDefinite {
                     which: "state covariance P",
                 };
                 failure = Some((k, err.to_string()));
                 break;
-            };
+            }
+            // Formed above: borrowed from the belief, or in `p_own`.
+            let p_now = filter
+                .covariance_ref(&belief)
+                .and_then(|p| eval.covariance_ref(p))
+                .unwrap_or(&p_own);
             nees = chol.inverse_quadratic_form(&e);
             if k > 0 && opts.is_some() {
                 let a = filter
@@ -461,7 +478,7 @@ where
                 {
                     w.observe(
                         &chol,
-                        &p_now,
+                        p_now,
                         &p_prev,
                         a.as_ref(),
                         &e,
@@ -472,7 +489,7 @@ where
                 }
             }
             if opts.is_some() {
-                p_prev = p_now;
+                p_prev = *p_now;
             }
             if let Some(cov) = cov.as_mut() {
                 let row = &mut cov[k * ntri..(k + 1) * ntri];
@@ -527,6 +544,45 @@ where
         trace: est.zip(cov),
         export,
     }
+}
+
+/// The quantities' covariance of a belief: borrowed when the filter holds P and the
+/// evaluation is the identity, otherwise formed into `own`; `None` without a covariance.
+#[inline(always)]
+fn quantity_covariance<
+    'a,
+    const NX: usize,
+    const NU: usize,
+    const NZ: usize,
+    const NQ: usize,
+    M,
+    F,
+    E,
+>(
+    _model: &M,
+    filter: &F,
+    eval: &E,
+    belief: &'a F::Belief,
+    x: &Vector<NX>,
+    own: &'a mut Matrix<NQ, NQ>,
+) -> Option<&'a Matrix<NQ, NQ>>
+where
+    M: Model<NX, NU, NZ>,
+    F: Filter<NX, NU, NZ, M>,
+    E: Evaluate<NX, NQ>,
+{
+    if let Some(p) = filter.covariance_ref(belief) {
+        return Some(match eval.covariance_ref(p) {
+            Some(q) => q,
+            None => {
+                *own = eval.covariance(x, p);
+                own
+            }
+        });
+    }
+    let p = filter.covariance(belief)?;
+    *own = eval.covariance(x, &p);
+    Some(own)
 }
 
 /// Writes ν_k and S_k's lower triangle over the reporting components into an export.

@@ -151,11 +151,11 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let k = chol.solve(&hp).transpose();
         let whitened = chol.solve_lower(&nu);
         b.x += k * nu;
-        b.i_kh = match (&selection, &dense) {
-            (Some(sel), _) => select_i_kh(&k, sel),
-            (None, Some((h, _))) => Matrix::<NX, NX>::identity() - k * h,
+        match (&selection, &dense) {
+            (Some(sel), _) => select_i_kh(&k, sel, &mut b.i_kh),
+            (None, Some((h, _))) => b.i_kh = Matrix::<NX, NX>::identity() - k * h,
             (None, None) => unreachable!("the dense path keeps its H"),
-        };
+        }
         b.updated = true;
         match (self.update_form, &selection) {
             (CovarianceUpdate::Standard, Some(sel)) => select_product(&b.i_kh, sel, &mut b.p),
@@ -177,6 +177,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 
     fn covariance(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
         Some(b.p)
+    }
+
+    fn covariance_ref<'b>(&self, b: &'b Gaussian<NX>) -> Option<&'b Matrix<NX, NX>> {
+        Some(&b.p)
     }
 
     fn error_transition(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {

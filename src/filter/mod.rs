@@ -183,6 +183,16 @@ pub trait Filter<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX,
     /// The estimate's covariance P_k, or `None` when the filter carries none.
     fn covariance(&self, belief: &Self::Belief) -> Option<Matrix<NX, NX>>;
 
+    /// P_k by reference, when the belief holds it as a matrix. The step loop reads P_k every
+    /// step (NEES, consistency sums, traces); borrowing it saves copying 8·NX² bytes out of
+    /// the belief each time. `None` (the default) makes the loop call
+    /// [`Filter::covariance`] instead, so a filter that forms P_k on demand (from a square
+    /// root, an information matrix) needs nothing here. A filter that returns `Some` must
+    /// return the matrix [`Filter::covariance`] returns.
+    fn covariance_ref<'b>(&self, _belief: &'b Self::Belief) -> Option<&'b Matrix<NX, NX>> {
+        None
+    }
+
     /// A_k, the matrix that maps the previous estimation error into the current one to first
     /// order: (I − K_k H_k) F_k after an update, F_k after a prediction alone. The calibrated
     /// NEES test and the burn-in rule need it; filters without one return `None`.

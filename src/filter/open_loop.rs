@@ -56,6 +56,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         Some(b.p)
     }
 
+    fn covariance_ref<'b>(&self, b: &'b Gaussian<NX>) -> Option<&'b Matrix<NX, NX>> {
+        Some(&b.p)
+    }
+
     fn error_transition(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
         Filter::<NX, NU, NZ, M>::error_transition(&self.predictor, b)
     }

@@ -452,6 +452,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         Some(b.p)
     }
 
+    fn covariance_ref<'b>(&self, b: &'b SigmaBelief<NX, NZ>) -> Option<&'b Matrix<NX, NX>> {
+        Some(&b.p)
+    }
+
     fn error_transition(&self, b: &SigmaBelief<NX, NZ>) -> Option<Matrix<NX, NX>> {
         let f = times_l_inverse(&b.f_l, &b.l_prev)?;
         let Some((k, h_l, l)) = &b.gain else {

@@ -193,6 +193,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         Some(b.p)
     }
 
+    fn covariance_ref<'b>(&self, b: &'b FixedGainBelief<NX>) -> Option<&'b Matrix<NX, NX>> {
+        Some(&b.p)
+    }
+
     fn error_transition(&self, b: &FixedGainBelief<NX>) -> Option<Matrix<NX, NX>> {
         let d = self.dare.as_ref().ok()?;
         Some(if b.updated {

@@ -143,6 +143,10 @@ impl<const NX: usize, M: Nav<NX>> Filter<NX, NU, NZ, M> for SeqEkf {
         Some(b.p)
     }
 
+    fn covariance_ref<'b>(&self, b: &'b NavBelief<NX>) -> Option<&'b Matrix<NX, NX>> {
+        Some(&b.p)
+    }
+
     fn error_transition(&self, b: &NavBelief<NX>) -> Option<Matrix<NX, NX>> {
         Some(b.a)
     }

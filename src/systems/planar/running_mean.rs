@@ -39,17 +39,31 @@ impl WindowBelief {
     fn push(&mut self, z: Vector<3>) {
         let cap = self.ring.len();
         self.ring[self.next] = z;
-        self.next = (self.next + 1) % cap;
+        self.next += 1;
+        if self.next == cap {
+            self.next = 0;
+        }
         self.len = (self.len + 1).min(cap);
     }
 
     /// Mean of the window, summed oldest first as MATLAB's `mean` over the rows does.
     fn mean(&self) -> Vector<3> {
+        // The oldest sample first, as before: the ring split at `start` into its two runs
+        // (no integer division per sample; the sum's order, and so its bits, is unchanged).
         let cap = self.ring.len();
-        let start = (self.next + cap - self.len) % cap;
+        let start = if self.next >= self.len {
+            self.next - self.len
+        } else {
+            self.next + cap - self.len
+        };
+        let (tail, head) = if start + self.len <= cap {
+            (&self.ring[start..start + self.len], &self.ring[..0])
+        } else {
+            (&self.ring[start..], &self.ring[..start + self.len - cap])
+        };
         let mut sum = Vector::<3>::zeros();
-        for i in 0..self.len {
-            sum += self.ring[(start + i) % cap];
+        for z in tail.iter().chain(head) {
+            sum += z;
         }
         sum / self.len as f64
     }
