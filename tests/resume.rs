@@ -213,6 +213,32 @@ fn a_study_killed_at_several_moments_resumes_to_the_uninterrupted_tables() {
         resumed_somewhere,
         "no kill landed between the first and the last cell"
     );
+
+    // A resume killed in its turn: the next resume continues from the later checkpoint.
+    let out = s.out("twice");
+    let mut child = s.start(&out, &[]);
+    wait_for_checkpoint(&mut child, &out, 1);
+    let _ = child.kill();
+    let _ = child.wait();
+    let first = checkpointed(&out);
+    let mut child = s.start(&out, &["--resume"]);
+    wait_for_checkpoint(&mut child, &out, first + 2);
+    let _ = child.kill();
+    let _ = child.wait();
+    eprintln!(
+        "killed twice: {first} cells kept, then {} after the killed resume",
+        checkpointed(&out)
+    );
+    let (code, _, err) = run(&[
+        "run",
+        s.spec(),
+        "-q",
+        "--resume",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(tables(&out), want, "resumed after two kills");
 }
 
 #[test]

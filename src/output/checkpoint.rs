@@ -112,7 +112,14 @@ impl Index {
             path: path.clone(),
             message: format!("cannot encode the checkpoint index: {e}"),
         })?;
-        super::folder::write_atomic(&path, text.as_bytes()).map_err(io("cannot write", &path))
+        super::folder::write_atomic(&path, text.as_bytes()).map_err(io("cannot write", &path))?;
+        // write_atomic made the index's and the journals' entries durable in the checkpoint
+        // folder; the folder's own entry in the output folder must be too, or a power cut
+        // could lose the whole checkpoint.
+        if let Ok(d) = File::open(output) {
+            let _ = d.sync_all();
+        }
+        Ok(())
     }
 
     /// What differs between this checkpoint's study and `other`'s, first difference first;
