@@ -302,6 +302,8 @@ fn sigint_checkpoints_the_complete_cells_and_the_resume_is_identical() {
             }
             // Before the first cell was complete: nothing to keep.
             Some(130) => assert!(err.contains("interrupted"), "{err}"),
+            // Killed by the signal's default action, before kfmc installed its handler.
+            None => {}
             // After the last: the study committed.
             code => assert_eq!(code, Some(0), "{err}"),
         }
