@@ -428,7 +428,14 @@ impl Plan {
         Resources {
             runs: cells * runs,
             filter_steps: sum_k.saturating_sub(self.scenarios.len() as u128) * scales * runs * nf,
-            memory_bytes: (64 << 20) + executor + writers + cell + consistency + divergence,
+            // The checkpoint's write buffers: one per journaled table, at most seven.
+            memory_bytes: (64 << 20)
+                + 7 * crate::output::checkpoint::JOURNAL_BUFFER_BYTES as u128
+                + executor
+                + writers
+                + cell
+                + consistency
+                + divergence,
             disk_bytes: disk,
             scratch_bytes: scratch,
         }

@@ -29,6 +29,9 @@ pub const CHECKPOINT_DIR: &str = ".checkpoint";
 /// The index's file name inside [`CHECKPOINT_DIR`].
 const INDEX_FILE: &str = "index.toml";
 
+/// Each journal's write buffer: rows reach the file in blocks this large.
+pub const JOURNAL_BUFFER_BYTES: usize = 1 << 20;
+
 /// How an F64 null is journaled: NaN, which the table writes as null too.
 const NULL_F64: u64 = 0x7ff8_0000_0000_0000;
 
@@ -243,7 +246,7 @@ impl Journal {
 
     fn around(file: File, path: &Path, bytes: u64, rows: u64) -> Self {
         Journal {
-            file: BufWriter::with_capacity(1 << 20, file),
+            file: BufWriter::with_capacity(JOURNAL_BUFFER_BYTES, file),
             path: path.to_path_buf(),
             bytes,
             rows,
