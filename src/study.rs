@@ -294,17 +294,16 @@ impl Aggregator<'_> {
         let Some(first_cell) = self.checkpoint.as_ref().map(|c| c.first_cell) else {
             return Ok(());
         };
-        let tables = self
-            .journaled_tables()
-            .filter_map(|w| {
-                w.journal_position()
-                    .map(|(bytes, rows)| crate::output::checkpoint::JournalEntry {
-                        name: w.name().to_string(),
-                        bytes,
-                        rows,
-                    })
-            })
-            .collect();
+        let mut tables = Vec::new();
+        for w in self.journaled_tables() {
+            if let Some((bytes, rows)) = w.end_journal_frame()? {
+                tables.push(crate::output::checkpoint::JournalEntry {
+                    name: w.name().to_string(),
+                    bytes,
+                    rows,
+                });
+            }
+        }
         let c = self.checkpoint.as_mut().expect("checked above");
         c.boundary = Some(((end_cell - first_cell) as u64, tables));
         if c.last.elapsed() >= c.every {
@@ -768,6 +767,7 @@ fn checkpoint_identity(
         end_cell: cells.end as u64,
         trace_runs: plan.trace_runs as u64,
         export_estimates: plan.export_estimates,
+        journal_format: crate::output::checkpoint::JOURNAL_FORMAT,
         cells_done: 0,
         tables: Vec::new(),
     }

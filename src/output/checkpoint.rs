@@ -2,8 +2,9 @@
 //!
 //! A table's Parquet file cannot be reopened once its writer is gone (its footer is written
 //! last), so the durable state is kept beside it: every row a [`super::TableWriter`] receives
-//! is also appended to that table's **journal**, a plain binary log of the row's values in
-//! column order. At a checkpoint (after a cell, at most every `--checkpoint-every` seconds)
+//! is also appended to that table's **journal**, a binary log of the row's values in column
+//! order, compressed as one zstd frame per cell (so that every cell boundary is a byte offset
+//! a resume can cut at). At a checkpoint (after a cell, at most every `--checkpoint-every` seconds)
 //! the journals are flushed and fsynced, then [`Index`] — which cells are complete and how
 //! many journal bytes hold them — replaces the previous one atomically. A kill at any moment
 //! therefore leaves an index that vouches only for bytes on disk.
@@ -14,7 +15,7 @@
 //! so an uninterrupted run pays only for writing its rows a second time, unencoded.
 
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Seek, Write};
+use std::io::{BufRead, BufReader, BufWriter, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -31,6 +32,13 @@ const INDEX_FILE: &str = "index.toml";
 
 /// Each journal's write buffer: rows reach the file in blocks this large.
 pub const JOURNAL_BUFFER_BYTES: usize = 1 << 20;
+
+/// The journals' format: zstd frames of rows. An index of another format is refused.
+pub const JOURNAL_FORMAT: u32 = 1;
+
+/// zstd's level for the journals: its fastest regular level, as the journal is written once
+/// and read only by a resume.
+const JOURNAL_ZSTD_LEVEL: i32 = 1;
 
 /// How an F64 null is journaled: NaN, which the table writes as null too.
 const NULL_F64: u64 = 0x7ff8_0000_0000_0000;
@@ -85,6 +93,9 @@ pub struct Index {
     pub trace_runs: u64,
     /// Whether estimates.parquet is written.
     pub export_estimates: bool,
+    /// [`JOURNAL_FORMAT`] of the journals (0: an index from before the field existed).
+    #[serde(default)]
+    pub journal_format: u32,
     /// Cells complete, counted from `first_cell`.
     pub cells_done: u64,
     /// Every journaled table.
@@ -129,6 +140,12 @@ impl Index {
     /// `None` when a resume may continue it.
     pub fn change_from(&self, other: &Index) -> Option<String> {
         let mut changes = [
+            (self.journal_format != other.journal_format).then(|| {
+                format!(
+                    "its journals are in format {} (this kfmc writes {})",
+                    self.journal_format, other.journal_format
+                )
+            }),
             (self.kfmc_version != other.kfmc_version).then(|| {
                 format!(
                     "it was written by kfmc {} (this is {})",
@@ -201,11 +218,31 @@ pub fn remove(output: &Path) -> Result<(), OutputError> {
     }
 }
 
+/// A writer that counts the bytes it passed on: the journal's length at a frame's end.
+struct Counted {
+    inner: BufWriter<File>,
+    bytes: u64,
+}
+
+impl Write for Counted {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.bytes += n as u64;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
 /// An append-only log of one table's rows.
 pub struct Journal {
-    file: BufWriter<File>,
+    /// The frame being written, if a row came since the last frame's end.
+    frame: Option<zstd::stream::write::Encoder<'static, Counted>>,
+    /// The file between frames.
+    idle: Option<Counted>,
     path: PathBuf,
-    bytes: u64,
     rows: u64,
     scratch: Vec<u8>,
 }
@@ -246,9 +283,12 @@ impl Journal {
 
     fn around(file: File, path: &Path, bytes: u64, rows: u64) -> Self {
         Journal {
-            file: BufWriter::with_capacity(JOURNAL_BUFFER_BYTES, file),
+            frame: None,
+            idle: Some(Counted {
+                inner: BufWriter::with_capacity(JOURNAL_BUFFER_BYTES, file),
+                bytes,
+            }),
             path: path.to_path_buf(),
-            bytes,
             rows,
             scratch: Vec::with_capacity(256),
         }
@@ -277,27 +317,43 @@ impl Journal {
                 Value::Bool(x) => b.push(x.map_or(0, |x| 1 + x as u8)),
             }
         }
-        self.file
+        let frame = match self.frame.as_mut() {
+            Some(f) => f,
+            None => {
+                let out = self.idle.take().expect("idle between frames");
+                let enc = zstd::stream::write::Encoder::new(out, JOURNAL_ZSTD_LEVEL)
+                    .map_err(io("cannot start compressing", &self.path))?;
+                self.frame.insert(enc)
+            }
+        };
+        frame
             .write_all(b)
             .map_err(io("cannot append to", &self.path))?;
-        self.bytes += b.len() as u64;
         self.rows += 1;
         Ok(())
     }
 
-    /// Flushes and fsyncs everything recorded so far; returns the durable (bytes, rows).
+    /// Ends the frame in progress, so that the journal can be cut here; returns its (bytes,
+    /// rows) at this point (durable only after [`Journal::sync`]).
+    pub fn end_frame(&mut self) -> Result<(u64, u64), OutputError> {
+        if let Some(frame) = self.frame.take() {
+            let out = frame.finish().map_err(io("cannot append to", &self.path))?;
+            self.idle = Some(out);
+        }
+        let bytes = self.idle.as_ref().expect("idle after a frame").bytes;
+        Ok((bytes, self.rows))
+    }
+
+    /// Ends the frame in progress, flushes and fsyncs; returns the durable (bytes, rows).
     pub fn sync(&mut self) -> Result<(u64, u64), OutputError> {
-        self.file.flush().map_err(io("cannot write", &self.path))?;
-        self.file
+        let at = self.end_frame()?;
+        let out = self.idle.as_mut().expect("idle after a frame");
+        out.inner.flush().map_err(io("cannot write", &self.path))?;
+        out.inner
             .get_ref()
             .sync_data()
             .map_err(io("cannot sync", &self.path))?;
-        Ok((self.bytes, self.rows))
-    }
-
-    /// Bytes and rows recorded so far (durable or not).
-    pub fn position(&self) -> (u64, u64) {
-        (self.bytes, self.rows)
+        Ok(at)
     }
 }
 
@@ -319,13 +375,16 @@ pub fn replay(
     mut f: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
 ) -> Result<u64, OutputError> {
     let file = File::open(path).map_err(io("cannot open the checkpoint journal", path))?;
-    let mut r = BufReader::with_capacity(1 << 20, file.take(bytes));
-    let mut read_exact = |buf: &mut [u8]| -> Result<(), OutputError> {
+    let decoder = zstd::stream::read::Decoder::new(file.take(bytes))
+        .map_err(io("cannot start decompressing", path))?;
+    let mut r = BufReader::with_capacity(1 << 16, decoder);
+    let undecodable = |e: std::io::Error| damaged(path, format!("cannot be decoded ({e})"));
+    let read_exact = |r: &mut BufReader<_>, buf: &mut [u8]| -> Result<(), OutputError> {
         r.read_exact(buf).map_err(|e| {
             if e.kind() == std::io::ErrorKind::UnexpectedEof {
                 damaged(path, format!("ends inside a row before byte {bytes}"))
             } else {
-                io("cannot read", path)(e)
+                undecodable(e)
             }
         })
     };
@@ -334,55 +393,49 @@ pub fn replay(
     let mut spans: Vec<(usize, usize)> = Vec::new();
     let mut decoded: Vec<Value<'static>> = Vec::with_capacity(columns.len());
     let mut done = 0u64;
-    let mut consumed = 0u64;
     let mut u8b = [0u8; 1];
     let mut u32b = [0u8; 4];
     let mut u64b = [0u8; 8];
-    while consumed < bytes {
+    // Rows until the stream ends at a row's start.
+    while !r.fill_buf().map_err(undecodable)?.is_empty() {
         text.clear();
         spans.clear();
         decoded.clear();
         for c in columns {
             let v = match c.dtype {
                 Dtype::Str => {
-                    read_exact(&mut u32b)?;
+                    read_exact(&mut r, &mut u32b)?;
                     let n = u32::from_le_bytes(u32b) as usize;
                     let mut s = vec![0u8; n];
-                    read_exact(&mut s)?;
+                    read_exact(&mut r, &mut s)?;
                     let s = String::from_utf8(s).map_err(|_| {
                         damaged(path, format!("has a column {} that is not UTF-8", c.name))
                     })?;
                     spans.push((text.len(), text.len() + n));
                     text.push_str(&s);
-                    consumed += 4 + n as u64;
                     // Filled in below, once `text` no longer grows.
                     Value::Str("")
                 }
                 Dtype::F64 => {
-                    read_exact(&mut u64b)?;
-                    consumed += 8;
+                    read_exact(&mut r, &mut u64b)?;
                     let x = f64::from_bits(u64::from_le_bytes(u64b));
                     Value::F64((!x.is_nan()).then_some(x))
                 }
                 Dtype::I64 => {
-                    read_exact(&mut u8b)?;
-                    consumed += 1;
+                    read_exact(&mut r, &mut u8b)?;
                     if u8b[0] == 0 {
                         Value::I64(None)
                     } else {
-                        read_exact(&mut u64b)?;
-                        consumed += 8;
+                        read_exact(&mut r, &mut u64b)?;
                         Value::I64(Some(i64::from_le_bytes(u64b)))
                     }
                 }
                 Dtype::U64 => {
-                    read_exact(&mut u64b)?;
-                    consumed += 8;
+                    read_exact(&mut r, &mut u64b)?;
                     Value::U64(u64::from_le_bytes(u64b))
                 }
                 Dtype::Bool => {
-                    read_exact(&mut u8b)?;
-                    consumed += 1;
+                    read_exact(&mut r, &mut u8b)?;
                     Value::Bool(match u8b[0] {
                         0 => None,
                         1 => Some(false),
@@ -527,10 +580,17 @@ mod tests {
             .unwrap()
             .to_string();
         assert!(err.contains("damaged checkpoint journal"), "{err}");
-        let err = replay(&path, bytes + 5, &cols(), |_| Ok(()))
+        // Bytes lost inside the frame the checkpoint vouches for.
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .unwrap()
+            .set_len(bytes - 3)
+            .unwrap();
+        let err = replay(&path, bytes, &cols(), |_| Ok(()))
             .err()
             .unwrap()
             .to_string();
-        assert!(err.contains("ends inside a row"), "{err}");
+        assert!(err.contains("damaged checkpoint journal"), "{err}");
     }
 }

@@ -142,9 +142,10 @@ impl TableWriter {
         self.journal.as_mut().map(|j| j.sync()).transpose()
     }
 
-    /// The journal's (bytes, rows) after the last pushed row.
-    pub(crate) fn journal_position(&self) -> Option<(u64, u64)> {
-        self.journal.as_ref().map(|j| j.position())
+    /// Ends the journal's frame after the last pushed row (a cell boundary); returns its
+    /// (bytes, rows) there.
+    pub(crate) fn end_journal_frame(&mut self) -> Result<Option<(u64, u64)>, OutputError> {
+        self.journal.as_mut().map(|j| j.end_frame()).transpose()
     }
 
     /// Appends one row; values must follow the column order and types.
