@@ -7,16 +7,8 @@ mod common;
 
 use std::path::Path;
 
-use common::{kfmc, read};
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = kfmc().args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
+use common::read;
+use common::run_cli as run;
 
 /// Two filters on the linear quadrotor, 3 steps a run: cheap enough for 70,000 runs.
 fn spec(out: &Path, runs: usize) -> String {

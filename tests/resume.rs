@@ -11,6 +11,8 @@ use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
 use common::kfmc;
+use common::run_cli as run;
+use common::table_bytes as tables;
 
 /// Six cells (two scenarios × three noise scales) with every journaled table: runs, steps,
 /// summary, traces and consistency, and divergence points rebuilt across the cells.
@@ -46,31 +48,6 @@ alpha = 0.05
 "#;
 
 const CELLS: u64 = 6;
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = kfmc().args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
-
-fn tables(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
-        .map(|p| {
-            (
-                p.file_name().unwrap().to_string_lossy().into_owned(),
-                std::fs::read(&p).unwrap(),
-            )
-        })
-        .collect();
-    v.sort();
-    v
-}
 
 /// Cells the checkpoint in `out` vouches for (0 without one).
 fn checkpointed(out: &Path) -> u64 {
@@ -128,13 +105,16 @@ impl Study {
     }
 }
 
-/// Waits until the checkpoint in `out` holds at least `cells` cells (or the run ended).
-fn wait_for_checkpoint(child: &mut Child, out: &Path, cells: u64) {
+/// SIGKILLs `child` once the checkpoint in `out` holds at least `cells` cells (or the run
+/// ended).
+fn kill_after_checkpoint(child: &mut Child, out: &Path, cells: u64) {
     let deadline = Instant::now() + Duration::from_secs(120);
     while checkpointed(out) < cells && child.try_wait().unwrap().is_none() {
         assert!(Instant::now() < deadline, "no checkpoint of {cells} cells");
         std::thread::sleep(Duration::from_millis(5));
     }
+    let _ = child.kill();
+    let _ = child.wait();
 }
 
 fn signal(child: &Child, name: &str) {
@@ -168,9 +148,7 @@ fn a_study_killed_at_several_moments_resumes_to_the_uninterrupted_tables() {
     for at in [0u64, 1, 3, 5] {
         let out = s.out(&format!("killed{at}"));
         let mut child = s.start(&out, &[]);
-        wait_for_checkpoint(&mut child, &out, at);
-        let _ = child.kill();
-        let _ = child.wait();
+        kill_after_checkpoint(&mut child, &out, at);
         let kept = checkpointed(&out);
         // Resumed on two threads: the thread count changes nothing.
         let (code, stdout, err) = run(&[
@@ -217,14 +195,10 @@ fn a_study_killed_at_several_moments_resumes_to_the_uninterrupted_tables() {
     // A resume killed in its turn: the next resume continues from the later checkpoint.
     let out = s.out("twice");
     let mut child = s.start(&out, &[]);
-    wait_for_checkpoint(&mut child, &out, 1);
-    let _ = child.kill();
-    let _ = child.wait();
+    kill_after_checkpoint(&mut child, &out, 1);
     let first = checkpointed(&out);
     let mut child = s.start(&out, &["--resume"]);
-    wait_for_checkpoint(&mut child, &out, first + 2);
-    let _ = child.kill();
-    let _ = child.wait();
+    kill_after_checkpoint(&mut child, &out, first + 2);
     eprintln!(
         "killed twice: {first} cells kept, then {} after the killed resume",
         checkpointed(&out)
@@ -337,9 +311,7 @@ fn a_checkpoint_is_neither_overwritten_silently_nor_continued_for_another_study(
     let out = s.out("o");
     let o = out.to_str().unwrap();
     let mut child = s.start(&out, &[]);
-    wait_for_checkpoint(&mut child, &out, 2);
-    let _ = child.kill();
-    let _ = child.wait();
+    kill_after_checkpoint(&mut child, &out, 2);
     let kept = checkpointed(&out);
     assert!((2..CELLS).contains(&kept), "the run ended before the kill");
     let (code, stdout, err) = run(&["status", o]);
@@ -481,9 +453,7 @@ fn a_killed_shard_resumes_to_the_part_it_would_have_written() {
     let part = |root: &Path| root.join("parts/part-00001-of-00002");
     let out = s.out("killed");
     let mut child = s.start(&out, &["--shard", "1/2"]);
-    wait_for_checkpoint(&mut child, &part(&out), 1);
-    let _ = child.kill();
-    let _ = child.wait();
+    kill_after_checkpoint(&mut child, &part(&out), 1);
     let kept = checkpointed(&part(&out));
     let (_, stdout, _) = run(&["status", out.to_str().unwrap()]);
     if kept > 0 {

@@ -4,9 +4,8 @@
 
 mod common;
 
-use std::path::Path;
-
-use common::kfmc;
+use common::run_cli as run;
+use common::table_bytes as tables;
 
 const SPEC: &str = r#"
 name = "sharded"
@@ -38,31 +37,6 @@ p0_std = 0.01
 [consistency]
 alpha = 0.05
 "#;
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o = kfmc().args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into_owned(),
-        String::from_utf8_lossy(&o.stderr).into_owned(),
-    )
-}
-
-fn tables(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
-        .map(|p| {
-            (
-                p.file_name().unwrap().to_string_lossy().into_owned(),
-                std::fs::read(&p).unwrap(),
-            )
-        })
-        .collect();
-    v.sort();
-    v
-}
 
 #[test]
 fn merged_parts_are_byte_identical_to_one_process_for_any_part_count() {
