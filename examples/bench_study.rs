@@ -655,6 +655,8 @@ fn main() {
     let mut scale: f64 = 1.0;
     let mut rounds = 5;
     let mut cases: Vec<String> = Vec::new();
+    // `--only kfmc|kernel` times one side alone (for a profiler); no ratio is reported.
+    let mut only: Option<String> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -666,6 +668,7 @@ fn main() {
                     .expect("--rounds N")
             }
             "--case" => cases.push(args.next().expect("--case NAME")),
+            "--only" => only = Some(args.next().expect("--only kfmc|kernel")),
             other => panic!("unknown argument {other}; use --scale F, --rounds N, --case NAME"),
         }
     }
@@ -742,6 +745,10 @@ fn main() {
         let mut checksum = 0.0;
         for _ in 0..rounds {
             let _ = std::fs::remove_dir_all(&out);
+            if only.as_deref() == Some("kernel") {
+                checksum += black_box(k());
+                continue;
+            }
             let (wl, cl) = timed(|| {
                 black_box(
                     run(
@@ -757,6 +764,9 @@ fn main() {
                     .expect("study"),
                 );
             });
+            if only.as_deref() == Some("kfmc") {
+                continue;
+            }
             let (wk, ck) = timed(|| checksum += black_box(k()));
             wall.push(wl / wk);
             cpu.push(cl / ck);
@@ -764,6 +774,10 @@ fn main() {
             tl.push(wl);
             ck_all.push(ck);
             cl_all.push(cl);
+        }
+        if only.is_some() {
+            println!("{}: {rounds} rounds of one side only (checksum {checksum:.3e})", case.name);
+            continue;
         }
         let (w, w0, w1) = median_range(wall);
         let (c, c0, c1) = median_range(cpu);
