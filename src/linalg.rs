@@ -129,29 +129,86 @@ impl<const N: usize> SmallCholesky<N> {
 /// fixed-size product accumulates over the inner index in ascending order), with the zero
 /// terms left out, so the result is the dense result: a sparse F costs its non-zeros, not N³.
 /// P is overwritten in place (no 8·N² byte copies of the result).
-#[inline]
+// Always inlined: a model's pattern is a constant, so inlined into the filter's predict the
+// loops over it unroll into straight-line code on registers.
+#[inline(always)]
 pub fn sparse_sandwich<const N: usize>(
     f: &Matrix<N, N>,
     pattern: &[(usize, usize)],
     p: &mut Matrix<N, N>,
     q: &Matrix<N, N>,
 ) {
+    if unit_diagonal_first(f, pattern) {
+        // F = I + E with every row's diagonal first: each sum starts with 0 + 1·x = 0 + x,
+        // so P + 0 stands for the diagonal's terms and only E's entries are multiplied.
+        let mut fp = p.map(|x| 0.0 + x);
+        for &(i, j) in pattern.iter().filter(|(i, j)| i != j) {
+            let v = f[(i, j)];
+            for c in 0..N {
+                fp[(i, c)] += v * p[(j, c)];
+            }
+        }
+        let mut out = fp.map(|x| 0.0 + x);
+        for &(k, j) in pattern.iter().filter(|(k, j)| k != j) {
+            let v = f[(k, j)];
+            let (src, mut dst) = (fp.column(j), out.column_mut(k));
+            for r in 0..N {
+                dst[r] += v * src[r];
+            }
+        }
+        *p = out + q;
+        return;
+    }
+    // A unit entry adds its term without the multiply: 1·x is x, so the sums keep their
+    // bits. One bounds check per entry, not per element.
     let mut fp = Matrix::<N, N>::zeros();
     for &(i, j) in pattern {
+        assert!(i < N && j < N, "transition pattern entry ({i}, {j}) outside {N}×{N}");
         let v = f[(i, j)];
-        for c in 0..N {
-            fp[(i, c)] += v * p[(j, c)];
+        if v == 1.0 {
+            for c in 0..N {
+                fp[(i, c)] += p[(j, c)];
+            }
+        } else {
+            for c in 0..N {
+                fp[(i, c)] += v * p[(j, c)];
+            }
         }
     }
     p.fill(0.0);
     for &(k, j) in pattern {
+        assert!(k < N && j < N, "transition pattern entry ({k}, {j}) outside {N}×{N}");
         let v = f[(k, j)];
         let (src, mut dst) = (fp.column(j), p.column_mut(k));
-        for r in 0..N {
-            dst[r] += v * src[r];
+        if v == 1.0 {
+            for r in 0..N {
+                dst[r] += src[r];
+            }
+        } else {
+            for r in 0..N {
+                dst[r] += v * src[r];
+            }
         }
     }
     *p += q;
+}
+
+/// Whether every row of F has its diagonal as the first entry of `pattern` and equal to 1:
+/// F = I + E with E to the right of the diagonal in each row's order (F = I + A·Δt of a
+/// chain of integrators), where the dense product's sums begin with the identity's term.
+fn unit_diagonal_first<const N: usize>(f: &Matrix<N, N>, pattern: &[(usize, usize)]) -> bool {
+    let mut rows = 0;
+    let mut row = usize::MAX;
+    for &(i, j) in pattern {
+        if i != row {
+            if j != i || i >= N || f[(i, i)] != 1.0 {
+                return false;
+            }
+            rows += 1;
+            row = i;
+        }
+    }
+    rows == N
 }
 
 /// The positions of a constant matrix's non-zero entries, row by row in ascending column
@@ -196,6 +253,15 @@ pub fn select_i_kh<const NX: usize, const NZ: usize>(
     out: &mut Matrix<NX, NX>,
 ) {
     out.fill_with_identity();
+    if (1..NZ).all(|l| !sel[..l].contains(&sel[l])) {
+        // Each selected column holds one column of K: δ − K, the bits of δ − (0 + K).
+        for (l, &j) in sel.iter().enumerate() {
+            for i in 0..NX {
+                out[(i, j)] = if i == j { 1.0 } else { 0.0 } - k[(i, l)];
+            }
+        }
+        return;
+    }
     for (l, &j) in sel.iter().enumerate() {
         // A state selected twice: its column sums both columns of K, in order.
         if sel[..l].contains(&j) {
@@ -209,34 +275,6 @@ pub fn select_i_kh<const NX: usize, const NZ: usize>(
                 }
             }
             out[(i, j)] = if i == j { 1.0 } else { 0.0 } - kh;
-        }
-    }
-}
-
-/// P ← (I − K H) P for H the row selection `sel`, given `i_kh` = I − K H: the dense
-/// product's sums in its order over the entries of I − K H that may be non-zero (its diagonal
-/// and the selected columns), so the result is the dense one. Column c of the result needs
-/// column c of P alone, so P is overwritten in place, one column at a time.
-#[inline]
-pub fn select_product<const NX: usize, const NZ: usize>(
-    i_kh: &Matrix<NX, NX>,
-    sel: &[usize; NZ],
-    p: &mut Matrix<NX, NX>,
-) {
-    let mut selected = [false; NX];
-    for &j in sel {
-        selected[j] = true;
-    }
-    for c in 0..NX {
-        let col: Vector<NX> = p.column(c).into_owned();
-        for i in 0..NX {
-            let mut acc = 0.0;
-            for j in 0..NX {
-                if j == i || selected[j] {
-                    acc += i_kh[(i, j)] * col[j];
-                }
-            }
-            p[(i, c)] = acc;
         }
     }
 }

@@ -2,8 +2,8 @@
 //!
 //! Predict: x̂⁻ = f(x̂, u_k), P⁻ = F P Fᵀ + Q with F = ∂f/∂x at the previous estimate.
 //! Update:  ν = z − h(x̂⁻, u_k) (angle components wrapped by the model), S = H P⁻ Hᵀ + R,
-//! K = P⁻ Hᵀ S⁻¹, x̂ = x̂⁻ + K ν, and P = (I − K H) P⁻ (the seeds' form) or the Joseph form
-//! (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ.
+//! K = P⁻ Hᵀ S⁻¹, x̂ = x̂⁻ + K ν, and P = (I − K H) P⁻ (the seeds' form, computed as
+//! P⁻ − K (H P⁻)) or the Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ.
 //!
 //! Requirements on the model: f, h and both Jacobians ([`Model`]).
 //!
@@ -16,14 +16,14 @@
 
 use super::{Filter, FilterError, Innovation};
 use crate::linalg::{
-    Matrix, SmallCholesky, Vector, select_i_kh, select_product, select_rows, sparse_sandwich,
+    Matrix, SmallCholesky, Vector, select_i_kh, select_rows, sparse_sandwich,
 };
 use crate::model::{Measurement, Model};
 
 /// How the covariance is updated after a measurement.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CovarianceUpdate {
-    /// P = (I − K H) P⁻, as the seeds do.
+    /// P = (I − K H) P⁻, as the seeds do (computed as P⁻ − K (H P⁻)).
     Standard,
     /// Joseph form; symmetric and PSD by construction, valid for any gain.
     Joseph,
@@ -157,10 +157,12 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             (None, None) => unreachable!("the dense path keeps its H"),
         }
         b.updated = true;
-        match (self.update_form, &selection) {
-            (CovarianceUpdate::Standard, Some(sel)) => select_product(&b.i_kh, sel, &mut b.p),
-            (CovarianceUpdate::Standard, None) => b.p = b.i_kh * b.p,
-            (CovarianceUpdate::Joseph, _) => {
+        match self.update_form {
+            // (I − K H) P⁻ as P⁻ − K (H P⁻): H P⁻ is at hand (the selected rows, or the dense
+            // product), so the update is one NX×NZ by NZ×NX product instead of an NX×NX one,
+            // and the selection and dense paths give the same bits.
+            CovarianceUpdate::Standard => b.p -= k * hp,
+            CovarianceUpdate::Joseph => {
                 let r = dense.map_or(self.r, |(_, r)| r);
                 b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();
             }

@@ -27,10 +27,11 @@ pub struct P2Quantile {
     q: [f64; 5],
     /// Actual marker positions n_0..n_4 (1-based, as in the paper).
     n: [f64; 5],
-    /// Desired marker positions n'_0..n'_4.
-    desired: [f64; 5],
+    /// Desired positions n'_1..n'_3 of the middle markers (the extreme markers' are always
+    /// 1 and the count, and are never read).
+    desired: [f64; 3],
     /// Increments of the desired positions per observation.
-    inc: [f64; 5],
+    inc: [f64; 3],
 }
 
 impl P2Quantile {
@@ -41,8 +42,8 @@ impl P2Quantile {
             count: 0,
             q: [0.0; 5],
             n: [1.0, 2.0, 3.0, 4.0, 5.0],
-            desired: [1.0, 1.0 + 2.0 * p, 1.0 + 4.0 * p, 3.0 + 2.0 * p, 5.0],
-            inc: [0.0, p / 2.0, p, (1.0 + p) / 2.0, 1.0],
+            desired: [1.0 + 2.0 * p, 1.0 + 4.0 * p, 3.0 + 2.0 * p],
+            inc: [p / 2.0, p, (1.0 + p) / 2.0],
         }
     }
 
@@ -72,17 +73,20 @@ impl P2Quantile {
             q[4] = x;
             3
         } else {
-            (0..4).rev().find(|&i| x >= q[i]).unwrap_or(0)
+            // The markers are sorted, so the largest i with q_i ≤ x is a count: no branch to
+            // mispredict on a value that falls anywhere.
+            (x >= q[1]) as usize + (x >= q[2]) as usize + (x >= q[3]) as usize
         };
-        for n in &mut self.n[k + 1..] {
-            *n += 1.0;
+        for (i, n) in self.n.iter_mut().enumerate().skip(1) {
+            // + 0 leaves a position unchanged: the same sums as incrementing n[k + 1..].
+            *n += if i > k { 1.0 } else { 0.0 };
         }
         for (d, inc) in self.desired.iter_mut().zip(self.inc) {
             *d += inc;
         }
         let n = &mut self.n;
         for i in 1..4 {
-            let d = self.desired[i] - n[i];
+            let d = self.desired[i - 1] - n[i];
             if (d >= 1.0 && n[i + 1] - n[i] > 1.0) || (d <= -1.0 && n[i - 1] - n[i] < -1.0) {
                 let d = d.signum();
                 let parabolic = q[i]
