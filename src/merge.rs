@@ -10,19 +10,16 @@
 //! scenario, so the merge computes them from the merged runs and summary rows, with the same
 //! order-independent trackers a single process uses. Memory is one part's table at a time.
 
-use polars::prelude::{Column, DataFrame, Float64Chunked, PolarsResult, StringChunked};
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::error::{KfmcError, OutputError};
-use crate::experiment::{self, Overrides, Plan};
-use crate::metrics::divergence::DivergenceTracker;
+use crate::experiment::{self, Overrides};
 use crate::output::folder::{StudyFolder, verify};
 use crate::output::manifest::Manifest;
 use crate::output::schema;
-use crate::output::table::{TableWriter, columns_of, for_each_row_group, read};
-use crate::study::{Shard, divergence_tables};
+use crate::output::table::{TableWriter, columns_of, for_each_row, for_each_row_group};
+use crate::study::{DivergenceFeed, Shard, divergence_tables};
 use crate::system::Registry;
 
 /// The shard a run executes: `--shard i/n`, else a scheduler's array index from the
@@ -329,64 +326,36 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
     }
 
     if let Some(thr) = plan.rmse_thresholds.clone() {
-        let states = plan.quantity_names();
-        let nq = states.len();
-        let nf = plan.filters.len();
-        let mut trackers: Vec<DivergenceTracker> = (0..plan.scenarios.len() * nf)
-            .map(|_| DivergenceTracker::new(dir, nq))
-            .collect();
-        let scenario_of: HashMap<&str, usize> = plan
-            .scenarios
-            .iter()
-            .enumerate()
-            .map(|(i, s)| (s.name.as_str(), i))
-            .collect();
+        let mut feed = DivergenceFeed::new(&plan, dir);
         for p in &ordered {
-            let path = p.dir.join("runs.parquet");
-            // Row group by row group: a part's runs table grows with its runs.
-            for_each_row_group(&path, |df| {
-                let keys = CellColumns::read(&df, &path)?;
-                let run = column(&df, "run", &path, |c| c.i64().cloned())?;
-                let rmse = states
-                    .iter()
-                    .map(|s| column(&df, &format!("rmse_{s}"), &path, |c| c.f64().cloned()))
-                    .collect::<Result<Vec<_>, _>>()?;
-                for i in 0..df.height() {
-                    let (Some((si, scale, fi)), Some(r)) =
-                        (keys.cell(i, &plan, &scenario_of), run.get(i))
-                    else {
-                        return Err(OutputError::Mismatch {
-                            path: path.clone(),
-                            why: format!(
-                                "a row names a cell the spec does not have (row {i} of a row group)"
-                            ),
-                        });
-                    };
-                    // A null RMSE (a failed run) is NaN, as the single process feeds it.
-                    let v: Vec<f64> = rmse.iter().map(|c| c.get(i).unwrap_or(f64::NAN)).collect();
-                    trackers[si * nf + fi].observe_run(r as usize, scale, &v, &thr)?;
-                }
-                Ok(())
-            })?;
-            let path = p.dir.join("summary.parquet");
-            let df = read(&path)?;
-            let keys = CellColumns::read(&df, &path)?;
-            let mean = column(&df, "rmse_mean", &path, |c| c.f64().cloned())?;
-            // The summary has one row per state, in state order, per (cell, filter).
-            for start in (0..df.height()).step_by(nq.max(1)) {
-                let Some((si, scale, fi)) = keys.cell(start, &plan, &scenario_of) else {
-                    return Err(mismatch(
-                        &path,
-                        format!("row {start} names a cell the spec does not have"),
-                    ));
+            for runs in [true, false] {
+                let (name, columns) = if runs {
+                    ("runs", feed.runs_columns().to_vec())
+                } else {
+                    ("summary", feed.summary_columns().to_vec())
                 };
-                let means: Vec<f64> = (start..start + nq)
-                    .map(|i| mean.get(i).unwrap_or(f64::NAN))
-                    .collect();
-                trackers[si * nf + fi].observe_mean(scale, &means, &thr);
+                let path = p.dir.join(format!("{name}.parquet"));
+                let mut row_index = 0u64;
+                // Row group by row group: a part's runs table grows with its runs.
+                for_each_row_group(&path, |df| {
+                    for_each_row(&df, &columns, &path, |row| {
+                        let bad = |why: &str| OutputError::Mismatch {
+                            path: path.clone(),
+                            why: format!("row {row_index} {why}"),
+                        };
+                        if runs {
+                            feed.run_row(row, &bad)?;
+                        } else {
+                            feed.summary_row(row, &bad)?;
+                        }
+                        row_index += 1;
+                        Ok(())
+                    })
+                })?;
             }
         }
-        let (d, dr) = divergence_tables(&plan, dir, &mut trackers, &states, &thr)?;
+        let mut trackers = feed.into_trackers();
+        let (d, dr) = divergence_tables(&plan, dir, &mut trackers, &plan.quantity_names(), &thr)?;
         finished.push(d.finish()?);
         finished.push(dr.finish()?);
     }
@@ -407,61 +376,6 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         tables,
         wall_s: started.elapsed().as_secs_f64(),
     })
-}
-
-/// One column of a part's table, of the type `get` asks for, or an error naming the table.
-fn column<T>(
-    df: &DataFrame,
-    name: &str,
-    path: &Path,
-    get: impl FnOnce(&Column) -> PolarsResult<T>,
-) -> Result<T, OutputError> {
-    df.column(name)
-        .and_then(get)
-        .map_err(|source| OutputError::Polars {
-            action: "unexpected columns in",
-            path: path.to_path_buf(),
-            source,
-        })
-}
-
-/// The key columns of a per-cell table: scenario, noise scale, filter label and its scales.
-struct CellColumns {
-    scenario: StringChunked,
-    noise: Float64Chunked,
-    filter: StringChunked,
-    q: Float64Chunked,
-    r: Float64Chunked,
-}
-
-impl CellColumns {
-    fn read(df: &DataFrame, path: &Path) -> Result<Self, OutputError> {
-        Ok(CellColumns {
-            scenario: column(df, "scenario", path, |c| c.str().cloned())?,
-            noise: column(df, "noise_scale", path, |c| c.f64().cloned())?,
-            filter: column(df, "filter", path, |c| c.str().cloned())?,
-            q: column(df, "q_scale", path, |c| c.f64().cloned())?,
-            r: column(df, "r_scale", path, |c| c.f64().cloned())?,
-        })
-    }
-
-    /// Row i's (scenario, noise scale, filter variant) indices in `plan`, if it has that cell.
-    fn cell(
-        &self,
-        i: usize,
-        plan: &Plan,
-        scenario_of: &HashMap<&str, usize>,
-    ) -> Option<(usize, usize, usize)> {
-        let si = scenario_of.get(self.scenario.get(i)?).copied()?;
-        let noise = self.noise.get(i)?;
-        let scale = plan.noise_scales.iter().position(|s| *s == noise)?;
-        let (label, q, r) = (self.filter.get(i)?, self.q.get(i)?, self.r.get(i)?);
-        let fi = plan
-            .filters
-            .iter()
-            .position(|f| f.label == label && f.q_scale == q && f.r_scale == r)?;
-        Some((si, scale, fi))
-    }
 }
 
 /// Options of `kfmc slurm`.

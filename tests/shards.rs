@@ -61,6 +61,12 @@ fn merged_parts_are_byte_identical_to_one_process_for_any_part_count() {
             "traces.parquet"
         ]
     );
+    // The divergence points are rebuilt by the merge from every part's runs and summary: the
+    // comparison below means something only if runs cross first at every noise scale (a
+    // rebuild that lost or mixed up a scale's rows would then change them).
+    let crossings = crossing_counts(&single);
+    let scales: Vec<Option<f64>> = crossings.iter().map(|c| c.0).collect();
+    assert_eq!(scales, [Some(0.5), Some(1.0), Some(20.0)], "{crossings:?}");
     // 2 scenarios × 3 noise scales = 6 cells: 7 parts leave one empty.
     for n in [1usize, 2, 3, 7] {
         let out = tmp.path().join(format!("n{n}"));
@@ -94,6 +100,22 @@ fn merged_parts_are_byte_identical_to_one_process_for_any_part_count() {
         // The merged folder is a study every reader accepts.
         assert_eq!(run(&["summary", o]).0, 0);
     }
+}
+
+/// How many (run, state) rows of `divergence_runs` cross first at each noise scale (`None`:
+/// never crossed), sorted by scale.
+fn crossing_counts(dir: &std::path::Path) -> Vec<(Option<f64>, usize)> {
+    let df = kfmc::output::table::read(&dir.join("divergence_runs.parquet")).unwrap();
+    let mut counts: Vec<(Option<f64>, usize)> = Vec::new();
+    let scale = df.column("divergence_scale").unwrap().f64().unwrap();
+    for v in (0..scale.len()).map(|i| scale.get(i)) {
+        match counts.iter_mut().find(|(s, _)| *s == v) {
+            Some((_, n)) => *n += 1,
+            None => counts.push((v, 1)),
+        }
+    }
+    counts.sort_by(|a, b| a.0.partial_cmp(&b.0).unwrap());
+    counts
 }
 
 #[test]

@@ -261,44 +261,8 @@ impl TableWriter {
     /// table kfmc wrote with the same schema). The rows pass through the same buffers and
     /// row groups as rows pushed one by one, so the file is byte-identical.
     pub fn append_frame(&mut self, df: &DataFrame, origin: &Path) -> Result<(), OutputError> {
-        let bad = |e: PolarsError| OutputError::Polars {
-            action: "unexpected columns in",
-            path: origin.to_path_buf(),
-            source: e,
-        };
-        enum Col<'a> {
-            Str(&'a StringChunked),
-            F64(&'a Float64Chunked),
-            I64(&'a Int64Chunked),
-            U64(&'a UInt64Chunked),
-            Bool(&'a BooleanChunked),
-        }
-        let mut cols = Vec::with_capacity(self.columns.len());
-        for c in &self.columns {
-            let col = df.column(c.name.as_str()).map_err(bad)?;
-            cols.push(match c.dtype {
-                Dtype::Str => Col::Str(col.str().map_err(bad)?),
-                Dtype::F64 => Col::F64(col.f64().map_err(bad)?),
-                Dtype::I64 => Col::I64(col.i64().map_err(bad)?),
-                Dtype::U64 => Col::U64(col.u64().map_err(bad)?),
-                Dtype::Bool => Col::Bool(col.bool().map_err(bad)?),
-            });
-        }
-        let mut row = Vec::with_capacity(cols.len());
-        for i in 0..df.height() {
-            row.clear();
-            for c in &cols {
-                row.push(match c {
-                    Col::Str(a) => Value::Str(a.get(i).unwrap_or("")),
-                    Col::F64(a) => Value::F64(a.get(i)),
-                    Col::I64(a) => Value::I64(a.get(i)),
-                    Col::U64(a) => Value::U64(a.get(i).unwrap_or(0)),
-                    Col::Bool(a) => Value::Bool(a.get(i)),
-                });
-            }
-            self.push(&row)?;
-        }
-        Ok(())
+        let columns = self.columns.clone();
+        for_each_row(df, &columns, origin, |row| self.push(row))
     }
 
     /// The table's name (`runs`, `steps`, …).
@@ -348,6 +312,56 @@ pub fn columns_of(df: &DataFrame, origin: &Path) -> Result<Vec<ColumnDef>, Outpu
             })
         })
         .collect()
+}
+
+/// Calls `f` with every row of `df` in order, as the values of `columns` (looked up by name,
+/// in that order): the rows a table kfmc wrote with these columns was given, read back
+/// (`kfmc merge` appends them, and rebuilds the divergence trackers from them). A missing
+/// column or one of another type is an error naming `origin`.
+pub fn for_each_row(
+    df: &DataFrame,
+    columns: &[ColumnDef],
+    origin: &Path,
+    mut f: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
+) -> Result<(), OutputError> {
+    let bad = |e: PolarsError| OutputError::Polars {
+        action: "unexpected columns in",
+        path: origin.to_path_buf(),
+        source: e,
+    };
+    enum Col<'a> {
+        Str(&'a StringChunked),
+        F64(&'a Float64Chunked),
+        I64(&'a Int64Chunked),
+        U64(&'a UInt64Chunked),
+        Bool(&'a BooleanChunked),
+    }
+    let mut cols = Vec::with_capacity(columns.len());
+    for c in columns {
+        let col = df.column(c.name.as_str()).map_err(bad)?;
+        cols.push(match c.dtype {
+            Dtype::Str => Col::Str(col.str().map_err(bad)?),
+            Dtype::F64 => Col::F64(col.f64().map_err(bad)?),
+            Dtype::I64 => Col::I64(col.i64().map_err(bad)?),
+            Dtype::U64 => Col::U64(col.u64().map_err(bad)?),
+            Dtype::Bool => Col::Bool(col.bool().map_err(bad)?),
+        });
+    }
+    let mut row = Vec::with_capacity(cols.len());
+    for i in 0..df.height() {
+        row.clear();
+        for c in &cols {
+            row.push(match c {
+                Col::Str(a) => Value::Str(a.get(i).unwrap_or("")),
+                Col::F64(a) => Value::F64(a.get(i)),
+                Col::I64(a) => Value::I64(a.get(i)),
+                Col::U64(a) => Value::U64(a.get(i).unwrap_or(0)),
+                Col::Bool(a) => Value::Bool(a.get(i)),
+            });
+        }
+        f(&row)?;
+    }
+    Ok(())
 }
 
 /// Reads a Parquet table one row group at a time, so memory is bounded by a row group
