@@ -246,7 +246,7 @@ pub fn select_rows<const NX: usize, const NZ: usize>(
 /// I − K H for H the row selection `sel`, written into `out` (the dense result: each entry is
 /// 1 or 0 minus the same sum of entries of K, in the same order). In place, because the EKF
 /// keeps it in its belief and a returned 8·NX² byte matrix is copied there every update.
-#[inline]
+#[inline(always)]
 pub fn select_i_kh<const NX: usize, const NZ: usize>(
     k: &Matrix<NX, NZ>,
     sel: &[usize; NZ],
@@ -275,6 +275,26 @@ pub fn select_i_kh<const NX: usize, const NZ: usize>(
                 }
             }
             out[(i, j)] = if i == j { 1.0 } else { 0.0 } - kh;
+        }
+    }
+}
+
+/// P ← P − A B for A of NX×NZ and B of NZ×NX: the Kalman update P⁻ − K (H P⁻) in place.
+/// Always inlined: nalgebra's product of these shapes is called out of line, and its NX×NX
+/// result is written and read back only to be subtracted.
+#[inline(always)]
+pub fn subtract_product<const NX: usize, const NZ: usize>(
+    p: &mut Matrix<NX, NX>,
+    a: &Matrix<NX, NZ>,
+    b: &Matrix<NZ, NX>,
+) {
+    for c in 0..NX {
+        for i in 0..NX {
+            let mut ab = 0.0;
+            for l in 0..NZ {
+                ab += a[(i, l)] * b[(l, c)];
+            }
+            p[(i, c)] -= ab;
         }
     }
 }

@@ -16,7 +16,7 @@
 
 use super::{Filter, FilterError, Innovation};
 use crate::linalg::{
-    Matrix, SmallCholesky, Vector, select_i_kh, select_rows, sparse_sandwich,
+    Matrix, SmallCholesky, Vector, select_i_kh, select_rows, sparse_sandwich, subtract_product,
 };
 use crate::model::{Measurement, Model};
 
@@ -161,7 +161,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             // (I − K H) P⁻ as P⁻ − K (H P⁻): H P⁻ is at hand (the selected rows, or the dense
             // product), so the update is one NX×NZ by NZ×NX product instead of an NX×NX one,
             // and the selection and dense paths give the same bits.
-            CovarianceUpdate::Standard => b.p -= k * hp,
+            CovarianceUpdate::Standard => subtract_product(&mut b.p, &k, &hp),
             CovarianceUpdate::Joseph => {
                 let r = dense.map_or(self.r, |(_, r)| r);
                 b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();

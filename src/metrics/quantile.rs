@@ -212,6 +212,78 @@ mod tests {
         assert_eq!(QuantileSketch::new(&probs).estimate(0), None);
     }
 
+    /// Jain & Chlamtac's update as printed (every marker's desired position advanced, the
+    /// cell found by a search, the positions above it incremented): the reference that
+    /// [`P2Quantile::push`]'s branch-free form must match bit for bit.
+    fn textbook_p2(p: f64, xs: &[f64]) -> f64 {
+        let mut q: Vec<f64> = xs[..5].to_vec();
+        q.sort_by(f64::total_cmp);
+        let mut n = [1.0, 2.0, 3.0, 4.0, 5.0];
+        let mut desired = [1.0, 1.0 + 2.0 * p, 1.0 + 4.0 * p, 3.0 + 2.0 * p, 5.0];
+        let inc = [0.0, p / 2.0, p, (1.0 + p) / 2.0, 1.0];
+        for &x in &xs[5..] {
+            let k = if x < q[0] {
+                q[0] = x;
+                0
+            } else if x >= q[4] {
+                q[4] = x;
+                3
+            } else {
+                (0..4).rev().find(|&i| x >= q[i]).unwrap()
+            };
+            for v in &mut n[k + 1..] {
+                *v += 1.0;
+            }
+            for (d, i) in desired.iter_mut().zip(inc) {
+                *d += i;
+            }
+            for i in 1..4 {
+                let d = desired[i] - n[i];
+                if (d >= 1.0 && n[i + 1] - n[i] > 1.0) || (d <= -1.0 && n[i - 1] - n[i] < -1.0) {
+                    let d = d.signum();
+                    let parabolic = q[i]
+                        + d / (n[i + 1] - n[i - 1])
+                            * ((n[i] - n[i - 1] + d) * (q[i + 1] - q[i]) / (n[i + 1] - n[i])
+                                + (n[i + 1] - n[i] - d) * (q[i] - q[i - 1]) / (n[i] - n[i - 1]));
+                    q[i] = if q[i - 1] < parabolic && parabolic < q[i + 1] {
+                        parabolic
+                    } else {
+                        let j = if d > 0.0 { i + 1 } else { i - 1 };
+                        q[i] + d * (q[j] - q[i]) / (n[j] - n[i])
+                    };
+                    n[i] += d;
+                }
+            }
+        }
+        q[2]
+    }
+
+    #[test]
+    fn p2_matches_the_textbook_update_bit_for_bit() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(16);
+        for case in 0..300 {
+            let len = 5 + case * 7;
+            // Continuous, heavy-tailed and heavily tied streams (ties hit the `x ≥ q_i` edges).
+            let xs: Vec<f64> = (0..len)
+                .map(|_| match case % 3 {
+                    0 => rng.random::<f64>(),
+                    1 => rng.random::<f64>().powi(-2),
+                    _ => rng.random_range(0..4) as f64,
+                })
+                .collect();
+            for p in [0.05, 0.5, 0.95] {
+                let mut e = P2Quantile::new(p);
+                xs.iter().for_each(|&x| e.push(x));
+                assert_eq!(
+                    e.estimate().unwrap().to_bits(),
+                    textbook_p2(p, &xs).to_bits(),
+                    "case {case}, p = {p}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn p2_alone_is_exact_below_five_values() {
         let mut e = P2Quantile::new(0.5);
