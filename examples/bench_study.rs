@@ -776,7 +776,10 @@ fn main() {
             cl_all.push(cl);
         }
         if only.is_some() {
-            println!("{}: {rounds} rounds of one side only (checksum {checksum:.3e})", case.name);
+            println!(
+                "{}: {rounds} rounds of one side only (checksum {checksum:.3e})",
+                case.name
+            );
             continue;
         }
         let (w, w0, w1) = median_range(wall);

@@ -163,7 +163,10 @@ pub fn sparse_sandwich<const N: usize>(
     // bits. One bounds check per entry, not per element.
     let mut fp = Matrix::<N, N>::zeros();
     for &(i, j) in pattern {
-        assert!(i < N && j < N, "transition pattern entry ({i}, {j}) outside {N}×{N}");
+        assert!(
+            i < N && j < N,
+            "transition pattern entry ({i}, {j}) outside {N}×{N}"
+        );
         let v = f[(i, j)];
         if v == 1.0 {
             for c in 0..N {
@@ -177,7 +180,10 @@ pub fn sparse_sandwich<const N: usize>(
     }
     p.fill(0.0);
     for &(k, j) in pattern {
-        assert!(k < N && j < N, "transition pattern entry ({k}, {j}) outside {N}×{N}");
+        assert!(
+            k < N && j < N,
+            "transition pattern entry ({k}, {j}) outside {N}×{N}"
+        );
         let v = f[(k, j)];
         let (src, mut dst) = (fp.column(j), p.column_mut(k));
         if v == 1.0 {
