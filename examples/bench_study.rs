@@ -7,6 +7,7 @@
 //! cargo run --release --example bench_study                 # full size (~4,000 runs per case)
 //! cargo run --release --example bench_study -- --scale 0.1  # a tenth of the runs
 //! cargo run --release --example bench_study -- --rounds 7 --case p1_ekf --case seed
+//! cargo run --release --example bench_study -- --case p1_ekf --only kfmc   # for a profiler
 //! ```
 //!
 //! Cases: `p1_ekf` (P1 planar quadrotor, EKF only, basic scenario, 4,000 runs × 1,001 samples),

@@ -44,10 +44,8 @@ impl DivergenceTracker {
     }
 
     /// Records a run's RMSE at noise scale `scale_index`. Each noise scale's runs come in
-    /// run order, from run 0 up.
-    ///
-    /// # Panics
-    /// On a run out of order (a programming error in the caller).
+    /// run order, from run 0 up; a run out of order (rows read back from a damaged part or
+    /// checkpoint) is an error naming the tracker's folder.
     pub fn observe_run(
         &mut self,
         run: usize,
@@ -63,7 +61,15 @@ impl DivergenceTracker {
             self.previous = Some(done.into_reader()?);
             self.next_run = 0;
         }
-        assert_eq!(run, self.next_run, "a noise scale's runs arrive in order");
+        if run != self.next_run {
+            return Err(OutputError::Mismatch {
+                path: self.dir.clone(),
+                why: format!(
+                    "holds runs out of order: run {run} of noise scale {scale_index} came where run {} was due",
+                    self.next_run
+                ),
+            });
+        }
         let seen = match self.previous.as_mut() {
             Some(p) => p.next_row(&mut self.row)?,
             None => false,
@@ -142,6 +148,18 @@ mod tests {
         assert_eq!(crossings(&mut t), vec![vec![Some(3)], vec![None]]);
         t.observe_mean(4, &[1.1], &[1.0]);
         assert_eq!(t.mc_crossing(0), Some(4));
+    }
+
+    #[test]
+    fn a_run_out_of_order_is_an_error_not_a_panic() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut t = DivergenceTracker::new(dir.path(), 1);
+        t.observe_run(0, 0, &[0.5], &[1.0]).unwrap();
+        let err = t.observe_run(2, 0, &[0.5], &[1.0]).unwrap_err().to_string();
+        assert!(
+            err.contains("run 2 of noise scale 0 came where run 1 was due"),
+            "{err}"
+        );
     }
 
     /// Against a dense table of crossings, with more runs than the tracker keeps in memory
