@@ -187,7 +187,14 @@ impl Aggregator<'_> {
                 scenario,
                 scale,
                 CellState {
-                    acc: vec![StepAccumulator::new(nx, steps); nf],
+                    acc: vec![
+                        StepAccumulator::with_exact_cap(
+                            nx,
+                            steps,
+                            crate::metrics::abs_err_exact_cap(nf, nx, steps + 1)
+                        );
+                        nf
+                    ],
                     rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
                     consistency: (0..nf)
                         .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))

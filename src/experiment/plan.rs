@@ -382,8 +382,14 @@ impl Plan {
         let spilled_cols = nf * nq + WORLD_METRICS_ESTIMATE;
         let select = nq.max(WORLD_METRICS_ESTIMATE) * 6 * (8 << crate::spill::DIGIT_BITS as u128)
             + 6 * nq.max(WORLD_METRICS_ESTIMATE) * 8 * crate::spill::COLLECT_CAP as u128;
+        // The |e| values kept for exact quantiles: 8 bytes per (run, grid point, quantity,
+        // filter), up to the budget.
+        let grid = crate::metrics::abs_err_grid_points(max_k as usize) as u128;
+        let exact_values = (runs * nf * grid * nq * 8)
+            .min(crate::metrics::ABS_ERR_EXACT_BYTES as u128 + nf * grid * nq * 8 * 32);
         let cell = nf * max_k * (8 * nq + 48)
             + nf * max_k.div_ceil(5) * nq * 320
+            + exact_values
             + spill_rows.min(runs) * 8 * spilled_cols
             + select;
         // Only when asked for, and bounded like the spills: per filter, the consistency tests'

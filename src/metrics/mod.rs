@@ -27,6 +27,25 @@ pub const ABS_ERR_MAX_POINTS: usize = 200;
 /// while it is in cache, instead of one value per run across a cell's thousand sketches.
 pub const ABS_ERR_BLOCK: usize = 64;
 
+/// Bytes of |e| values the cell being folded keeps, over all its filters, so that its |e|
+/// quantiles are exact: each sketch keeps `abs_err_exact_cap` values (8 bytes each) before P²
+/// takes over. 32 MiB keeps 4,186 runs of P1's six states exact (1,001 samples: a 167-point
+/// grid).
+pub const ABS_ERR_EXACT_BYTES: usize = 32 << 20;
+
+/// Values each |e| sketch keeps exact in a cell of `filters` filters and `nx` quantities over
+/// `samples` samples: [`ABS_ERR_EXACT_BYTES`] shared by the cell's sketches (at least
+/// [`quantile::EXACT_CAP`]).
+pub fn abs_err_exact_cap(filters: usize, nx: usize, samples: usize) -> usize {
+    let sketches = abs_err_grid_points(samples) * nx.max(1) * filters.max(1);
+    (ABS_ERR_EXACT_BYTES / (8 * sketches)).max(quantile::EXACT_CAP)
+}
+
+/// Points of the |e| quantile grid for K + 1 = `samples` samples.
+pub fn abs_err_grid_points(samples: usize) -> usize {
+    (samples.max(1) - 1) / abs_err_stride(samples) + 1
+}
+
 /// The step stride of the |e| quantile grid for K + 1 = `samples` samples.
 pub fn abs_err_stride(samples: usize) -> usize {
     samples.div_ceil(ABS_ERR_MAX_POINTS).max(1)
@@ -291,8 +310,15 @@ pub struct StepRow {
 }
 
 impl StepAccumulator {
-    /// An empty accumulator for `steps + 1` samples of `nx` states.
+    /// An empty accumulator for `steps + 1` samples of `nx` states whose |e| quantiles are
+    /// exact up to [`quantile::EXACT_CAP`] runs.
     pub fn new(nx: usize, steps: usize) -> Self {
+        Self::with_exact_cap(nx, steps, quantile::EXACT_CAP)
+    }
+
+    /// An empty accumulator whose |e| quantiles are exact up to `exact_cap` runs (P² beyond;
+    /// see [`abs_err_exact_cap`]).
+    pub fn with_exact_cap(nx: usize, steps: usize, exact_cap: usize) -> Self {
         StepAccumulator {
             nx,
             runs: vec![0; steps + 1],
@@ -304,7 +330,7 @@ impl StepAccumulator {
             nis_dof: vec![0; steps + 1],
             abs_err: std::cell::RefCell::new(AbsErr {
                 sketches: vec![
-                    QuantileSketch::new(&ABS_ERR_QUANTILES);
+                    QuantileSketch::with_exact_cap(&ABS_ERR_QUANTILES, exact_cap);
                     (steps / abs_err_stride(steps + 1) + 1) * nx
                 ],
                 pending: vec![

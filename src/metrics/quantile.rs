@@ -1,16 +1,16 @@
-//! Streaming quantiles with constant memory: the P² algorithm of Jain & Chlamtac (1985),
-//! preceded by an exact phase for small samples.
+//! Streaming quantiles with bounded memory: an exact phase, then the P² algorithm of Jain &
+//! Chlamtac (1985).
 //!
 //! The per-step error quantiles of a cell (`abs_err_p05_<state>` …) fold one value per run,
-//! and the runs of a cell can number in the millions, so the values cannot be kept. P² keeps
-//! five markers per quantile and moves them with a piecewise-parabolic update. Its result
-//! depends on the order of the observations, which is why the caller folds runs in run order:
-//! the tables stay bit-identical for any thread count.
-//!
-//! P² is a poor estimator of tail quantiles on a handful of values, and a study of 20 runs is
-//! common, so [`QuantileSketch`] keeps the first [`EXACT_CAP`] values and answers exactly
-//! (type 7, as the other quantile columns) until it has seen more than that; only then does
-//! the P² estimate — fed with every value from the first, in order — take over.
+//! and the runs of a cell can number in the millions, so the values cannot always be kept.
+//! [`QuantileSketch`] keeps them while there are at most a cap chosen by the caller and
+//! answers exactly (type 7, as the other quantile columns); beyond the cap P² — fed with every
+//! value from the first, in order — takes over. The study sets the cap from a memory budget
+//! ([`super::ABS_ERR_EXACT_BYTES`]), so studies of up to a few thousand runs per cell get exact
+//! quantiles, and the exact phase is also the cheaper one: P²'s marker updates cost several
+//! divisions per value. P² keeps five markers per quantile and moves them with a
+//! piecewise-parabolic update. Its result depends on the order of the observations, which is
+//! why the caller folds runs in run order: the tables stay bit-identical for any thread count.
 
 use super::quantile_sorted;
 
@@ -119,22 +119,31 @@ impl P2Quantile {
     }
 }
 
-/// Several quantiles of one stream: exact up to [`EXACT_CAP`] values, P² beyond.
+/// Several quantiles of one stream: exact up to a number of values chosen by the caller (at
+/// least [`EXACT_CAP`]), P² beyond.
 #[derive(Clone, Debug, PartialEq)]
 pub struct QuantileSketch {
-    /// The first values, inline: a cell holds one sketch per (step, state), and a heap buffer
-    /// each would cost thousands of allocations per cell.
-    exact: [f64; EXACT_CAP],
-    len: usize,
+    /// The values so far, while there are at most `cap`; emptied when P² takes over.
+    exact: Vec<f64>,
+    cap: usize,
+    /// Whether P² has taken over (it then holds every value, from the first).
+    estimating: bool,
     p2: Vec<P2Quantile>,
 }
 
 impl QuantileSketch {
-    /// A sketch of the quantiles `probs` (each in (0, 1)).
+    /// A sketch of the quantiles `probs` (each in (0, 1)), exact up to [`EXACT_CAP`] values.
     pub fn new(probs: &[f64]) -> Self {
+        Self::with_exact_cap(probs, EXACT_CAP)
+    }
+
+    /// A sketch that answers exactly up to `cap` values (at least [`EXACT_CAP`]): it keeps
+    /// them, 8 bytes each, and hands them to P² in arrival order on the first value beyond.
+    pub fn with_exact_cap(probs: &[f64], cap: usize) -> Self {
         QuantileSketch {
-            exact: [0.0; EXACT_CAP],
-            len: 0,
+            exact: Vec::new(),
+            cap: cap.max(EXACT_CAP),
+            estimating: false,
             p2: probs.iter().map(|&p| P2Quantile::new(p)).collect(),
         }
     }
@@ -144,18 +153,24 @@ impl QuantileSketch {
         if !x.is_finite() {
             return;
         }
-        if self.len < EXACT_CAP {
-            self.exact[self.len] = x;
-            self.len += 1;
-            return;
-        }
-        if self.p2.iter().all(|e| e.count() == 0) {
+        if !self.estimating {
+            if self.exact.len() < self.cap {
+                if self.exact.len() == self.exact.capacity() {
+                    // Doubling, but never past the cap: the budget bounds the capacity.
+                    let more = self.exact.len().max(8).min(self.cap - self.exact.len());
+                    self.exact.reserve_exact(more);
+                }
+                self.exact.push(x);
+                return;
+            }
             // Leaving the exact phase: P² starts from the very first value, in arrival order,
-            // so the result is the same as if it had run from the start (and small studies
-            // never pay for it).
+            // so the result is the same as if it had run from the start (and studies within
+            // the cap never pay for it).
             for e in &mut self.p2 {
                 self.exact.iter().for_each(|&v| e.push(v));
             }
+            self.exact = Vec::new();
+            self.estimating = true;
         }
         for e in &mut self.p2 {
             e.push(x);
@@ -167,15 +182,31 @@ impl QuantileSketch {
         self.estimates().get(i).copied().flatten()
     }
 
-    /// Every quantile, in the order given to [`QuantileSketch::new`] (one sort for all).
+    /// Every quantile, in the order given to [`QuantileSketch::new`]. In the exact phase each
+    /// is type 7 from the two order statistics around it, found by selection (linear time)
+    /// rather than a sort: the same values `quantile_sorted` reads from the sorted data.
     pub fn estimates(&self) -> Vec<Option<f64>> {
-        if self.p2.iter().all(|e| e.count() == 0) {
-            let mut v = self.exact[..self.len].to_vec();
-            v.sort_by(f64::total_cmp);
-            self.p2.iter().map(|e| quantile_sorted(&v, e.p)).collect()
-        } else {
-            self.p2.iter().map(P2Quantile::estimate).collect()
+        if self.estimating {
+            return self.p2.iter().map(P2Quantile::estimate).collect();
         }
+        if self.exact.is_empty() {
+            return vec![None; self.p2.len()];
+        }
+        let mut v = self.exact.clone();
+        let last = v.len() - 1;
+        self.p2
+            .iter()
+            .map(|e| {
+                let h = last as f64 * e.p;
+                let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
+                let (_, &mut a, above) = v.select_nth_unstable_by(lo, f64::total_cmp);
+                if lo == hi {
+                    return Some(a);
+                }
+                let b = above.iter().copied().min_by(f64::total_cmp).unwrap_or(a);
+                Some(a + (h - lo as f64) * (b - a))
+            })
+            .collect()
     }
 }
 
@@ -280,6 +311,46 @@ mod tests {
                     textbook_p2(p, &xs).to_bits(),
                     "case {case}, p = {p}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn the_exact_phase_equals_sorting_and_the_p2_phase_does_not_depend_on_the_cap() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
+        let probs = [0.05, 0.5, 0.95];
+        for case in 0..200 {
+            let len = 1 + case * 13;
+            let xs: Vec<f64> = (0..len)
+                .map(|_| match case % 3 {
+                    0 => rng.random::<f64>(),
+                    1 => rng.random::<f64>().powi(-2),
+                    _ => rng.random_range(0..4) as f64,
+                })
+                .collect();
+            // Within its cap a sketch is type 7 of the sorted values, bit for bit.
+            let mut exact = QuantileSketch::with_exact_cap(&probs, len);
+            xs.iter().for_each(|&x| exact.push(x));
+            let mut sorted = xs.clone();
+            sorted.sort_by(f64::total_cmp);
+            for (i, &p) in probs.iter().enumerate() {
+                assert_eq!(
+                    exact.estimate(i).map(f64::to_bits),
+                    quantile_sorted(&sorted, p).map(f64::to_bits),
+                    "case {case}, p = {p}"
+                );
+            }
+            // Beyond its cap it is P² from the first value, whatever the cap was.
+            let cap = len / 2;
+            let mut small = QuantileSketch::new(&probs);
+            let mut large = QuantileSketch::with_exact_cap(&probs, cap);
+            xs.iter().for_each(|&x| {
+                small.push(x);
+                large.push(x);
+            });
+            if len > cap.max(EXACT_CAP) {
+                assert_eq!(small.estimates(), large.estimates(), "case {case}");
             }
         }
     }
