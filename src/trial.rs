@@ -238,8 +238,7 @@ impl<const NX: usize, const NQ: usize> Evaluate<NX, NQ> for Marginal<NQ> {
 /// Wraps an angle error to [−π, π) (radians) or [−180, 180) (degrees).
 #[inline]
 pub fn wrap_angle(e: f64, degrees: bool) -> f64 {
-    let half = if degrees { 180.0 } else { std::f64::consts::PI };
-    (e + half).rem_euclid(2.0 * half) - half
+    crate::model::wrap_symmetric(e, if degrees { 180.0 } else { std::f64::consts::PI })
 }
 
 /// Consistency sums from one starting step on: W_k for ρ, the whitened-innovation lags, …

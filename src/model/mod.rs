@@ -33,11 +33,21 @@ impl Availability {
 
 /// Wraps an angle difference into [−π, π) exactly as MATLAB's `mod(a + pi, 2*pi) - pi`.
 pub fn wrap_angle(a: f64) -> f64 {
-    let two_pi = 2.0 * std::f64::consts::PI;
-    let m = (a + std::f64::consts::PI) % two_pi;
-    // MATLAB's mod takes the sign of the divisor; Rust's % takes the sign of the dividend.
-    let m = if m < 0.0 { m + two_pi } else { m };
-    m - std::f64::consts::PI
+    wrap_symmetric(a, std::f64::consts::PI)
+}
+
+/// Wraps `a` into [−half, half) as `mod(a + half, 2·half) − half` with MATLAB's `mod` (the
+/// sign of the divisor): the one implementation behind radians and degrees.
+#[inline]
+pub fn wrap_symmetric(a: f64, half: f64) -> f64 {
+    let shifted = a + half;
+    // In [0, 2·half) the remainder is `shifted` itself, exactly: skipping the `fmod` call
+    // (most differences are small) keeps the bits.
+    if (0.0..2.0 * half).contains(&shifted) {
+        shifted - half
+    } else {
+        shifted.rem_euclid(2.0 * half) - half
+    }
 }
 
 /// A measurement at one step: the value and which components it contains.
@@ -126,5 +136,46 @@ pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync 
     /// `None` (the default) keeps the spec's per-state standard deviations.
     fn process_noise_covariance(&self) -> Option<Matrix<NX, NX>> {
         None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The remainder taken every time, as before the fast path.
+    fn by_remainder(a: f64, half: f64) -> f64 {
+        (a + half).rem_euclid(2.0 * half) - half
+    }
+
+    #[test]
+    fn wrapping_without_the_remainder_keeps_its_bits() {
+        let pi = std::f64::consts::PI;
+        for half in [pi, 180.0] {
+            let mut values = vec![
+                0.0,
+                -0.0,
+                half,
+                -half,
+                half - f64::EPSILON,
+                -half + f64::EPSILON,
+                f64::MIN_POSITIVE,
+                -f64::MIN_POSITIVE,
+                1e300,
+                -1e300,
+            ];
+            // A sweep across several periods, dense near the interval's ends.
+            values.extend((-4000..=4000).map(|i| i as f64 * half / 997.0));
+            values.extend((0..200).map(|i| half * (1.0 - (i as f64) * 1e-16)));
+            values.extend((0..200).map(|i| -half * (1.0 - (i as f64) * 1e-16)));
+            for a in values {
+                assert_eq!(
+                    wrap_symmetric(a, half).to_bits(),
+                    by_remainder(a, half).to_bits(),
+                    "a = {a:e}, half = {half}"
+                );
+            }
+            assert!(wrap_symmetric(f64::NAN, half).is_nan());
+        }
     }
 }
