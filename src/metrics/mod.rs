@@ -197,24 +197,19 @@ impl StepValues {
         // The first step where Σ_{j≤k} e_j² > thr²·(K+1) per state: the crossing is certain.
         let total = self.nees.len() as f64;
         let mut crossed: Option<(usize, usize)> = None;
-        let rows = self.sq_err[..self.completed * nx].chunks_exact(nx);
-        match thresholds {
-            Some(t) => {
-                let limit: Vec<f64> = t.iter().map(|t| t * t * total).collect();
-                for (k, row) in rows.enumerate() {
-                    for (i, (s, x)) in sums.iter_mut().zip(row).enumerate() {
-                        *s += x;
-                        if crossed.is_none() && *s > limit[i] {
-                            crossed = Some((k, i));
-                        }
-                    }
-                }
-            }
-            None => {
-                for row in rows {
-                    for (s, x) in sums.iter_mut().zip(row) {
-                        *s += x;
-                    }
+        // Without thresholds no sum exceeds an infinite limit.
+        let limit: Vec<f64> = match thresholds {
+            Some(t) => t.iter().map(|t| t * t * total).collect(),
+            None => vec![f64::INFINITY; nx],
+        };
+        for (k, row) in self.sq_err[..self.completed * nx]
+            .chunks_exact(nx)
+            .enumerate()
+        {
+            for (i, (s, x)) in sums.iter_mut().zip(row).enumerate() {
+                *s += x;
+                if crossed.is_none() && *s > limit[i] {
+                    crossed = Some((k, i));
                 }
             }
         }
@@ -456,16 +451,24 @@ impl StepAccumulator {
 /// The `q`-quantile of sorted data by linear interpolation between order statistics
 /// (Hyndman–Fan type 7, the default of NumPy, pandas, polars and R).
 pub fn quantile_sorted(sorted: &[f64], q: f64) -> Option<f64> {
-    if sorted.is_empty() {
+    quantile_type7(sorted.len(), q, |i| sorted[i])
+}
+
+/// Type 7 of `len` values from their order statistics: `nth(i)` is the i-th smallest. It is
+/// asked for ⌊h⌋ and then, between two values, for ⌊h⌋ + 1 — so a caller may find them by
+/// selection instead of sorting.
+pub(crate) fn quantile_type7(len: usize, q: f64, mut nth: impl FnMut(usize) -> f64) -> Option<f64> {
+    if len == 0 {
         return None;
     }
-    let h = (sorted.len() - 1) as f64 * q;
+    let h = (len - 1) as f64 * q;
     let lo = h.floor() as usize;
     let hi = h.ceil() as usize;
-    let (a, b) = (sorted[lo], sorted[hi]);
+    let a = nth(lo);
     if lo == hi {
         return Some(a);
     }
+    let b = nth(hi);
     if a.is_infinite() || b.is_infinite() {
         // A censored value takes part: the quantile is not known.
         return None;

@@ -12,7 +12,7 @@
 //! piecewise-parabolic update. Its result depends on the order of the observations, which is
 //! why the caller folds runs in run order: the tables stay bit-identical for any thread count.
 
-use super::quantile_sorted;
+use super::{quantile_sorted, quantile_type7};
 
 /// Values kept for the exact phase of a [`QuantileSketch`].
 pub const EXACT_CAP: usize = 32;
@@ -189,22 +189,25 @@ impl QuantileSketch {
         if self.estimating {
             return self.p2.iter().map(P2Quantile::estimate).collect();
         }
-        if self.exact.is_empty() {
-            return vec![None; self.p2.len()];
-        }
         let mut v = self.exact.clone();
-        let last = v.len() - 1;
+        let len = v.len();
         self.p2
             .iter()
             .map(|e| {
-                let h = last as f64 * e.p;
-                let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
-                let (_, &mut a, above) = v.select_nth_unstable_by(lo, f64::total_cmp);
-                if lo == hi {
-                    return Some(a);
-                }
-                let b = above.iter().copied().min_by(f64::total_cmp).unwrap_or(a);
-                Some(a + (h - lo as f64) * (b - a))
+                let mut selected: Option<usize> = None;
+                quantile_type7(len, e.p, |i| match selected {
+                    // x_(⌊h⌋) by selection; everything after it is then no smaller.
+                    None => {
+                        selected = Some(i);
+                        *v.select_nth_unstable_by(i, f64::total_cmp).1
+                    }
+                    // x_(⌊h⌋+1): the smallest of the values after x_(⌊h⌋).
+                    Some(lo) => v[lo + 1..]
+                        .iter()
+                        .copied()
+                        .min_by(f64::total_cmp)
+                        .expect("h < len − 1 leaves a value above"),
+                })
             })
             .collect()
     }
@@ -289,20 +292,26 @@ mod tests {
         q[2]
     }
 
+    /// Continuous, heavy-tailed or heavily tied values by `case % 3` (ties hit the `x ≥ q_i`
+    /// edges of P² and the equal order statistics of the exact phase).
+    fn test_stream(rng: &mut rand_pcg::Pcg64, case: usize, len: usize) -> Vec<f64> {
+        use rand::RngExt;
+        (0..len)
+            .map(|_| match case % 3 {
+                0 => rng.random::<f64>(),
+                1 => rng.random::<f64>().powi(-2),
+                _ => rng.random_range(0..4) as f64,
+            })
+            .collect()
+    }
+
     #[test]
     fn p2_matches_the_textbook_update_bit_for_bit() {
-        use rand::{RngExt, SeedableRng};
+        use rand::SeedableRng;
         let mut rng = rand_pcg::Pcg64::seed_from_u64(16);
         for case in 0..300 {
             let len = 5 + case * 7;
-            // Continuous, heavy-tailed and heavily tied streams (ties hit the `x ≥ q_i` edges).
-            let xs: Vec<f64> = (0..len)
-                .map(|_| match case % 3 {
-                    0 => rng.random::<f64>(),
-                    1 => rng.random::<f64>().powi(-2),
-                    _ => rng.random_range(0..4) as f64,
-                })
-                .collect();
+            let xs = test_stream(&mut rng, case, len);
             for p in [0.05, 0.5, 0.95] {
                 let mut e = P2Quantile::new(p);
                 xs.iter().for_each(|&x| e.push(x));
@@ -317,18 +326,12 @@ mod tests {
 
     #[test]
     fn the_exact_phase_equals_sorting_and_the_p2_phase_does_not_depend_on_the_cap() {
-        use rand::{RngExt, SeedableRng};
+        use rand::SeedableRng;
         let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
         let probs = [0.05, 0.5, 0.95];
         for case in 0..200 {
             let len = 1 + case * 13;
-            let xs: Vec<f64> = (0..len)
-                .map(|_| match case % 3 {
-                    0 => rng.random::<f64>(),
-                    1 => rng.random::<f64>().powi(-2),
-                    _ => rng.random_range(0..4) as f64,
-                })
-                .collect();
+            let xs = test_stream(&mut rng, case, len);
             // Within its cap a sketch is type 7 of the sorted values, bit for bit.
             let mut exact = QuantileSketch::with_exact_cap(&probs, len);
             xs.iter().for_each(|&x| exact.push(x));
