@@ -8,6 +8,7 @@
 //! cargo run --release --example bench_study -- --scale 0.1  # a tenth of the runs
 //! cargo run --release --example bench_study -- --rounds 7 --case p1_ekf --case seed
 //! cargo run --release --example bench_study -- --case p1_ekf --only kfmc   # for a profiler
+//! cargo run --release --example bench_study -- --case p1_ekf --only trial  # runs without the study
 //! ```
 //!
 //! Cases: `p1_ekf` (P1 planar quadrotor, EKF only, basic scenario, 4,000 runs × 1,001 samples),
@@ -669,7 +670,7 @@ fn main() {
                     .expect("--rounds N")
             }
             "--case" => cases.push(args.next().expect("--case NAME")),
-            "--only" => only = Some(args.next().expect("--only kfmc|kernel")),
+            "--only" => only = Some(args.next().expect("--only kfmc|kernel|trial")),
             other => panic!("unknown argument {other}; use --scale F, --rounds N, --case NAME"),
         }
     }
@@ -748,6 +749,28 @@ fn main() {
             let _ = std::fs::remove_dir_all(&out);
             if only.as_deref() == Some("kernel") {
                 checksum += black_box(k());
+                continue;
+            }
+            if only.as_deref() == Some("trial") {
+                // kfmc's runs alone (simulate, filter, per-run metrics), without folding,
+                // quantiles or tables: what a study adds on top is the difference.
+                let trial = build(&plan);
+                let units: Vec<Unit> = (0..plan.scenarios.len())
+                    .flat_map(|scenario| {
+                        (0..plan.runs).map(move |run| Unit {
+                            scenario,
+                            scale: 0,
+                            run,
+                        })
+                    })
+                    .collect();
+                let (w, c) = timed(|| {
+                    checksum += units
+                        .par_iter()
+                        .map(|u| black_box(trial.run(u)).filters.len() as f64)
+                        .sum::<f64>();
+                });
+                println!("  trial only: wall {w:.3} s, CPU {c:.3} s");
                 continue;
             }
             let (wl, cl) = timed(|| {

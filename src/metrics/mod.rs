@@ -202,15 +202,30 @@ impl StepValues {
             Some(t) => t.iter().map(|t| t * t * total).collect(),
             None => vec![f64::INFINITY; nx],
         };
-        for (k, row) in self.sq_err[..self.completed * nx]
-            .chunks_exact(nx)
-            .enumerate()
-        {
-            for (i, (s, x)) in sums.iter_mut().zip(row).enumerate() {
+        let done = &self.sq_err[..self.completed * nx];
+        for row in done.chunks_exact(nx) {
+            for (s, x) in sums.iter_mut().zip(row) {
                 *s += x;
-                if crossed.is_none() && *s > limit[i] {
-                    crossed = Some((k, i));
-                }
+            }
+        }
+        // A running sum of squares never decreases, so a state whose total stays within its
+        // limit never crossed it, and only the others are summed again to find the step; a
+        // NaN total (NaN never compares above) may hide a crossing before it, so it is
+        // rescanned too. Most runs cross nothing and skip the per-step comparisons.
+        for i in 0..nx {
+            if sums[i] <= limit[i] {
+                continue;
+            }
+            let mut s = 0.0;
+            let first = done.chunks_exact(nx).position(|row| {
+                s += row[i];
+                s > limit[i]
+            });
+            // The first step in step order, then the lowest state at that step.
+            if let Some(k) = first
+                && crossed.is_none_or(|(k0, _)| k < k0)
+            {
+                crossed = Some((k, i));
             }
         }
         let rmse: Vec<f64> = sums.iter().map(|s| (s / n).sqrt()).collect();
@@ -523,5 +538,62 @@ mod tests {
         assert_eq!(r.status.step(), Some(1));
         assert_eq!(r.status.label(), "diverged");
         assert_eq!(r.nees_mean, None);
+    }
+
+    #[test]
+    fn the_divergence_step_equals_a_step_by_step_scan() {
+        // The reference: every running sum checked at every step, first (step, state) kept.
+        fn scan(sq: &[f64], nx: usize, limit: &[f64]) -> Option<(usize, usize)> {
+            let mut sums = vec![0.0; nx];
+            for (k, row) in sq.chunks_exact(nx).enumerate() {
+                for i in 0..nx {
+                    sums[i] += row[i];
+                    if sums[i] > limit[i] {
+                        return Some((k, i));
+                    }
+                }
+            }
+            None
+        }
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let (nx, steps) = (3, 40);
+        let mut crossings = 0;
+        for case in 0..2000 {
+            let mut v = StepValues::new(nx, steps - 1);
+            for x in v.sq_err.iter_mut() {
+                *x = rng.random::<f64>() * 2.0;
+                // NaN before or after a crossing, and ties between states at one step.
+                if rng.random::<f64>() < 0.01 {
+                    *x = f64::NAN;
+                }
+            }
+            if case % 7 == 0 {
+                for k in 0..steps {
+                    v.sq_err[k * nx + 2] = v.sq_err[k * nx];
+                }
+            }
+            v.completed = steps - rng.random_range(0..5);
+            let thr: Vec<f64> = (0..nx).map(|_| 0.6 + rng.random::<f64>() * 0.6).collect();
+            let limit: Vec<f64> = thr.iter().map(|t| t * t * steps as f64).collect();
+            let want = scan(&v.sq_err[..v.completed * nx], nx, &limit);
+            let got = v.finish(None, Some(&thr), &["a", "b", "c"], 0);
+            crossings += usize::from(want.is_some());
+            assert_eq!(got.status.step(), want.map(|(k, _)| k), "case {case}");
+            if let Some((_, i)) = want {
+                let name = ["a", "b", "c"][i];
+                assert!(
+                    got.status
+                        .detail()
+                        .unwrap()
+                        .starts_with(&format!("rmse_{name} "))
+                );
+            }
+        }
+        // Both outcomes occur often enough for the comparison to mean something.
+        assert!(
+            (200..1800).contains(&crossings),
+            "{crossings} of 2000 crossed"
+        );
     }
 }

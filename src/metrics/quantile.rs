@@ -185,31 +185,46 @@ impl QuantileSketch {
     /// Every quantile, in the order given to [`QuantileSketch::new`]. In the exact phase each
     /// is type 7 from the two order statistics around it, found by selection (linear time)
     /// rather than a sort: the same values `quantile_sorted` reads from the sorted data.
+    /// The quantiles are taken from the lowest up, and each selection only searches the
+    /// values above the order statistic the one before it placed: for the 5 %, 50 % and 95 %
+    /// of |e| that is 2.45 instead of 3 passes over the values.
     pub fn estimates(&self) -> Vec<Option<f64>> {
         if self.estimating {
             return self.p2.iter().map(P2Quantile::estimate).collect();
         }
         let mut v = self.exact.clone();
         let len = v.len();
-        self.p2
-            .iter()
-            .map(|e| {
-                let mut selected: Option<usize> = None;
-                quantile_type7(len, e.p, |i| match selected {
-                    // x_(⌊h⌋) by selection; everything after it is then no smaller.
-                    None => {
-                        selected = Some(i);
-                        *v.select_nth_unstable_by(i, f64::total_cmp).1
+        let mut order: Vec<usize> = (0..self.p2.len()).collect();
+        order.sort_by(|&a, &b| self.p2[a].p.total_cmp(&self.p2[b].p));
+        let mut out = vec![None; self.p2.len()];
+        // v[..placed] holds the `placed` smallest values, v[placed − 1] the largest of them.
+        let mut placed = 0;
+        for q in order {
+            let mut selected: Option<usize> = None;
+            out[q] = quantile_type7(len, self.p2[q].p, |i| match selected {
+                // x_(⌊h⌋): placed by an earlier quantile, or selected among the values above.
+                None => {
+                    selected = Some(i);
+                    if i + 1 == placed {
+                        v[i]
+                    } else {
+                        debug_assert!(i >= placed, "quantiles are taken in increasing order");
+                        let x = *v[placed..]
+                            .select_nth_unstable_by(i - placed, f64::total_cmp)
+                            .1;
+                        placed = i + 1;
+                        x
                     }
-                    // x_(⌊h⌋+1): the smallest of the values after x_(⌊h⌋).
-                    Some(lo) => v[lo + 1..]
-                        .iter()
-                        .copied()
-                        .min_by(f64::total_cmp)
-                        .expect("h < len − 1 leaves a value above"),
-                })
-            })
-            .collect()
+                }
+                // x_(⌊h⌋+1): the smallest of the values after x_(⌊h⌋).
+                Some(lo) => v[lo + 1..]
+                    .iter()
+                    .copied()
+                    .min_by(f64::total_cmp)
+                    .expect("h < len − 1 leaves a value above"),
+            });
+        }
+        out
     }
 }
 
@@ -342,6 +357,18 @@ mod tests {
                     exact.estimate(i).map(f64::to_bits),
                     quantile_sorted(&sorted, p).map(f64::to_bits),
                     "case {case}, p = {p}"
+                );
+            }
+            // Probabilities out of order, repeated, and close enough to share an order
+            // statistic: each selection reuses what the lower ones placed.
+            let mixed = [0.95, 0.05, 0.5, 0.5, 0.501, 0.999, 0.001];
+            let mut sketch = QuantileSketch::with_exact_cap(&mixed, len);
+            xs.iter().for_each(|&x| sketch.push(x));
+            for (&p, got) in mixed.iter().zip(sketch.estimates()) {
+                assert_eq!(
+                    got.map(f64::to_bits),
+                    quantile_sorted(&sorted, p).map(f64::to_bits),
+                    "case {case}, p = {p} among {mixed:?}"
                 );
             }
             // Beyond its cap it is P² from the first value, whatever the cap was.
