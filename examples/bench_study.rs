@@ -657,7 +657,8 @@ fn main() {
     let mut scale: f64 = 1.0;
     let mut rounds = 5;
     let mut cases: Vec<String> = Vec::new();
-    // `--only kfmc|kernel` times one side alone (for a profiler); no ratio is reported.
+    // `--only kfmc|kernel` times one side alone (for a profiler), `--only trial` kfmc's runs
+    // without the study around them; no ratio is reported.
     let mut only: Option<String> = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {

@@ -301,10 +301,9 @@ pub fn subtract_product<const NX: usize, const NZ: usize>(
     a: &Matrix<NX, NZ>,
     b: &Matrix<NZ, NX>,
 ) {
-    // Column by column, so each step runs down contiguous columns of A and P and vectorises;
+    // Column by column over the storage's column arrays, so no index is checked at run time;
     // every entry still sums 0 + a_i0 b_0c + a_i1 b_1c + … in that order, the same bits as
-    // the entry-by-entry loop.
-    // The column arrays of the storage, so that no index is checked at run time.
+    // the entry-by-entry loop. (SSE2 code for it spills: it costs what that loop did.)
     let (a, b, p) = (&a.data.0, &b.data.0, &mut p.data.0);
     for (dst, b_col) in p.iter_mut().zip(b) {
         let mut ab = [0.0; NX];
