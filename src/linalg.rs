@@ -132,10 +132,12 @@ impl<const N: usize> SmallCholesky<N> {
 /// column), with the columns of each row in ascending order
 /// ([`crate::model::Model::transition_pattern`]).
 ///
-/// Every element is the dense product's sum in the dense product's order (nalgebra's
-/// fixed-size product accumulates over the inner index in ascending order), with the zero
-/// terms left out, so the result is the dense result: a sparse F costs its non-zeros, not N³.
-/// P is overwritten in place (no 8·N² byte copies of the result).
+/// Every element of the lower triangle is the dense product's sum in the dense product's
+/// order (nalgebra's fixed-size product accumulates over the inner index in ascending order),
+/// with the zero terms left out, and the upper triangle is its mirror
+/// ([`mirror_lower`]): the result is the dense product made exactly symmetric, as the EKF's
+/// dense path forms it, and a sparse F costs its non-zeros, not N³. P is overwritten in place
+/// (no 8·N² byte copies of the result).
 // Always inlined: a model's pattern is a constant, so inlined into the filter's predict the
 // loops over it unroll into straight-line code on registers.
 #[inline(always)]
@@ -155,15 +157,19 @@ pub fn sparse_sandwich<const N: usize>(
                 fp[(i, c)] += v * p[(j, c)];
             }
         }
+        // Only the lower triangle of (F P) Fᵀ is summed: rows r ≥ k of each column k.
         let mut out = fp.map(|x| 0.0 + x);
         for &(k, j) in pattern.iter().filter(|(k, j)| k != j) {
             let v = f[(k, j)];
             let (src, mut dst) = (fp.column(j), out.column_mut(k));
             for r in 0..N {
-                dst[r] += v * src[r];
+                if r >= k {
+                    dst[r] += v * src[r];
+                }
             }
         }
         *p = out + q;
+        mirror_lower(p);
         return;
     }
     // A unit entry adds its term without the multiply: 1·x is x, so the sums keep their
@@ -194,16 +200,32 @@ pub fn sparse_sandwich<const N: usize>(
         let v = f[(k, j)];
         let (src, mut dst) = (fp.column(j), p.column_mut(k));
         if v == 1.0 {
-            for r in 0..N {
+            for r in k..N {
                 dst[r] += src[r];
             }
         } else {
-            for r in 0..N {
+            for r in k..N {
                 dst[r] += v * src[r];
             }
         }
     }
     *p += q;
+    mirror_lower(p);
+}
+
+/// Copies the lower triangle onto the upper one. A covariance update whose lower triangle is
+/// summed and mirrored is exactly symmetric (a dense product's two triangles differ in their
+/// last bits, and the difference grows over a run), and costs about half the multiplies.
+#[inline(always)]
+pub fn mirror_lower<const N: usize>(p: &mut Matrix<N, N>) {
+    // Loops of constant length unroll fully, and the triangle's test folds away.
+    for c in 0..N {
+        for r in 0..N {
+            if r < c {
+                p[(r, c)] = p[(c, r)];
+            }
+        }
+    }
 }
 
 /// Whether every row of F has its diagonal as the first entry of `pattern` and equal to 1:
@@ -292,30 +314,32 @@ pub fn select_i_kh<const NX: usize, const NZ: usize>(
     }
 }
 
-/// P ← P − A B for A of NX×NZ and B of NZ×NX: the Kalman update P⁻ − K (H P⁻) in place.
-/// Always inlined: nalgebra's product of these shapes is called out of line, and its NX×NX
-/// result is written and read back only to be subtracted.
+/// P ← P − A B for A of NX×NZ and B of NZ×NX whose result is symmetric: the Kalman update
+/// P⁻ − K (H P⁻) in place. The lower triangle is formed and mirrored ([`mirror_lower`]), so
+/// P stays exactly symmetric. Always inlined: nalgebra's product of these shapes is called
+/// out of line, and its NX×NX result is written and read back only to be subtracted.
 #[inline(always)]
 pub fn subtract_product<const NX: usize, const NZ: usize>(
     p: &mut Matrix<NX, NX>,
     a: &Matrix<NX, NZ>,
     b: &Matrix<NZ, NX>,
 ) {
-    // Column by column over the storage's column arrays, so no index is checked at run time;
-    // every entry still sums 0 + a_i0 b_0c + a_i1 b_1c + … in that order, the same bits as
-    // the entry-by-entry loop. (SSE2 code for it spills: it costs what that loop did.)
-    let (a, b, p) = (&a.data.0, &b.data.0, &mut p.data.0);
-    for (dst, b_col) in p.iter_mut().zip(b) {
-        let mut ab = [0.0; NX];
-        for (a_col, &blc) in a.iter().zip(b_col) {
-            for (s, &x) in ab.iter_mut().zip(a_col) {
-                *s += x * blc;
+    // Column by column over the storage's column arrays, rows c.. of column c; every entry
+    // sums 0 + a_i0 b_0c + a_i1 b_1c + … in that order.
+    let (a_cols, b_cols, p_cols) = (&a.data.0, &b.data.0, &mut p.data.0);
+    // Loops of constant length unroll fully, and the triangle's test folds away.
+    for c in 0..NX {
+        for i in 0..NX {
+            if i >= c {
+                let mut ab = 0.0;
+                for l in 0..NZ {
+                    ab += a_cols[l][i] * b_cols[c][l];
+                }
+                p_cols[c][i] -= ab;
             }
         }
-        for (d, s) in dst.iter_mut().zip(ab) {
-            *d -= s;
-        }
     }
+    mirror_lower(p);
 }
 
 /// Diagonal matrix from standard deviations: `diag(σ²)`.

@@ -3,7 +3,11 @@
 //! Predict: x̂⁻ = f(x̂, u_k), P⁻ = F P Fᵀ + Q with F = ∂f/∂x at the previous estimate.
 //! Update:  ν = z − h(x̂⁻, u_k) (angle components wrapped by the model), S = H P⁻ Hᵀ + R,
 //! K = P⁻ Hᵀ S⁻¹, x̂ = x̂⁻ + K ν, and P = (I − K H) P⁻ (the seeds' form, computed as
-//! P⁻ − K (H P⁻)) or the Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ.
+//! P⁻ − K (H P⁻)) or the Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ. F P Fᵀ + Q and
+//! P⁻ − K (H P⁻) are formed on their lower triangle and mirrored, and the Joseph product's
+//! upper triangle is replaced by the mirror of its lower one, so P is exactly symmetric after
+//! every step (the products' two triangles would differ in their last bits, and the
+//! difference would grow over a run).
 //!
 //! Requirements on the model: f, h and both Jacobians ([`Model`]).
 //!
@@ -16,7 +20,8 @@
 
 use super::{Filter, FilterError, Innovation};
 use crate::linalg::{
-    Matrix, SmallCholesky, Vector, select_i_kh, select_rows, sparse_sandwich, subtract_product,
+    Matrix, SmallCholesky, Vector, mirror_lower, select_i_kh, select_rows, sparse_sandwich,
+    subtract_product,
 };
 use crate::model::{Measurement, Model};
 
@@ -119,7 +124,11 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         b.x = model.propagate(&b.x, u);
         match model.transition_pattern() {
             Some(pattern) => sparse_sandwich(&b.f, pattern, &mut b.p, &self.q),
-            None => b.p = b.f * b.p * b.f.transpose() + self.q,
+            // The declared pattern's result, bit for bit: the same lower triangle, mirrored.
+            None => {
+                b.p = b.f * b.p * b.f.transpose() + self.q;
+                mirror_lower(&mut b.p);
+            }
         }
         b.gain = Gain::None;
         check_finite(b)
@@ -192,6 +201,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             CovarianceUpdate::Joseph => {
                 let r = dense.map_or(self.r, |(_, r)| r);
                 b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();
+                mirror_lower(&mut b.p);
             }
         }
         check_finite(b)?;
