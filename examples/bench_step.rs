@@ -189,7 +189,7 @@ fn old_factor<const N: usize>(
     which: &'static str,
 ) -> Result<Matrix<N, N>, FilterError> {
     SmallCholesky::new(a)
-        .map(|c| *c.l())
+        .map(|c| c.l())
         .ok_or(FilterError::NotPositiveDefinite { which })
 }
 
@@ -455,7 +455,7 @@ fn hand_ukf_step(
     let spread = 6f64.sqrt();
     let (w, wc0) = (1.0 / 12.0, 2.0);
     // Predict.
-    let l = *SmallCholesky::new(p).expect("P is SPD").l();
+    let l = SmallCholesky::new(p).expect("P is SPD").l();
     let mut ys = [Vector::<6>::zeros(); 13];
     ys[0] = f(x);
     for j in 0..6 {
@@ -479,7 +479,7 @@ fn hand_ukf_step(
         pp += d * d.transpose() * if i == 0 { wc0 } else { w };
     }
     // Update, from points redrawn from (x̂⁻, P⁻).
-    let l = *SmallCholesky::new(&pp).expect("P⁻ is SPD").l();
+    let l = SmallCholesky::new(&pp).expect("P⁻ is SPD").l();
     let mut dx = [Vector::<6>::zeros(); 13];
     let mut zs = [Vector::<3>::zeros(); 13];
     for j in 0..6 {

@@ -300,7 +300,7 @@ fn l1_run(sys: &L1Plan, plan: &Plan, run: usize) -> Vec<RunOut> {
         .model
         .process_noise_covariance()
         .expect("L1 has a full Q");
-    let l = *SmallCholesky::new(&qm).expect("Q positive definite").l();
+    let l = SmallCholesky::new(&qm).expect("Q positive definite").l();
     let seed = plan.run_seed(&sc.name, 0, run);
     let mut wr = stream(seed, StreamKind::ProcessNoise);
     let mut vr = stream(seed, StreamKind::MeasurementNoise);

@@ -76,7 +76,7 @@ impl World<2, 1, 1> for BiasedWorld {
         let mut bias_rng = world_stream(seed, 2);
         let mut prior_rng = world_stream(seed, 3);
         let n = |r: &mut rand_pcg::Pcg64| -> f64 { StandardNormal.sample(r) };
-        let l = *SmallCholesky::new(&q2()).expect("Q is SPD").l() * noise_scale;
+        let l = SmallCholesky::new(&q2()).expect("Q is SPD").l() * noise_scale;
         let bias = BIAS_STD * noise_scale * n(&mut bias_rng);
         let mut x = Vector::<2>::new(0.0, 1.0);
         let mut real = Realisation {

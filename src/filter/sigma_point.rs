@@ -346,11 +346,11 @@ fn factor<const NX: usize>(
     which: &'static str,
 ) -> Result<Matrix<NX, NX>, FilterError> {
     if let Some(c) = SmallCholesky::new(p) {
-        return Ok(*c.l());
+        return Ok(c.l());
     }
     let c = repair_spd(p).ok_or(FilterError::NotPositiveDefinite { which })?;
     *repairs += 1;
-    Ok(*c.l())
+    Ok(c.l())
 }
 
 impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Filter<NX, NU, NZ, M>
@@ -551,7 +551,7 @@ mod tests {
         let bvec = Vector::<2>::new(0.7, -1.1);
         let x = Vector::<3>::new(0.2, -0.4, 1.5);
         let p = Matrix::<3, 3>::new(2.0, 0.3, -0.1, 0.3, 1.0, 0.2, -0.1, 0.2, 0.5);
-        let l = *SmallCholesky::new(&p).unwrap().l();
+        let l = SmallCholesky::new(&p).unwrap().l();
         for (pts, tol) in [
             (SigmaPoints::DEFAULT_UNSCENTED, 1e-13),
             (SigmaPoints::Cubature, 1e-13),

@@ -58,7 +58,7 @@ fn factor<const N: usize>(
     which: &'static str,
 ) -> Result<Matrix<N, N>, FilterError> {
     SmallCholesky::new(a)
-        .map(|c| *c.l())
+        .map(|c| c.l())
         .ok_or(FilterError::NotPositiveDefinite { which })
 }
 

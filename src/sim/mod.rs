@@ -100,7 +100,7 @@ pub fn simulate<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, 
     let w_factor = model
         .process_noise_covariance()
         .and_then(|q| SmallCholesky::new(&q))
-        .map(|c| *c.l() * noise_scale);
+        .map(|c| c.l() * noise_scale);
     let mut x = x0;
     for k in 1..=steps {
         let u = &scenario.controls[k];
