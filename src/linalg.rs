@@ -55,10 +55,15 @@ impl<const N: usize> SmallCholesky<N> {
     #[inline]
     pub fn factor(&mut self, a: &Matrix<N, N>) -> bool {
         let u = &mut self.unit;
+        // Loops of constant length with the triangle's tests inside: they unroll fully into
+        // straight-line code (with `0..j` bounds the compiler kept the loops, and a 6×6
+        // factor cost about 700 instructions).
         for j in 0..N {
             let mut d = a[(j, j)];
-            for k in 0..j {
-                d -= u[(k, j)] * u[(j, k)];
+            for k in 0..N {
+                if k < j {
+                    d -= u[(k, j)] * u[(j, k)];
+                }
             }
             // Rejects NaN too: a NaN pivot is neither positive nor comparable.
             if d.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
@@ -67,13 +72,17 @@ impl<const N: usize> SmallCholesky<N> {
             let inv = 1.0 / d;
             self.d[j] = d;
             self.inv_d[j] = inv;
-            for i in j + 1..N {
-                let mut w = a[(i, j)];
-                for k in 0..j {
-                    w -= u[(k, i)] * u[(j, k)];
+            for i in 0..N {
+                if i > j {
+                    let mut w = a[(i, j)];
+                    for k in 0..N {
+                        if k < j {
+                            w -= u[(k, i)] * u[(j, k)];
+                        }
+                    }
+                    u[(j, i)] = w;
+                    u[(i, j)] = w * inv;
                 }
-                u[(j, i)] = w;
-                u[(i, j)] = w * inv;
             }
         }
         true
@@ -93,8 +102,10 @@ impl<const N: usize> SmallCholesky<N> {
     fn solve_unit_lower(&self, v: &Vector<N>) -> Vector<N> {
         let mut w = *v;
         for i in 0..N {
-            for k in 0..i {
-                w[i] -= self.unit[(i, k)] * w[k];
+            for k in 0..N {
+                if k < i {
+                    w[i] -= self.unit[(i, k)] * w[k];
+                }
             }
         }
         w
