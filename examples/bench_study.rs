@@ -653,6 +653,13 @@ fn kernel_run0(name: &str, plan: &Plan) -> f64 {
     }
 }
 
+const USAGE: &str = "usage: bench_study [--case p1_ekf|seed|l1_kf|drone_ekf9]... [--rounds N] \
+[--scale F] [--only kfmc|kernel|trial]
+  --case    a case to run (repeatable; default all four)
+  --rounds  alternating rounds per case (default 5)
+  --scale   multiplies the runs per case (default 1)
+  --only    times one side alone, for a profiler (no ratio is reported)";
+
 fn main() {
     let mut scale: f64 = 1.0;
     let mut rounds = 5;
@@ -672,7 +679,14 @@ fn main() {
             }
             "--case" => cases.push(args.next().expect("--case NAME")),
             "--only" => only = Some(args.next().expect("--only kfmc|kernel|trial")),
-            other => panic!("unknown argument {other}; use --scale F, --rounds N, --case NAME"),
+            "--help" | "-h" => {
+                println!("{USAGE}");
+                return;
+            }
+            other => {
+                eprintln!("bench_study: unknown argument {other}\n{USAGE}");
+                std::process::exit(2);
+            }
         }
     }
     if cases.is_empty() {
