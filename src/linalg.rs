@@ -25,17 +25,17 @@ pub fn symmetrize<const N: usize>(a: &Matrix<N, N>) -> Matrix<N, N> {
 ///
 /// Why L̃ D L̃ᵀ rather than L itself: the factorisation is a chain, each pivot waiting for the
 /// previous one, and a Cholesky pivot costs a square root *and* a division on that chain.
-/// Without the root a pivot waits for one division, and a profile of the P1 study showed the
+/// Without the root a pivot waits for one division, and a profile of an EKF study showed the
 /// CPU stalled on that chain (a fifth of the step loop's samples on the 6×6 NEES factor
 /// alone). The quadratic form, the solves and the PD test need no root at all; L⁻¹ v takes
 /// one per component, off the chain. The factor keeps 1/dᵢ, so a substitution multiplies
 /// where it would divide: an N×C solve costs N divisions (at the factoring), not N·C.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SmallCholesky<const N: usize> {
-    /// L̃ below the diagonal; above it, wᵢₖ = L̃ᵢₖ dₖ at (k, i), the pivots' unscaled
-    /// numerators (kept so that a pivot's update waits for one multiply, not two).
+    /// L̃ below the diagonal (its unit diagonal is implied); on and above it, wᵢₖ = L̃ᵢₖ dₖ at
+    /// (k, i): the pivots' unscaled numerators (kept so that a pivot's update waits for one
+    /// multiply, not two), and on the diagonal wₖₖ = dₖ, the pivots themselves.
     unit: Matrix<N, N>,
-    d: Vector<N>,
     inv_d: Vector<N>,
 }
 
@@ -70,7 +70,7 @@ impl<const N: usize> SmallCholesky<N> {
                 return false;
             }
             let inv = 1.0 / d;
-            self.d[j] = d;
+            u[(j, j)] = d;
             self.inv_d[j] = inv;
             for i in 0..N {
                 if i > j {
@@ -92,7 +92,6 @@ impl<const N: usize> SmallCholesky<N> {
     pub fn unfactored() -> Self {
         SmallCholesky {
             unit: Matrix::<N, N>::zeros(),
-            d: Vector::<N>::zeros(),
             inv_d: Vector::<N>::zeros(),
         }
     }
@@ -160,10 +159,11 @@ impl<const N: usize> SmallCholesky<N> {
 
     /// The Cholesky factor L = L̃ D^½ (lower triangular, positive diagonal).
     pub fn l(&self) -> Matrix<N, N> {
+        let sqrt_d = Vector::<N>::from_fn(|j, _| self.unit[(j, j)].sqrt());
         Matrix::<N, N>::from_fn(|i, j| match i.cmp(&j) {
             std::cmp::Ordering::Less => 0.0,
-            std::cmp::Ordering::Equal => self.d[j].sqrt(),
-            std::cmp::Ordering::Greater => self.unit[(i, j)] * self.d[j].sqrt(),
+            std::cmp::Ordering::Equal => sqrt_d[j],
+            std::cmp::Ordering::Greater => self.unit[(i, j)] * sqrt_d[j],
         })
     }
 }
