@@ -407,6 +407,7 @@ where
 
     for k in 0..=steps {
         let mut nis = f64::NAN;
+        let mut nis_dof = 0;
         let innovation = if k > 0 {
             let u = &ctx.inputs[k];
             let step = filter
@@ -427,7 +428,7 @@ where
                 record_innovation(x, k, inn);
             }
             nis = inn.nis;
-            values.nis_dof[k] = inn.dof as u8;
+            nis_dof = inn.dof as u8;
         }
         let x = filter.mean(&belief);
         let mean = eval.mean(&x);
@@ -515,15 +516,10 @@ where
                 .enumerate()
                 .for_each(|(t, v)| *v = a[(t / NQ, t % NQ)]);
         }
-        for i in 0..NQ {
-            values.sq_err[k * NQ + i] = e[i] * e[i];
-        }
-        values.nees[k] = nees;
-        values.nis[k] = nis;
-        values.completed = k + 1;
+        values.record(&e.data.0[0], nees, nis, nis_dof);
     }
     repairs += filter.internal_repairs(&belief);
-    let nees0 = values.nees[0];
+    let nees0 = values.nees()[0];
     let mut run = values.finish(failure, ctx.thresholds, ctx.quantity_names, repairs);
     run.consistency = match (after_burn_in, from_start) {
         (Some(w), _) => Some(w.sums),

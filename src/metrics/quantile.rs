@@ -192,7 +192,9 @@ impl QuantileSketch {
         if self.estimating {
             return self.p2.iter().map(P2Quantile::estimate).collect();
         }
-        let mut v = self.exact.clone();
+        // Selection on integer keys in `f64::total_cmp`'s order: the comparisons are plain
+        // integer ones, the order statistics the same values.
+        let mut v: Vec<u64> = self.exact.iter().map(|&x| total_order_key(x)).collect();
         let len = v.len();
         let mut order: Vec<usize> = (0..self.p2.len()).collect();
         order.sort_by(|&a, &b| self.p2[a].p.total_cmp(&self.p2[b].p));
@@ -201,31 +203,44 @@ impl QuantileSketch {
         let mut placed = 0;
         for q in order {
             let mut selected: Option<usize> = None;
-            out[q] = quantile_type7(len, self.p2[q].p, |i| match selected {
-                // x_(⌊h⌋): placed by an earlier quantile, or selected among the values above.
-                None => {
-                    selected = Some(i);
-                    if i + 1 == placed {
-                        v[i]
-                    } else {
-                        debug_assert!(i >= placed, "quantiles are taken in increasing order");
-                        let x = *v[placed..]
-                            .select_nth_unstable_by(i - placed, f64::total_cmp)
-                            .1;
-                        placed = i + 1;
-                        x
+            out[q] = quantile_type7(len, self.p2[q].p, |i| {
+                from_total_order_key(match selected {
+                    // x_(⌊h⌋): placed by an earlier quantile, or selected among those above.
+                    None => {
+                        selected = Some(i);
+                        if i + 1 == placed {
+                            v[i]
+                        } else {
+                            debug_assert!(i >= placed, "quantiles are taken in increasing order");
+                            let x = *v[placed..].select_nth_unstable(i - placed).1;
+                            placed = i + 1;
+                            x
+                        }
                     }
-                }
-                // x_(⌊h⌋+1): the smallest of the values after x_(⌊h⌋).
-                Some(lo) => v[lo + 1..]
-                    .iter()
-                    .copied()
-                    .min_by(f64::total_cmp)
-                    .expect("h < len − 1 leaves a value above"),
+                    // x_(⌊h⌋+1): the smallest of the values after x_(⌊h⌋).
+                    Some(lo) => *v[lo + 1..]
+                        .iter()
+                        .min()
+                        .expect("h < len − 1 leaves a value above"),
+                })
             });
         }
         out
     }
+}
+
+/// An unsigned key whose integer order is `f64::total_cmp`'s order on the values.
+fn total_order_key(x: f64) -> u64 {
+    let bits = x.to_bits();
+    // Negative values: every bit but the sign flipped (as total_cmp does), then the sign bit
+    // flipped for all, so that negatives come first as unsigned integers.
+    (bits ^ ((((bits as i64) >> 63) as u64) >> 1)) ^ (1 << 63)
+}
+
+/// The value of a [`total_order_key`].
+fn from_total_order_key(k: u64) -> f64 {
+    let t = k ^ (1 << 63);
+    f64::from_bits(t ^ ((((t as i64) >> 63) as u64) >> 1))
 }
 
 #[cfg(test)]
@@ -241,6 +256,41 @@ mod tests {
         let mut s = v.to_vec();
         s.sort_by(f64::total_cmp);
         quantile_sorted(&s, p).unwrap()
+    }
+
+    #[test]
+    fn total_order_keys_sort_as_total_cmp_and_round_trip() {
+        let mut xs = vec![
+            f64::NEG_INFINITY,
+            -1e300,
+            -1.5,
+            -f64::MIN_POSITIVE,
+            -5e-324,
+            -0.0,
+            0.0,
+            5e-324,
+            f64::MIN_POSITIVE,
+            1.0,
+            1.0 + f64::EPSILON,
+            1e300,
+            f64::INFINITY,
+            f64::NAN,
+            -f64::NAN,
+        ];
+        xs.extend(mixed(101).iter().map(|x| (x - 50.0) * 0.37));
+        for a in &xs {
+            assert_eq!(
+                from_total_order_key(total_order_key(*a)).to_bits(),
+                a.to_bits()
+            );
+            for b in &xs {
+                assert_eq!(
+                    total_order_key(*a).cmp(&total_order_key(*b)),
+                    a.total_cmp(b),
+                    "{a} vs {b}"
+                );
+            }
+        }
     }
 
     #[test]

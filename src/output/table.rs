@@ -1,7 +1,9 @@
 //! A streaming, atomic Parquet table writer on top of polars.
 
 use std::fs::File;
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 use polars::prelude::*;
 
@@ -44,7 +46,14 @@ pub struct TableWriter {
     buffers: Vec<Buffer>,
     buffered: usize,
     rows: u64,
-    writer: Option<polars::io::parquet::write::BatchedWriter<File>>,
+    writer: Option<polars::io::parquet::write::BatchedWriter<SharedFile>>,
+    /// The buffered file under the writer: polars encodes page headers and the footer in
+    /// writes of a few bytes (about 10,000 system calls for a 4,000-run study), and its
+    /// writer never gives its `W` back, so the buffer is shared to flush it, with its
+    /// error, after the footer.
+    file: SharedFile,
+    /// Whether the file was finished whole (then it is the caller's, or already in place).
+    ended: bool,
     /// The checkpoint journal every pushed row is also appended to, when the study is
     /// resumable ([`super::checkpoint`]).
     journal: Option<super::checkpoint::Journal>,
@@ -70,7 +79,11 @@ impl TableWriter {
             };
             Field::new(c.name.as_str().into(), dt)
         }));
-        let writer = ParquetWriter::new(file)
+        let file = SharedFile(Arc::new(Mutex::new(BufWriter::with_capacity(
+            1 << 16,
+            file,
+        ))));
+        let writer = ParquetWriter::new(file.clone())
             .with_compression(ParquetCompression::Zstd(None))
             .batched(&schema)
             .map_err(|source| OutputError::Polars {
@@ -97,6 +110,8 @@ impl TableWriter {
             buffered: 0,
             rows: 0,
             writer: Some(writer),
+            file,
+            ended: false,
             journal: None,
         })
     }
@@ -221,12 +236,8 @@ impl TableWriter {
     /// move into place with the others.
     pub fn finish(mut self) -> Result<super::folder::FinishedTable, OutputError> {
         self.flush()?;
-        let writer = self.writer.take().expect("the writer lives until commit");
-        writer.finish().map_err(|source| OutputError::Polars {
-            action: "cannot finish",
-            path: self.tmp.clone(),
-            source,
-        })?;
+        self.end_file()?;
+        self.ended = true;
         Ok(super::folder::FinishedTable {
             name: std::mem::take(&mut self.name),
             tmp: std::mem::take(&mut self.tmp),
@@ -237,13 +248,7 @@ impl TableWriter {
     /// Finishes the file and renames it into place; returns its path and row count.
     pub fn commit(mut self) -> Result<(PathBuf, u64), OutputError> {
         self.flush()?;
-        let writer = self.writer.take().expect("the writer lives until commit");
-        writer.finish().map_err(|source| OutputError::Polars {
-            action: "cannot finish",
-            path: self.tmp.clone(),
-            source,
-        })?;
-        drop(writer);
+        self.end_file()?;
         super::folder::sync_file(&self.tmp).map_err(|source| OutputError::Io {
             action: "cannot sync",
             path: self.tmp.clone(),
@@ -254,7 +259,24 @@ impl TableWriter {
             path: self.path.clone(),
             source,
         })?;
+        self.ended = true;
         Ok((self.path.clone(), self.rows))
+    }
+
+    /// Writes the footer and flushes the file's buffer.
+    fn end_file(&mut self) -> Result<(), OutputError> {
+        let writer = self.writer.take().expect("the writer lives until commit");
+        writer.finish().map_err(|source| OutputError::Polars {
+            action: "cannot finish",
+            path: self.tmp.clone(),
+            source,
+        })?;
+        drop(writer);
+        self.file.flush().map_err(|source| OutputError::Io {
+            action: "cannot write",
+            path: self.tmp.clone(),
+            source,
+        })
     }
 
     /// Appends every row of `df`, whose columns must be this table's (as read back from a
@@ -278,10 +300,37 @@ impl TableWriter {
 
 impl Drop for TableWriter {
     fn drop(&mut self) {
-        if self.writer.is_some() {
-            // Not committed: leave nothing that could be mistaken for a result.
+        if !self.ended {
+            // Not committed (or its footer or buffer could not be written): leave nothing
+            // that could be mistaken for a result.
             let _ = std::fs::remove_file(&self.tmp);
         }
+    }
+}
+
+/// A buffered file that the Parquet writer and the [`TableWriter`] both hold.
+#[derive(Clone)]
+struct SharedFile(Arc<Mutex<BufWriter<File>>>);
+
+impl SharedFile {
+    fn lock(&self) -> std::sync::MutexGuard<'_, BufWriter<File>> {
+        // A panic while writing leaves the buffer as it was; the table is then dropped
+        // uncommitted anyway.
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+impl Write for SharedFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.lock().write(buf)
+    }
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.lock().write_all(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.lock().flush()
     }
 }
 
