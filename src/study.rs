@@ -187,14 +187,18 @@ impl Aggregator<'_> {
                 scenario,
                 scale,
                 CellState {
-                    acc: vec![
-                        StepAccumulator::with_exact_cap(
-                            nx,
-                            steps,
-                            crate::metrics::abs_err_exact_cap(nf, nx, steps + 1)
-                        );
-                        nf
-                    ],
+                    // Every run of the cell comes here (shards split by cells).
+                    acc: (0..nf)
+                        .map(|_| {
+                            let mut a = StepAccumulator::with_exact_cap(
+                                nx,
+                                steps,
+                                crate::metrics::abs_err_exact_cap(nf, nx, steps + 1),
+                            );
+                            a.reserve_runs(plan.runs);
+                            a
+                        })
+                        .collect(),
                     rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
                     consistency: (0..nf)
                         .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))
