@@ -177,10 +177,18 @@ impl<const N: usize> SmallCholesky<N> {
 /// with the zero terms left out, and the upper triangle is its mirror
 /// ([`mirror_lower`]): the result is the dense product made exactly symmetric, as the EKF's
 /// dense path forms it, and a sparse F costs its non-zeros, not N³. P is overwritten in place
-/// (no 8·N² byte copies of the result).
+/// (no 8·N² byte copies of the result). P must be exactly symmetric, as the EKF keeps it:
+/// F P is formed as (P Fᵀ)ᵀ, which has the same bits only then.
 // Always inlined: a model's pattern is a constant, so inlined into the filter's predict the
-// loops over it unroll into straight-line code on registers.
+// loops over it unroll into straight-line code on registers. They are indexed loops over
+// columns on purpose: with `pattern.iter().filter(..)`, or with F P formed row by row (rows
+// are strided in column-major storage), LLVM kept them as loops over the pattern, with P and
+// F P in memory, and a P1 EKF study ran 1.12× faster once both unrolled.
 #[inline(always)]
+#[allow(
+    clippy::needless_range_loop,
+    reason = "the indexed loops over the pattern are the ones LLVM unrolls (measured)"
+)]
 pub fn sparse_sandwich<const N: usize>(
     f: &Matrix<N, N>,
     pattern: &[(usize, usize)],
@@ -190,21 +198,30 @@ pub fn sparse_sandwich<const N: usize>(
     if unit_diagonal_first(f, pattern) {
         // F = I + E with every row's diagonal first: each sum starts with 0 + 1·x = 0 + x,
         // so P + 0 stands for the diagonal's terms and only E's entries are multiplied.
-        let mut fp = p.map(|x| 0.0 + x);
-        for &(i, j) in pattern.iter().filter(|(i, j)| i != j) {
-            let v = f[(i, j)];
-            for c in 0..N {
-                fp[(i, c)] += v * p[(j, c)];
+        // Column i of P Fᵀ is row i of F P: P's column j is its row j, P being symmetric.
+        let mut pft = p.map(|x| 0.0 + x);
+        for t in 0..pattern.len() {
+            let (i, j) = pattern[t];
+            if i != j {
+                let v = f[(i, j)];
+                let (src, mut dst) = (p.column(j), pft.column_mut(i));
+                for c in 0..N {
+                    dst[c] += v * src[c];
+                }
             }
         }
+        let fp = pft.transpose();
         // Only the lower triangle of (F P) Fᵀ is summed: rows r ≥ k of each column k.
         let mut out = fp.map(|x| 0.0 + x);
-        for &(k, j) in pattern.iter().filter(|(k, j)| k != j) {
-            let v = f[(k, j)];
-            let (src, mut dst) = (fp.column(j), out.column_mut(k));
-            for r in 0..N {
-                if r >= k {
-                    dst[r] += v * src[r];
+        for t in 0..pattern.len() {
+            let (k, j) = pattern[t];
+            if k != j {
+                let v = f[(k, j)];
+                let (src, mut dst) = (fp.column(j), out.column_mut(k));
+                for r in 0..N {
+                    if r >= k {
+                        dst[r] += v * src[r];
+                    }
                 }
             }
         }
@@ -214,38 +231,42 @@ pub fn sparse_sandwich<const N: usize>(
     }
     // A unit entry adds its term without the multiply: 1·x is x, so the sums keep their
     // bits. One bounds check per entry, not per element.
-    let mut fp = Matrix::<N, N>::zeros();
-    for &(i, j) in pattern {
+    let mut pft = Matrix::<N, N>::zeros();
+    for t in 0..pattern.len() {
+        let (i, j) = pattern[t];
         assert!(
             i < N && j < N,
             "transition pattern entry ({i}, {j}) outside {N}×{N}"
         );
         let v = f[(i, j)];
+        let (src, mut dst) = (p.column(j), pft.column_mut(i));
         if v == 1.0 {
             for c in 0..N {
-                fp[(i, c)] += p[(j, c)];
+                dst[c] += src[c];
             }
         } else {
             for c in 0..N {
-                fp[(i, c)] += v * p[(j, c)];
+                dst[c] += v * src[c];
             }
         }
     }
+    let fp = pft.transpose();
     p.fill(0.0);
-    for &(k, j) in pattern {
-        assert!(
-            k < N && j < N,
-            "transition pattern entry ({k}, {j}) outside {N}×{N}"
-        );
+    for t in 0..pattern.len() {
+        let (k, j) = pattern[t];
         let v = f[(k, j)];
         let (src, mut dst) = (fp.column(j), p.column_mut(k));
         if v == 1.0 {
-            for r in k..N {
-                dst[r] += src[r];
+            for r in 0..N {
+                if r >= k {
+                    dst[r] += src[r];
+                }
             }
         } else {
-            for r in k..N {
-                dst[r] += v * src[r];
+            for r in 0..N {
+                if r >= k {
+                    dst[r] += v * src[r];
+                }
             }
         }
     }
@@ -271,10 +292,15 @@ pub fn mirror_lower<const N: usize>(p: &mut Matrix<N, N>) {
 /// Whether every row of F has its diagonal as the first entry of `pattern` and equal to 1:
 /// F = I + E with E to the right of the diagonal in each row's order (F = I + A·Δt of a
 /// chain of integrators), where the dense product's sums begin with the identity's term.
+#[allow(
+    clippy::needless_range_loop,
+    reason = "indexed as in sparse_sandwich, into which it is inlined"
+)]
 fn unit_diagonal_first<const N: usize>(f: &Matrix<N, N>, pattern: &[(usize, usize)]) -> bool {
     let mut rows = 0;
     let mut row = usize::MAX;
-    for &(i, j) in pattern {
+    for t in 0..pattern.len() {
+        let (i, j) = pattern[t];
         if i != row {
             if j != i || i >= N || f[(i, i)] != 1.0 {
                 return false;

@@ -115,7 +115,13 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         p0: &Matrix<NX, NX>,
         _z0: &Measurement<NZ>,
     ) -> Gaussian<NX> {
-        Gaussian::new(*x0_hat, *p0)
+        // P₀'s lower triangle, mirrored: every step keeps P exactly symmetric, and the
+        // declared-structure path reads P's columns for its rows (as the NEES factor reads
+        // the lower triangle), so a P₀ whose triangles differ in their last bits would
+        // otherwise make it part from the dense path.
+        let mut p0 = *p0;
+        mirror_lower(&mut p0);
+        Gaussian::new(*x0_hat, p0)
     }
 
     #[inline]
