@@ -74,8 +74,12 @@ enum Gain<const NX: usize> {
 }
 
 impl<const NX: usize> Gaussian<NX> {
-    /// A belief with mean `x` and covariance `p`.
-    pub fn new(x: Vector<NX>, p: Matrix<NX, NX>) -> Self {
+    /// A belief with mean `x` and covariance `p`'s lower triangle, mirrored.
+    pub fn new(x: Vector<NX>, mut p: Matrix<NX, NX>) -> Self {
+        // Every step keeps P exactly symmetric, and the declared-structure path reads P's
+        // columns for its rows (as the NEES factor reads the lower triangle), so a P whose
+        // triangles differ in their last bits would otherwise make it part from the dense path.
+        mirror_lower(&mut p);
         Gaussian {
             x,
             p,
@@ -115,13 +119,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
         p0: &Matrix<NX, NX>,
         _z0: &Measurement<NZ>,
     ) -> Gaussian<NX> {
-        // P₀'s lower triangle, mirrored: every step keeps P exactly symmetric, and the
-        // declared-structure path reads P's columns for its rows (as the NEES factor reads
-        // the lower triangle), so a P₀ whose triangles differ in their last bits would
-        // otherwise make it part from the dense path.
-        let mut p0 = *p0;
-        mirror_lower(&mut p0);
-        Gaussian::new(*x0_hat, p0)
+        Gaussian::new(*x0_hat, *p0)
     }
 
     #[inline]

@@ -56,7 +56,7 @@ pub struct NavBelief<const NX: usize> {
 }
 
 /// A row of H.
-type RowVector<const NX: usize> = nalgebra::SMatrix<f64, 1, NX>;
+type RowVector<const NX: usize> = nalgebra::RowSVector<f64, NX>;
 
 impl<const NX: usize, M: Nav<NX>> Filter<NX, NU, NZ, M> for SeqEkf {
     type Belief = NavBelief<NX>;
