@@ -85,13 +85,29 @@ pub enum OutputError {
     },
     /// Another kfmc process is writing into the folder.
     #[error(
-        "{path} is being written by another kfmc (pid {pid}); wait for it or choose another --out"
+        "{path} is being written by another kfmc ({holder}); wait for it or choose another --out"
     )]
     Locked {
         /// The folder.
         path: PathBuf,
-        /// The process holding the lock.
-        pid: u32,
+        /// The process holding the lock: its pid, host and start time as it recorded them.
+        holder: String,
+    },
+    /// The folder holds another command's result, which this command would replace.
+    #[error(
+        "{path} holds {holds} (experiment `{experiment}`: {tables}); `kfmc {command}` replaces only a folder of its own kind: choose another --out, or pass --force to replace it"
+    )]
+    OtherKind {
+        /// The folder.
+        path: PathBuf,
+        /// What it holds.
+        holds: &'static str,
+        /// Its experiment.
+        experiment: String,
+        /// Its tables, listed.
+        tables: String,
+        /// The command that was refused.
+        command: &'static str,
     },
     /// The folder holds files that no kfmc study wrote.
     #[error(

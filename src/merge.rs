@@ -15,7 +15,7 @@ use std::time::Instant;
 
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::{self, Overrides};
-use crate::output::folder::{StudyFolder, verify};
+use crate::output::folder::{FolderLock, StudyFolder, verify};
 use crate::output::manifest::Manifest;
 use crate::output::schema;
 use crate::output::table::{TableWriter, columns_of, for_each_row, for_each_row_group};
@@ -97,13 +97,15 @@ pub struct MergeReport {
 struct Part {
     dir: PathBuf,
     manifest: Manifest,
+    // A merge holds every part while it reads it, so that no part is rewritten under it.
+    _lock: Option<FolderLock>,
 }
 
 /// The part folders under `dir/parts`, each verified, in part order; every problem is named.
 /// A part folder that is not a complete part, and why.
 type Problem = (PathBuf, String);
 
-fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<Problem>), OutputError> {
+fn parts(dir: &Path, lock: bool) -> Result<(Vec<Part>, Vec<Problem>), OutputError> {
     let root = dir.join("parts");
     let entries = std::fs::read_dir(&root).map_err(|source| OutputError::Io {
         action: "cannot list the parts in",
@@ -118,10 +120,23 @@ fn parts(dir: &Path) -> Result<(Vec<Part>, Vec<Problem>), OutputError> {
         if !path.is_dir() {
             continue;
         }
+        let held = if lock {
+            match FolderLock::acquire(&path) {
+                Ok(l) => Some(l),
+                Err(e) => {
+                    let why = format!("{}: {e}", path.display());
+                    problems.push((path, why));
+                    continue;
+                }
+            }
+        } else {
+            None
+        };
         match verify(&path) {
             Ok(manifest) if manifest.shard.is_some() => found.push(Part {
                 dir: path,
                 manifest,
+                _lock: held,
             }),
             Ok(_) => problems.push((
                 path.clone(),
@@ -152,22 +167,48 @@ pub fn status(dir: &Path) -> Result<String, OutputError> {
     {
         return Ok(format!("{}: an interrupted run, {p}\n", dir.display()));
     }
-    let (found, problems) = parts(dir)?;
+    let (found, problems) = parts(dir, false)?;
     let mut s = String::new();
-    let count = found
-        .first()
-        .and_then(|p| p.manifest.shard.as_ref())
-        .map(|s| s.count);
-    let done: Vec<u64> = found
+    // The study is the largest group of parts that `merge` would combine (same kind, spec,
+    // seed, runs and part count); parts of any other split or study are listed apart, never
+    // counted towards it.
+    let key = |m: &Manifest| {
+        (
+            m.kind(),
+            m.spec_hash.clone(),
+            m.master_seed,
+            m.runs_per_cell,
+            m.shard.as_ref().map_or(0, |s| s.count),
+        )
+    };
+    let mut groups: Vec<(_, usize)> = Vec::new();
+    for p in &found {
+        let k = key(&p.manifest);
+        match groups.iter_mut().find(|(g, _)| *g == k) {
+            Some((_, n)) => *n += 1,
+            None => groups.push((k, 1)),
+        }
+    }
+    let study = groups
+        .iter()
+        .rev()
+        .max_by_key(|(_, n)| *n)
+        .map(|(k, _)| k.clone());
+    let (ours, others): (Vec<&Part>, Vec<&Part>) = found
+        .iter()
+        .partition(|p| study.as_ref() == Some(&key(&p.manifest)));
+    let count = study.as_ref().map(|k| k.4);
+    let done: Vec<u64> = ours
         .iter()
         .filter_map(|p| p.manifest.shard.as_ref().map(|s| s.index))
         .collect();
     match count {
         Some(n) => {
             s.push_str(&format!(
-                "{}: {} of {n} parts complete\n",
+                "{}: {} of {n} parts complete ({} parts)\n",
                 dir.display(),
-                done.len()
+                done.len(),
+                study.as_ref().map_or("run", |k| k.0.command())
             ));
             for i in 0..n {
                 let state = if done.contains(&i) {
@@ -186,6 +227,18 @@ pub fn status(dir: &Path) -> Result<String, OutputError> {
         }
         None => s.push_str(&format!("{}: no complete part\n", dir.display())),
     }
+    for p in &others {
+        let m = &p.manifest;
+        let (i, n) = m.shard.as_ref().map_or((0, 0), |s| (s.index, s.count));
+        s.push_str(&format!(
+            "  of another study (`kfmc merge` refuses it; remove it): {}: a `kfmc {}` part {i} of {n}, spec {}, seed {}, {} runs per cell\n",
+            p.dir.display(),
+            m.kind().command(),
+            m.spec_hash,
+            m.master_seed,
+            m.runs_per_cell
+        ));
+    }
     for (path, why) in &problems {
         // A part being computed, or killed, says how far its checkpoint got.
         match progress(path)? {
@@ -202,6 +255,16 @@ pub fn status(dir: &Path) -> Result<String, OutputError> {
     Ok(s)
 }
 
+/// A SIGINT or SIGTERM stops a merge like a run: nothing committed, the partial tables
+/// removed as their writers drop, the parts untouched.
+fn stop_if_interrupted() -> Result<(), OutputError> {
+    if crate::runner::interrupted() {
+        Err(OutputError::Interrupted)
+    } else {
+        Ok(())
+    }
+}
+
 fn mismatch(dir: &Path, why: String) -> KfmcError {
     KfmcError::Output(OutputError::Mismatch {
         path: dir.to_path_buf(),
@@ -211,9 +274,19 @@ fn mismatch(dir: &Path, why: String) -> KfmcError {
 
 /// Merges the parts in `dir/parts` into `dir`'s tables and manifest. Refuses parts of another
 /// spec, seed or run count, a different n, or a missing part, naming it.
-pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> {
+pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport, KfmcError> {
     let started = Instant::now();
-    let (found, problems) = parts(dir)?;
+    if !dir.is_dir() {
+        return Err(OutputError::NotAStudy {
+            path: dir.to_path_buf(),
+            why: "no such folder".into(),
+        }
+        .into());
+    }
+    // Held before anything in the folder is read: a second merge (or any writer) is refused
+    // instead of reading parts that are being replaced or writing beside this one.
+    let folder = StudyFolder::lock(dir)?;
+    let (found, problems) = parts(dir, true)?;
     if let Some((_, p)) = problems.first() {
         return Err(mismatch(
             dir,
@@ -231,7 +304,14 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
     for p in &found {
         let m = &p.manifest;
         let s = m.shard.as_ref().expect("parts() keeps shards only");
+        // The kind first: a simulation's part among a run's has another spec too, and the
+        // kind is what the user must be told.
         for (what, a, b) in [
+            (
+                "kind",
+                &format!("`kfmc {}`", m.kind().command()),
+                &format!("`kfmc {}`", m0.kind().command()),
+            ),
             ("spec (hash)", &m.spec_hash, &m0.spec_hash),
             (
                 "master seed",
@@ -299,7 +379,7 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         plan.filters.clear();
         plan.rmse_thresholds = None;
     }
-    let folder = StudyFolder::open(dir, false)?;
+    folder.prepare(m0.kind(), force)?;
 
     let mut finished = Vec::new();
     for name in schema::TABLES {
@@ -315,6 +395,7 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
         for f in &files {
             // Row group by row group: memory does not grow with the parts' sizes.
             for_each_row_group(f, |df| {
+                stop_if_interrupted()?;
                 let w = match writer.as_mut() {
                     Some(w) => w,
                     None => writer.insert(TableWriter::create(dir, name, columns_of(&df, f)?)?),
@@ -338,6 +419,7 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
                 let mut row_index = 0u64;
                 // Row group by row group: a part's runs table grows with its runs.
                 for_each_row_group(&path, |df| {
+                    stop_if_interrupted()?;
                     for_each_row(&df, &columns, &path, |row| {
                         let bad = |why: &str| OutputError::Mismatch {
                             path: path.clone(),
@@ -370,6 +452,8 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
     manifest.wall_s = ordered.iter().map(|p| p.manifest.wall_s).sum();
     manifest.runs_per_s = size.runs as f64 / manifest.wall_s.max(1e-9);
     manifest.tables.clear();
+    // The last moment a stop can be honoured without a commit.
+    stop_if_interrupted()?;
     let tables = folder.commit(finished, manifest)?;
     Ok(MergeReport {
         parts: ordered.len(),

@@ -23,6 +23,7 @@ use crate::experiment::Plan;
 use crate::experiment::plan::ConsistencyPlan;
 use crate::metrics::quantile_sorted;
 use crate::output::folder::StudyFolder;
+use crate::output::manifest::StudyKind;
 use crate::output::schema::{ColumnDef, Dtype};
 use crate::output::table::read;
 use crate::output::{TableWriter, Value};
@@ -107,7 +108,7 @@ pub fn power(
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
-    let folder = StudyFolder::open(out, opts.force)?;
+    let folder = StudyFolder::open(out, StudyKind::Power, opts.force)?;
     let scratch: PathBuf = out.join(".power-replication");
     let mut one = plan.clone();
     one.trace_runs = 0;
@@ -179,6 +180,7 @@ pub fn power(
         wall_s,
         0..plan.scenarios.len() * plan.noise_scales.len(),
     );
+    manifest.kind = Some(StudyKind::Power);
     manifest.master_seed = base_seed;
     manifest.runs = (replications * plan.size().runs) as u64;
     let tables = folder.commit(finished, manifest)?;

@@ -12,7 +12,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::Plan;
 use crate::output::folder::StudyFolder;
-use crate::output::manifest::ExchangeEntry;
+use crate::output::manifest::{ExchangeEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute};
 use crate::study::{ExecOptions, StudyReport};
@@ -38,7 +38,7 @@ pub fn simulate(
     world_only.export_estimates = false;
     let part_dir = opts.shard.map(|s| s.folder(&plan.output));
     let dir = part_dir.as_ref().unwrap_or(&plan.output);
-    let folder = StudyFolder::open(dir, opts.force)?;
+    let folder = StudyFolder::open(dir, StudyKind::Simulate, opts.force)?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
     let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
     let trial = world_only.system.trial(&world_only);
@@ -124,6 +124,7 @@ pub fn simulate(
     let wall_s = started.elapsed().as_secs_f64();
     let mut manifest =
         crate::study::manifest_for(&world_only, opts, started_unix_s, wall_s, cells.clone());
+    manifest.kind = Some(StudyKind::Simulate);
     manifest.exchange = Some(ExchangeEntry {
         schema_version: crate::score::SCHEMA_VERSION,
         error_convention: crate::score::ERROR_CONVENTION.into(),

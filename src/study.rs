@@ -9,7 +9,7 @@ use crate::metrics::consistency::{BandCache, ConsistencyFold};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::{RunStatus, StepAccumulator};
 use crate::output::folder::StudyFolder;
-use crate::output::manifest::{Manifest, QuantityEntry};
+use crate::output::manifest::{Manifest, QuantityEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute};
 use crate::spill::Spill;
@@ -475,6 +475,26 @@ pub fn run(
     opts: &ExecOptions,
     observer: &dyn RunObserver,
 ) -> Result<StudyReport, KfmcError> {
+    run_locked(plan, opts, observer).map(|(report, _)| report)
+}
+
+/// The kind of folder a study of `plan` writes: estimates read from files make a scored
+/// study, kfmc's own filters alone a run.
+pub fn study_kind(plan: &Plan) -> StudyKind {
+    if plan.filters.iter().any(|f| f.external) {
+        StudyKind::Score
+    } else {
+        StudyKind::Run
+    }
+}
+
+/// [`run`], returning the folder still locked, so that a caller that reads the committed
+/// tables back (`kfmc check`) reads this study's, not a later writer's.
+pub fn run_locked(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<(StudyReport, StudyFolder), KfmcError> {
     if let Some(f) = plan.filters.iter().find(|f| f.external)
         && plan.estimates.is_none()
     {
@@ -513,7 +533,7 @@ pub fn run(
         .map_or(0, |d| d.as_secs());
     let part_dir = opts.shard.map(|s| s.folder(&plan.output));
     let dir = part_dir.as_ref().unwrap_or(&plan.output);
-    let folder = StudyFolder::open(dir, opts.force)?;
+    let folder = StudyFolder::open(dir, study_kind(plan), opts.force)?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
     let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
     let result = run_in(
@@ -535,7 +555,7 @@ pub fn run(
         // may be what ran out).
         let _ = crate::output::checkpoint::remove(dir);
     }
-    result
+    result.map(|report| (report, folder))
 }
 
 /// [`run`] once the folder is held.
@@ -954,6 +974,7 @@ pub(crate) fn manifest_for(
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
         experiment: plan.name.clone(),
         system: plan.kind.clone(),
+        kind: Some(study_kind(plan)),
         quantities: plan
             .layout()
             .quantities

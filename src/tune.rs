@@ -21,7 +21,8 @@ use std::path::PathBuf;
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::plan::ConsistencyPlan;
 use crate::experiment::{FilterPlan, Plan};
-use crate::output::folder::{FinishedTable, StudyFolder};
+use crate::output::folder::{FinishedFolder, FinishedTable, StudyFolder};
+use crate::output::manifest::StudyKind;
 use crate::output::table::read;
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::RunObserver;
@@ -107,19 +108,23 @@ fn log_grid(center: f64, half_decades: f64, points: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Runs one stage of the search into its folder under `staging`, and returns its points and
+/// the folder's name.
 fn stage(
     plan: &Plan,
+    staging: &std::path::Path,
     base: &FilterPlan,
     grid: &[(f64, f64)],
     name: &'static str,
     opts: &TuneOptions,
     observer: &dyn RunObserver,
-) -> Result<Vec<TunePoint>, KfmcError> {
+) -> Result<(Vec<TunePoint>, String), KfmcError> {
     let mut p = plan.clone();
-    p.output = plan.output.join(match plan.noise_scales.as_slice() {
+    let folder = match plan.noise_scales.as_slice() {
         [one] if name == "refine" => format!("tune_{name}_noise_{one}"),
         _ => format!("tune_{name}"),
-    });
+    };
+    p.output = staging.join(&folder);
     p.trace_runs = 0;
     p.assertions.clear();
     p.rmse_thresholds = None;
@@ -236,7 +241,18 @@ fn stage(
             }
         }
     }
-    Ok(points.into_values().collect())
+    Ok((points.into_values().collect(), folder))
+}
+
+/// The search's stage folders while it runs: inside the tune folder (so they move into place
+/// by a rename), hidden, and removed when the search does not commit.
+struct Staging(PathBuf);
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        // Empty once committed; whatever an error or an interruption left otherwise.
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// Scores every point with the objective (the RMSE objective needs all points of a cell).
@@ -317,8 +333,11 @@ pub fn tune(
                 },
             }]))
         })?;
-    // Locked for the whole search: the stages write into its subfolders.
-    let folder = StudyFolder::open(&plan.output, opts.force)?;
+    // Locked for the whole search. The stages are written aside and move into place with the
+    // tuning table in one commit: an interrupted search leaves the earlier one whole.
+    let folder = StudyFolder::open(&plan.output, StudyKind::Tune, opts.force)?;
+    let staging = Staging(plan.output.join(".tune-stages.partial"));
+    let mut stages = Vec::new();
     let (n, p) = (
         plan.layout().quantities.len() as f64,
         plan.layout().measurements.len() as f64,
@@ -335,7 +354,8 @@ pub fn tune(
             .map(|q| (q, 1.0))
             .collect()
     };
-    let mut points = stage(plan, &base, &coarse, "coarse", opts, observer)?;
+    let (mut points, name) = stage(plan, &staging.0, &base, &coarse, "coarse", opts, observer)?;
+    stages.push(name);
     score(&mut points, opts.objective, n, p);
 
     for &scale in &plan.noise_scales {
@@ -353,8 +373,9 @@ pub fn tune(
         };
         let mut sub = plan.clone();
         sub.noise_scales = vec![scale];
-        let mut fine = stage(&sub, &base, &refine, "refine", opts, observer)?;
+        let (mut fine, name) = stage(&sub, &staging.0, &base, &refine, "refine", opts, observer)?;
         points.append(&mut fine);
+        stages.push(name);
     }
     // Re-score together: the RMSE objective normalises by the best of all candidates.
     score(&mut points, opts.objective, n, p);
@@ -402,8 +423,9 @@ pub fn tune(
     // The coarse stage's summary beside tuning.parquet makes the folder plottable as it is
     // (`kfmc plot DIR` draws the tuning curves and the coarse grid's RMSE); the folder's own
     // manifest, written last, commits both.
-    let coarse = plan.output.join("tune_coarse");
+    let coarse = staging.0.join("tune_coarse");
     let mut manifest = crate::output::folder::verify(&coarse)?;
+    manifest.kind = Some(StudyKind::Tune);
     let summary_tmp = plan.output.join(".summary.parquet.partial");
     std::fs::copy(coarse.join("summary.parquet"), &summary_tmp).map_err(|source| {
         OutputError::Io {
@@ -418,7 +440,10 @@ pub fn tune(
         .find(|t| t.name == "summary")
         .map_or(0, |t| t.rows);
     manifest.tables.clear();
-    folder.commit(
+    if crate::runner::interrupted() {
+        return Err(OutputError::Interrupted.into());
+    }
+    folder.commit_with_folders(
         vec![
             tuning,
             FinishedTable {
@@ -427,6 +452,16 @@ pub fn tune(
                 rows: summary_rows,
             },
         ],
+        stages
+            .into_iter()
+            .map(|name| FinishedFolder {
+                tmp: staging.0.join(&name),
+                name,
+            })
+            .collect(),
+        // Every stage of the earlier search goes with it (a refine stage per noise scale it
+        // had), not only those this search replaces.
+        |name| name.starts_with("tune_"),
         manifest,
     )?;
     let table = plan.output.join("tuning.parquet");

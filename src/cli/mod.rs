@@ -71,7 +71,8 @@ pub struct StudyArgs {
     /// No progress bar and no report.
     #[arg(long, short)]
     pub quiet: bool,
-    /// Write into a non-empty output folder that is not a kfmc result folder.
+    /// Write into a non-empty output folder that is not a kfmc result folder, or replace a
+    /// folder that holds another command's result.
     #[arg(long)]
     pub force: bool,
     /// Run a plan above the documented memory, disk or step limits.
@@ -196,7 +197,8 @@ pub enum Command {
         /// No progress bar and no report.
         #[arg(long, short)]
         quiet: bool,
-        /// Write into a non-empty output folder that is not a kfmc result folder.
+        /// Write into a non-empty output folder that is not a kfmc result folder, or replace
+        /// a folder that holds another command's result.
         #[arg(long)]
         force: bool,
     },
@@ -226,6 +228,10 @@ pub enum Command {
     Merge {
         /// The study's output folder (holding `parts/`).
         dir: PathBuf,
+        /// Write into the folder although it holds files no kfmc study wrote, or another
+        /// kind of result than the parts'.
+        #[arg(long)]
+        force: bool,
     },
     /// Write Slurm job scripts for a sharded study: an array job (one part per task), a merge
     /// job to run after it (`--dependency=afterok`), and `submit.sh` that submits both.
@@ -854,7 +860,8 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             let mut cases = Vec::new();
             let mut wall_s = 0.0;
             if plan.assertions.iter().any(|a| !a.needs_replications()) {
-                let report = crate::study::run(&plan, &exec, &observer)
+                // Judged while still held: the tables read back are this study's.
+                let (report, _held) = crate::study::run_locked(&plan, &exec, &observer)
                     .map_err(anyhow::Error::from)
                     .map_err(|e| e.context(format!("running {}", spec.display())))?;
                 wall_s += report.wall_s;
@@ -991,11 +998,17 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             emit(&description.render());
             if !no_write {
                 let path = out.unwrap_or_else(|| plan.output.join("describe.toml"));
-                if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-                    std::fs::create_dir_all(parent).map_err(|e| {
-                        anyhow::Error::from(e).context(format!("creating {}", parent.display()))
+                let parent = path
+                    .parent()
+                    .filter(|p| !p.as_os_str().is_empty())
+                    .unwrap_or(std::path::Path::new("."));
+                // The folder's writers share one lock: a study being written there, or
+                // another describe, is never written beside.
+                let _held = crate::output::folder::FolderLock::acquire(parent)
+                    .map_err(KfmcError::from)
+                    .map_err(|e| {
+                        anyhow::Error::from(e).context(format!("writing {}", path.display()))
                     })?;
-                }
                 crate::output::folder::write_atomic(&path, description.to_toml().as_bytes())
                     .map_err(|e| {
                         anyhow::Error::from(e).context(format!("writing {}", path.display()))
@@ -1013,8 +1026,8 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             emit(&text);
             Ok(())
         }
-        Command::Merge { dir } => {
-            let report = crate::merge::merge(&dir, registry)
+        Command::Merge { dir, force } => {
+            let report = crate::merge::merge(&dir, force, registry)
                 .map_err(anyhow::Error::from)
                 .map_err(|e| e.context(format!("merging {}", dir.display())))?;
             outln!(

@@ -56,6 +56,53 @@ pub struct ExchangeEntry {
     pub estimates_metadata: Vec<String>,
 }
 
+/// What kind of result a folder holds: a writing command replaces only a folder of its own
+/// kind (unless `--force`), so a mistaken `--out` cannot delete another command's tables.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum StudyKind {
+    /// The tables of a study of kfmc's own filters: `kfmc run`, `kfmc check`, `kfmc merge`
+    /// of a run's parts. `run` and `check` write the same tables into the same default
+    /// folder, so they are one kind.
+    Run,
+    /// The world of every run (`kfmc simulate`, or `kfmc merge` of its parts).
+    Simulate,
+    /// A study with estimates read from files (`kfmc score`, `kfmc check --estimates`).
+    Score,
+    /// Rejection rates over replications (`kfmc power`, `kfmc check`'s replications).
+    Power,
+    /// A tuning search and its stages (`kfmc tune`).
+    Tune,
+}
+
+impl StudyKind {
+    /// The command that writes this kind of folder.
+    pub fn command(self) -> &'static str {
+        match self {
+            StudyKind::Run => "run",
+            StudyKind::Simulate => "simulate",
+            StudyKind::Score => "score",
+            StudyKind::Power => "power",
+            StudyKind::Tune => "tune",
+        }
+    }
+
+    /// What a folder of this kind holds, for messages.
+    pub fn holds(self) -> &'static str {
+        match self {
+            StudyKind::Run => "the tables of a `kfmc run` (or `kfmc check`) study",
+            StudyKind::Simulate => {
+                "a `kfmc simulate` world (the truth, measurements and initial tables estimators read)"
+            }
+            StudyKind::Score => {
+                "the tables of a `kfmc score` (or `kfmc check --estimates`) study of estimates read from files"
+            }
+            StudyKind::Power => "the rejection rates of a `kfmc power` study",
+            StudyKind::Tune => "a `kfmc tune` search (tuning.parquet and its tune_* stages)",
+        }
+    }
+}
+
 /// The manifest of a result folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
@@ -66,6 +113,10 @@ pub struct Manifest {
     /// `model.kind`: the system that made the folder.
     #[serde(default)]
     pub system: String,
+    /// What kind of result the folder holds; absent in folders written before it was
+    /// recorded ([`Manifest::kind`] then tells it from the rest of the manifest).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kind: Option<StudyKind>,
     /// The evaluated quantities, in column order.
     #[serde(default)]
     pub quantities: Vec<QuantityEntry>,
@@ -131,6 +182,27 @@ impl Manifest {
         })
     }
 
+    /// The kind of result the folder holds: as recorded, or, in a manifest written before the
+    /// kind was recorded, told from what only that kind writes (the exchange section of a
+    /// simulation, the power or tuning table, an external filter in the recorded spec).
+    pub fn kind(&self) -> StudyKind {
+        if let Some(k) = self.kind {
+            return k;
+        }
+        let has = |t: &str| self.tables.iter().any(|e| e.name == t);
+        if self.exchange.is_some() {
+            StudyKind::Simulate
+        } else if has("power") {
+            StudyKind::Power
+        } else if has("tuning") {
+            StudyKind::Tune
+        } else if spec_has_external_filter(&self.spec) {
+            StudyKind::Score
+        } else {
+            StudyKind::Run
+        }
+    }
+
     /// Reads `manifest.toml` from `dir`.
     pub fn read(dir: &Path) -> Result<Self, OutputError> {
         let path = dir.join("manifest.toml");
@@ -144,4 +216,19 @@ impl Manifest {
             message: e.to_string(),
         })
     }
+}
+
+/// Whether a spec's text declares a `kind = "external"` filter.
+fn spec_has_external_filter(spec: &str) -> bool {
+    let Ok(value) = spec.parse::<toml::Table>() else {
+        return false;
+    };
+    value
+        .get("filters")
+        .and_then(|f| f.as_array())
+        .is_some_and(|filters| {
+            filters.iter().any(|f| {
+                f.get("kind").and_then(|k| k.as_str()) == Some("external")
+            })
+        })
 }
