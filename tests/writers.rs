@@ -114,7 +114,15 @@ fn writer(w: &World, command: &str, out: &Path, seed: u64) -> Command {
     let out_s = out.to_str().unwrap().to_string();
     let seed_s = seed.to_string();
     match command {
-        "run" => c.args(["run", "-q", "--seed", &seed_s, "--out", &out_s, &w.s("run.toml")]),
+        "run" => c.args([
+            "run",
+            "-q",
+            "--seed",
+            &seed_s,
+            "--out",
+            &out_s,
+            &w.s("run.toml"),
+        ]),
         "simulate" => c.args([
             "simulate",
             "-q",
@@ -239,11 +247,15 @@ fn concurrent_pairs(command: &str) {
     } else {
         w.p("out")
     };
-    let (mut one_refused, mut both_ok, mut bad) = (0, 0, Vec::new());
+    let (mut one_refused, mut both_ok, mut broken, mut bad) = (0, 0, 0, Vec::new());
     let started = Instant::now();
     for pair in 0..pairs {
-        let a = writer(&w, command, &out, 100 + 2 * pair as u64).spawn().unwrap();
-        let b = writer(&w, command, &out, 101 + 2 * pair as u64).spawn().unwrap();
+        let a = writer(&w, command, &out, 100 + 2 * pair as u64)
+            .spawn()
+            .unwrap();
+        let b = writer(&w, command, &out, 101 + 2 * pair as u64)
+            .spawn()
+            .unwrap();
         let (ra, rb) = (wait(a), wait(b));
         let mut problems = Vec::new();
         for (code, err) in [&ra, &rb] {
@@ -260,6 +272,7 @@ fn concurrent_pairs(command: &str) {
             _ => problems.push("no writer succeeded".into()),
         }
         if let Err(e) = check_folder(command, &out) {
+            broken += 1;
             problems.push(format!("folder after the pair: {e}"));
         }
         if !problems.is_empty() {
@@ -267,7 +280,7 @@ fn concurrent_pairs(command: &str) {
         }
     }
     eprintln!(
-        "{command}: {pairs} pairs in {:.1} s: one writer refused {one_refused}, both succeeded one after the other {both_ok}, wrong {}",
+        "{command}: {pairs} pairs in {:.1} s: one writer refused {one_refused}, both succeeded one after the other {both_ok}; wrong {} (of which the folder left broken {broken})",
         started.elapsed().as_secs_f64(),
         bad.len()
     );
@@ -356,7 +369,10 @@ fn a_writer_replaces_only_its_own_kind_of_folder_unless_forced() {
         "holds the tables of a `kfmc run` (or `kfmc check`) study",
     );
     // Each refusal came before anything was touched.
-    assert!(snapshot(&w.p("sim")) == sim_before, "the simulation changed");
+    assert!(
+        snapshot(&w.p("sim")) == sim_before,
+        "the simulation changed"
+    );
     assert!(snapshot(&run) == run_before, "the run changed");
     verify(&w.p("sim")).unwrap();
     verify(&run).unwrap();
@@ -398,7 +414,8 @@ fn stop_when(args: &[String], dir: &Path, ready: impl Fn() -> bool, signal: &str
         .spawn()
         .unwrap();
     let start = Instant::now();
-    while !(dir.join(".kfmc.lock").exists() && ready()) && start.elapsed() < Duration::from_secs(120)
+    while !(dir.join(".kfmc.lock").exists() && ready())
+        && start.elapsed() < Duration::from_secs(120)
     {
         std::thread::sleep(Duration::from_millis(2));
     }
@@ -473,10 +490,18 @@ fn an_interrupted_tune_leaves_the_earlier_search_whole() {
     let w = World::new();
     let out = w.p("tuned");
     let tune = |seed: &str| -> Vec<String> {
-        ["tune", "-q", "--seed", seed, "--out", out.to_str().unwrap(), &w.s("run.toml")]
-            .iter()
-            .map(|s| s.to_string())
-            .collect()
+        [
+            "tune",
+            "-q",
+            "--seed",
+            seed,
+            "--out",
+            out.to_str().unwrap(),
+            &w.s("run.toml"),
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
     };
     let (code, _, err) = output(kfmc().args(tune("1")));
     assert_eq!(code, 0, "{err}");
@@ -498,7 +523,10 @@ fn an_interrupted_tune_leaves_the_earlier_search_whole() {
     assert!(err.contains("interrupted"), "{err}");
     check_folder("tune", &out).unwrap();
     assert_eq!(verify(&out).unwrap().master_seed, 1);
-    assert!(snapshot(&out) == before, "the earlier search's tables changed");
+    assert!(
+        snapshot(&out) == before,
+        "the earlier search's tables changed"
+    );
     assert!(
         snapshot(&out.join("tune_coarse")) == coarse_before,
         "the earlier search's coarse stage changed"
@@ -517,13 +545,29 @@ fn shards_of_another_study_are_refused_and_not_counted() {
     let out = w.p("sharded");
     let o = out.to_str().unwrap();
     for i in 0..3 {
-        ok(kfmc().args(["run", "-q", "--shard", &format!("{i}/3"), "--out", o, &w.s("run.toml")]));
+        ok(kfmc().args([
+            "run",
+            "-q",
+            "--shard",
+            &format!("{i}/3"),
+            "--out",
+            o,
+            &w.s("run.toml"),
+        ]));
     }
     let part1 = out.join("parts/part-00001-of-00003");
     let part1_before = snapshot(&part1);
 
     // A simulation part over the run's part: refused, the run's part untouched.
-    let sim_part = ["simulate", "-q", "--shard", "1/3", "--out", o, &w.s("ext.toml")];
+    let sim_part = [
+        "simulate",
+        "-q",
+        "--shard",
+        "1/3",
+        "--out",
+        o,
+        &w.s("ext.toml"),
+    ];
     let (code, _, err) = output(kfmc().args(sim_part));
     assert_eq!(code, 1, "{err}");
     assert!(err.contains("holds the tables of a `kfmc run`"), "{err}");
@@ -546,7 +590,16 @@ fn shards_of_another_study_are_refused_and_not_counted() {
     assert!(err.contains("part-00001-of-00003"), "{err}");
     assert!(err.contains("kind is `kfmc simulate`"), "{err}");
     assert!(!err.contains("cannot open"), "{err}");
-    ok(kfmc().args(["run", "-q", "--force", "--shard", "1/3", "--out", o, &w.s("run.toml")]));
+    ok(kfmc().args([
+        "run",
+        "-q",
+        "--force",
+        "--shard",
+        "1/3",
+        "--out",
+        o,
+        &w.s("run.toml"),
+    ]));
 
     // A part of a split into 2 beside the three of 3: "3 of 3", the other listed apart.
     ok(kfmc().args(["run", "-q", "--shard", "0/2", "--out", o, &w.s("run.toml")]));
@@ -568,5 +621,8 @@ fn shards_of_another_study_are_refused_and_not_counted() {
     ok(kfmc().args(["merge", "--force", o]));
     let m = verify(&out).unwrap();
     assert_eq!(m.kind(), StudyKind::Run);
-    assert_eq!(std::fs::read_to_string(out.join("notes.txt")).unwrap(), "mine");
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "mine"
+    );
 }

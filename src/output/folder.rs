@@ -193,7 +193,9 @@ impl FolderLock {
                 host_name(),
                 std::process::id()
             );
-            let _ = file.set_len(0).and_then(|()| file.write_all(text.as_bytes()));
+            let _ = file
+                .set_len(0)
+                .and_then(|()| file.write_all(text.as_bytes()));
             return Ok(FolderLock { path, _file: file });
         }
     }

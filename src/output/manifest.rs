@@ -227,8 +227,8 @@ fn spec_has_external_filter(spec: &str) -> bool {
         .get("filters")
         .and_then(|f| f.as_array())
         .is_some_and(|filters| {
-            filters.iter().any(|f| {
-                f.get("kind").and_then(|k| k.as_str()) == Some("external")
-            })
+            filters
+                .iter()
+                .any(|f| f.get("kind").and_then(|k| k.as_str()) == Some("external"))
         })
 }
