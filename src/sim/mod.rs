@@ -79,12 +79,14 @@ pub struct Trajectory<const NX: usize, const NZ: usize> {
 /// it as covariance, and systems refuse such a model while validating
 /// ([`crate::system::additive::FilterKinds::configure_all`]).
 pub fn process_factor<const NX: usize>(q: &Matrix<NX, NX>) -> Option<Matrix<NX, NX>> {
+    // A Cholesky factorisation reads one triangle only: symmetry is checked first. The
+    // tolerance leaves room for the round-off of a discretised Q.
+    let scale = q.amax();
+    if !q.iter().all(|v| v.is_finite()) || (q - q.transpose()).amax() > 1e-9 * scale {
+        return None;
+    }
     if let Some(c) = SmallCholesky::new(q) {
         return Some(c.l());
-    }
-    let scale = q.amax();
-    if !q.iter().all(|v| v.is_finite()) || (q - q.transpose()).amax() > 1e-12 * scale {
-        return None;
     }
     let eig =
         nalgebra::DMatrix::from_fn(NX, NX, |i, j| 0.5 * (q[(i, j)] + q[(j, i)])).symmetric_eigen();
