@@ -158,6 +158,18 @@ pub enum OutputError {
 /// Drawing figures or writing the report failed.
 #[derive(Debug, thiserror::Error)]
 pub enum PlotError {
+    /// `--only` asked for figure kinds the folder's tables cannot give.
+    #[error(
+        "{path} has no data for the figures {lacking} asked for with --only (its tables give: {available})"
+    )]
+    NoFigures {
+        /// The result folder.
+        path: PathBuf,
+        /// The kinds asked for and not drawable, comma-separated.
+        lacking: String,
+        /// The kinds the tables do give, comma-separated (or "none").
+        available: String,
+    },
     /// A table a figure needs is not in the result folder.
     #[error("{path} is missing ({why})")]
     MissingTable {

@@ -38,6 +38,11 @@ pub fn shard_from(
     let check = |index: usize, count: usize| {
         if count == 0 || index >= count {
             Err(format!("part {index} of {count}: need 0 ≤ i < n and n ≥ 1"))
+        } else if count > crate::study::MAX_SHARDS {
+            Err(format!(
+                "{count} parts: at most {}",
+                crate::study::MAX_SHARDS
+            ))
         } else {
             Ok(Some(Shard { index, count }))
         }
@@ -482,19 +487,82 @@ pub struct SlurmOptions {
 /// The job scripts of a sharded study on Slurm: an array job (one task per part) and a merge
 /// job meant to run `--dependency=afterok` on it, plus `submit.sh`, which submits both. Paths
 /// are made absolute so the scripts run from any directory on a shared file system. Returns
-/// (file name, contents).
+/// (file name, contents), or the flag whose value cannot go into a script and why: every
+/// value is checked against a strict character set, so none can add a line or a directive.
 pub fn slurm_scripts(
     kfmc: &Path,
     spec: &Path,
     output: &Path,
     name: &str,
     o: &SlurmOptions,
-) -> Vec<(String, String)> {
+) -> Result<Vec<(String, String)>, (&'static str, String)> {
+    let strict = |flag: &'static str, v: &str, ok: fn(char) -> bool, set: &str| {
+        if v.is_empty() || v.len() > 256 || !v.chars().all(ok) {
+            Err((flag, format!("{v:?} is not a Slurm value of {set}")))
+        } else {
+            Ok(())
+        }
+    };
+    if let Some(p) = &o.partition {
+        strict(
+            "--partition",
+            p,
+            |c| c.is_ascii_alphanumeric() || "_.,-".contains(c),
+            "letters, digits and _ . , -",
+        )?;
+    }
+    if let Some(t) = &o.time {
+        strict(
+            "--time",
+            t,
+            |c| c.is_ascii_alphanumeric() || ":-".contains(c),
+            "digits, letters and : - (e.g. 01:00:00, 2-00:00:00, UNLIMITED)",
+        )?;
+    }
+    if o.shards == 0 || o.shards > crate::study::MAX_SHARDS {
+        return Err((
+            "--shards",
+            format!("{} parts: need 1 to {}", o.shards, crate::study::MAX_SHARDS),
+        ));
+    }
+    if o.cpus == 0 {
+        return Err(("--cpus", "0 CPUs per task: need at least 1".into()));
+    }
+    // Paths are single-quoted where the shell reads them, but `#SBATCH --output=` and the
+    // comments take them verbatim: no control characters, and none that sbatch splits on or
+    // expands (`%` is its file-name pattern).
+    for (flag, p) in [("--out", output), ("kfmc's own path", kfmc), ("SPEC", spec)] {
+        let text = p.display().to_string();
+        if text.chars().any(char::is_control)
+            || (flag == "--out"
+                && text
+                    .chars()
+                    .any(|c| c.is_whitespace() || "%\"'\\".contains(c)))
+        {
+            return Err((
+                flag,
+                format!(
+                    "{text:?} cannot go into a Slurm script (control characters, or in the output folder whitespace, quotes, backslashes or %)"
+                ),
+            ));
+        }
+    }
+    // The spec's name only labels the jobs: anything outside a job name's safe set becomes _.
+    let name: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || "_.-".contains(c) {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
     let q = |p: &Path| format!("'{}'", p.display().to_string().replace('\'', "'\\''"));
     let logs = output.join("slurm");
     let mut common = format!(
         "#SBATCH --job-name=kfmc-{name}\n#SBATCH --cpus-per-task={}\n",
-        o.cpus.max(1)
+        o.cpus
     );
     if let Some(p) = &o.partition {
         common.push_str(&format!("#SBATCH --partition={p}\n"));
@@ -539,9 +607,9 @@ pub fn slurm_scripts(
         logs = q(&logs),
         n = o.shards,
     );
-    vec![
+    Ok(vec![
         ("array.sbatch".into(), array),
         ("merge.sbatch".into(), merge),
         ("submit.sh".into(), submit),
-    ]
+    ])
 }

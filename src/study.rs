@@ -52,6 +52,11 @@ pub enum ExistingCheckpoint {
     Discard,
 }
 
+/// Most parts a study may be split into (`--shard i/n`, `--shards n`, the scheduler's
+/// environment, `kfmc slurm --shards`): far more than any cluster runs at once, and few
+/// enough that a typo of a few digits is refused instead of writing millions of parts.
+pub const MAX_SHARDS: usize = 100_000;
+
 /// One of `count` disjoint, deterministic parts of a plan: a contiguous range of its cells
 /// ((scenario, noise scale) pairs in scenario-major order), so a part's tables are exactly
 /// the rows one process writes for those cells, and `kfmc merge` concatenates them.
@@ -306,8 +311,9 @@ impl Aggregator<'_> {
             return Ok(());
         };
         let mut tables = Vec::new();
+        let cells = (end_cell - first_cell) as u64;
         for w in self.journaled_tables() {
-            if let Some((bytes, rows)) = w.end_journal_frame()? {
+            if let Some((bytes, rows)) = w.end_journal_cell(cells)? {
                 tables.push(crate::output::checkpoint::JournalEntry {
                     name: w.name().to_string(),
                     bytes,
@@ -316,7 +322,7 @@ impl Aggregator<'_> {
             }
         }
         let c = self.checkpoint.as_mut().expect("checked above");
-        c.boundary = Some(((end_cell - first_cell) as u64, tables));
+        c.boundary = Some((cells, tables));
         if c.last.elapsed() >= c.every {
             self.write_checkpoint()?;
         }
@@ -593,7 +599,7 @@ fn run_in(
                     .tables
                     .iter()
                     .find(|t| t.name == name)
-                    .map(|t| (t.bytes, t.rows))
+                    .map(|t| (t.bytes, t.rows, index.cells_done))
                     .ok_or_else(|| OutputError::Mismatch {
                         path: journal.clone(),
                         why: format!(
@@ -788,7 +794,11 @@ fn existing_checkpoint(
     let change = found.change_from(&checkpoint_identity(plan, n_cells, cells));
     let at = checkpoint::dir(dir);
     match (c.existing, change) {
-        (ExistingCheckpoint::Resume, None) => Ok(Some(found)),
+        (ExistingCheckpoint::Resume, None) => {
+            // The identity matched; the counts must be coherent before anything is replayed.
+            found.check(dir)?;
+            Ok(Some(found))
+        }
         (ExistingCheckpoint::Resume, Some(why)) => Err(OutputError::Mismatch {
             path: at,
             why: format!(
@@ -800,7 +810,7 @@ fn existing_checkpoint(
             why: format!(
                 "holds the checkpoint of an interrupted run of this study ({} of {} cells complete): continue it with `kfmc run SPEC --resume`, or discard it with `--restart`",
                 found.cells_done,
-                found.end_cell - found.first_cell
+                found.end_cell.saturating_sub(found.first_cell)
             ),
         }),
         _ => {

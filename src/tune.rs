@@ -308,9 +308,25 @@ pub fn tune(
     opts: &TuneOptions,
     observer: &dyn RunObserver,
 ) -> Result<TuneReport, KfmcError> {
+    // kfmc does not run an external filter (its estimates come from a file), so it has
+    // nothing to tune there.
+    if let Some(l) = &opts.filter
+        && plan.filters.iter().any(|f| f.external && f.label == *l)
+    {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "filters".into(),
+                message: format!(
+                    "filter `{l}` is external (kind = \"external\"): kfmc does not run it, so it cannot tune it"
+                ),
+            },
+        ])));
+    }
     let base = plan
         .filters
         .iter()
+        .filter(|f| !f.external)
         .find(|f| {
             let info = &plan.system.filters()[f.entry];
             info.has_covariance

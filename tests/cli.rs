@@ -350,3 +350,214 @@ fn tune_finds_q_scale_near_1_for_a_matched_ekf_and_writes_tuning_parquet() {
         );
     }
 }
+
+/// Asserts a clean refusal: exit `want`, no panic, the stderr holding every needle.
+fn refused(args: &[&str], want: i32, needles: &[&str]) -> String {
+    let (code, _, err) = output(args);
+    assert_eq!(code, want, "{args:?}: {err}");
+    assert!(!err.contains("panicked"), "{args:?}: {err}");
+    for n in needles {
+        assert!(err.contains(n), "{args:?}: `{n}` not in {err}");
+    }
+    err
+}
+
+const EXTERNAL_ONLY: &str = r#"
+[[filters]]
+label = "theirs"
+kind = "external"
+"#;
+
+/// Flag values that used to panic (exit 101) or start unbounded work are usage errors (exit
+/// 2), refused before anything is written.
+#[test]
+fn panicking_and_unbounded_flag_values_are_usage_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("res");
+    let (_d, spec) = spec_in_tempdir(&small_spec(&out, 2, "[1.0]", EKF_AND_MEAN));
+    let s = spec.to_str().unwrap();
+    refused(
+        &["run", s, "-q", "--checkpoint-every", "1e308"],
+        2,
+        &["--checkpoint-every", "longer than kfmc can wait"],
+    );
+    // The filter-step limit holds for the whole command, not one replication.
+    let err = refused(
+        &["power", s, "-q", "--replications", "1000000000000"],
+        2,
+        &["--replications", "filter steps", "--allow-large"],
+    );
+    assert!(err.contains("1000000000000 replications"), "{err}");
+    // Shard counts are bounded, and a bad --shard is a usage error, not an invalid spec.
+    for shard in ["0/1000000000000", "0/100001", "3/2", "x/2"] {
+        let err = refused(&["run", s, "-q", "--shard", shard], 2, &["invalid --shard"]);
+        assert!(!err.contains("invalid spec"), "{err}");
+    }
+    refused(
+        &["run", s, "-q", "--shard", "0/100001"],
+        2,
+        &["at most 100000"],
+    );
+    assert!(!out.exists(), "a refused command wrote {}", out.display());
+    // describe --no-write --out: the two contradict each other.
+    let file = tmp.path().join("d.toml");
+    refused(
+        &["describe", s, "--no-write", "--out", file.to_str().unwrap()],
+        2,
+        &["--no-write", "--out"],
+    );
+    assert!(!file.exists());
+    // summary --noise-scale must be a multiplier (1e400 parses as ∞).
+    for x in ["NaN", "inf", "1e400", "0"] {
+        refused(
+            &["summary", out.to_str().unwrap(), "--noise-scale", x],
+            2,
+            &["invalid --noise-scale"],
+        );
+    }
+}
+
+/// `kfmc tune` on a spec whose filters are external used to index past the system's filter
+/// kinds (exit 101): now it says why there is nothing to tune.
+#[test]
+fn tune_refuses_an_external_filter_with_a_reason() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("res");
+    let (_d, spec) = spec_in_tempdir(&small_spec(&out, 2, "[1.0]", EXTERNAL_ONLY));
+    let s = spec.to_str().unwrap();
+    refused(&["tune", s, "-q"], 2, &["no filter with a covariance"]);
+    let both = format!("{EKF_AND_MEAN}{EXTERNAL_ONLY}");
+    let (_d2, spec2) = spec_in_tempdir(&small_spec(&out, 2, "[1.0]", &both));
+    refused(
+        &["tune", spec2.to_str().unwrap(), "-q", "--filter", "theirs"],
+        2,
+        &["filter `theirs` is external"],
+    );
+    assert!(!out.exists());
+}
+
+/// Every value that goes into a Slurm script is checked (none can add a line or a
+/// directive), the counts are bounded, and a spec whose array tasks would all fail (an
+/// external filter) is refused with the reason: exit 2, and no script is written.
+#[test]
+fn slurm_refuses_values_that_would_break_or_inject_into_its_scripts() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("res");
+    let (_d, spec) = spec_in_tempdir(&small_spec(&out, 2, "[1.0]", EKF_AND_MEAN));
+    let s = spec.to_str().unwrap();
+    let o = out.to_str().unwrap();
+    let base = ["slurm", s, "--out", o];
+    for (extra, needle) in [
+        (vec!["--shards", "0"], "--shards"),
+        (vec!["--shards", "1000000000000"], "--shards"),
+        (vec!["--shards", "100001"], "--shards"),
+        (vec!["--shards", "2", "--cpus", "0"], "--cpus"),
+        (
+            vec!["--shards", "2", "--partition", "batch\n#SBATCH --uid=0"],
+            "invalid --partition",
+        ),
+        (
+            vec!["--shards", "2", "--partition", "a b"],
+            "invalid --partition",
+        ),
+        (
+            vec!["--shards", "2", "--partition", ""],
+            "invalid --partition",
+        ),
+        (
+            vec!["--shards", "2", "--time", "01:00:00\nrm -rf ~"],
+            "invalid --time",
+        ),
+        (vec!["--shards", "2", "--time", "1:00;x"], "invalid --time"),
+    ] {
+        let mut args: Vec<&str> = base.to_vec();
+        args.extend(extra);
+        refused(&args, 2, &[needle]);
+    }
+    assert!(!out.join("slurm").exists(), "a refused slurm wrote scripts");
+    // An output folder sbatch would split or expand in `#SBATCH --output=`.
+    let odd = tmp.path().join("a b%j");
+    refused(
+        &["slurm", s, "--shards", "2", "--out", odd.to_str().unwrap()],
+        2,
+        &["invalid --out"],
+    );
+    let (_d2, ext) = spec_in_tempdir(&small_spec(&out, 2, "[1.0]", EXTERNAL_ONLY));
+    refused(
+        &["slurm", ext.to_str().unwrap(), "--shards", "2", "--out", o],
+        2,
+        &["filter `theirs` is external", "kfmc simulate --shard"],
+    );
+    assert!(!out.join("slurm").exists());
+    // Still accepted: Slurm's own forms.
+    let (code, _, err) = output(&[
+        "slurm",
+        s,
+        "--shards",
+        "100000",
+        "--partition",
+        "gpu,batch",
+        "--time",
+        "2-00:00:00",
+        "--out",
+        o,
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let array = std::fs::read_to_string(out.join("slurm/array.sbatch")).unwrap();
+    assert!(array.contains("#SBATCH --array=0-99999\n"), "{array}");
+    assert!(array.contains("#SBATCH --partition=gpu,batch\n"), "{array}");
+}
+
+/// `summary` names what a simulation or power folder holds instead of a raw "cannot open";
+/// a noise scale the folder lacks is an error listing the ones it has; `plot --only` with a
+/// kind the tables cannot give says so (exit 1) instead of drawing nothing and exiting 0.
+#[test]
+fn summary_and_plot_say_what_a_folder_lacks() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("res");
+    let (_d, spec) = spec_in_tempdir(&small_spec(&out, 2, "[1.0, 2.0]", EKF_AND_MEAN));
+    let s = spec.to_str().unwrap();
+    let sim = tmp.path().join("sim");
+    let pow = tmp.path().join("pow");
+    for args in [
+        vec!["run", s, "-q"],
+        vec!["simulate", s, "-q", "--out", sim.to_str().unwrap()],
+        vec!["power", s, "-q", "-R", "1", "--out", pow.to_str().unwrap()],
+    ] {
+        let (code, _, err) = output(&args);
+        assert_eq!(code, 0, "{args:?}: {err}");
+    }
+    refused(
+        &["summary", sim.to_str().unwrap()],
+        1,
+        &["is a simulation (`kfmc simulate`)", "truth"],
+    );
+    refused(
+        &["summary", pow.to_str().unwrap()],
+        1,
+        &["is a power study (`kfmc power`)"],
+    );
+    refused(
+        &["summary", out.to_str().unwrap(), "--noise-scale", "3"],
+        1,
+        &["no rows at noise scale 3 (it has 1, 2)"],
+    );
+    let (code, text, err) = output(&["summary", out.to_str().unwrap(), "--noise-scale", "2"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(text.contains("rmse_"), "{text}");
+    let figs = tmp.path().join("figs");
+    refused(
+        &[
+            "plot",
+            out.to_str().unwrap(),
+            "--out",
+            figs.to_str().unwrap(),
+            "--only",
+            "tuning",
+            "states",
+        ],
+        1,
+        &["no data for the figures tuning", "asked for with --only"],
+    );
+    assert!(!figs.exists(), "a refused plot drew figures");
+}

@@ -210,3 +210,22 @@ fn a_mistuned_user_ekf_fails_the_check_with_exit_3() {
         "{out}"
     );
 }
+
+/// A user's P1 filter kind on the IMU sensor set is named as what it is, not given the
+/// running mean's reason (which is about reading y, θ, θ̇ directly).
+#[test]
+fn a_user_kind_on_the_other_sensor_set_is_named_as_the_user_kind() {
+    let text = std::fs::read_to_string(spec("planar_user_filter")).expect("spec");
+    let imu = text.replacen("sensor = \"p1\"", "sensor = \"imu\"", 1);
+    assert_ne!(imu, text, "the spec sets sensor = \"p1\"");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("imu.toml");
+    std::fs::write(&path, imu).expect("write spec");
+    let (code, _, err) = own_filter(&["validate", path_str(&path)]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("filter kind `user_filter` is registered for model.sensor = \"p1\" only"),
+        "{err}"
+    );
+    assert!(!err.contains("reads y, θ, θ̇"), "{err}");
+}

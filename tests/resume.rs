@@ -489,3 +489,135 @@ fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// The `[[tables]]` entries of the checkpoint index in `out`: (name, bytes).
+fn journaled(out: &Path) -> Vec<(String, u64)> {
+    let text = std::fs::read_to_string(out.join(".checkpoint/index.toml")).unwrap();
+    let index: toml::Table = text.parse().unwrap();
+    index["tables"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| {
+            (
+                t["name"].as_str().unwrap().to_string(),
+                t["bytes"].as_integer().unwrap() as u64,
+            )
+        })
+        .collect()
+}
+
+/// Resumes the study in `out`; it must be refused (exit 1) with the advice to restart, and
+/// commit nothing.
+fn assert_resume_refused(s: &Study, out: &Path, what: &str) {
+    let (code, _, err) = run(&[
+        "run",
+        s.spec(),
+        "-q",
+        "--resume",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{what}: {err}");
+    assert!(
+        err.contains("damaged checkpoint") && err.contains("--restart"),
+        "{what}: {err}"
+    );
+    assert!(
+        !out.join("manifest.toml").exists() && tables(out).is_empty(),
+        "{what}: something was committed"
+    );
+}
+
+/// One flipped bit in any journal, or an index whose `cells_done` was edited up, down or
+/// out of range, is refused with the advice to restart and nothing committed: a resume
+/// never builds tables from rows or cells its checkpoint does not vouch for.
+#[test]
+fn a_flipped_bit_or_an_edited_index_is_refused_and_nothing_is_committed() {
+    let s = Study::new();
+    let out = s.out("o");
+    let mut child = s.start(&out, &[]);
+    kill_after_checkpoint(&mut child, &out, 3);
+    let kept = checkpointed(&out);
+    assert!((3..CELLS).contains(&kept), "the run ended before the kill");
+    let journals = journaled(&out);
+    assert_eq!(journals.len(), 5, "{journals:?}");
+
+    for (name, bytes) in &journals {
+        for (k, at) in [bytes / 4, bytes / 2, 3 * bytes / 4]
+            .into_iter()
+            .enumerate()
+        {
+            let copy = s.out(&format!("flip-{name}-{k}"));
+            copy_dir(&out, &copy);
+            let path = copy.join(format!(".checkpoint/{name}.journal"));
+            let mut b = std::fs::read(&path).unwrap();
+            b[at as usize] ^= 0x10;
+            std::fs::write(&path, b).unwrap();
+            assert_resume_refused(&s, &copy, &format!("bit 4 of byte {at} of {name}.journal"));
+        }
+    }
+
+    let index_text = std::fs::read_to_string(out.join(".checkpoint/index.toml")).unwrap();
+    let line = format!("cells_done = {kept}\n");
+    assert!(index_text.contains(&line), "{index_text}");
+    for edited in [kept - 1, kept + 1, CELLS, 100, i64::MAX as u64] {
+        let copy = s.out(&format!("cells-{edited}"));
+        copy_dir(&out, &copy);
+        std::fs::write(
+            copy.join(".checkpoint/index.toml"),
+            index_text.replace(&line, &format!("cells_done = {edited}\n")),
+        )
+        .unwrap();
+        assert_resume_refused(&s, &copy, &format!("cells_done = {edited}"));
+    }
+
+    // The untouched checkpoint still resumes to the uninterrupted tables.
+    let single = s.out("single");
+    assert_eq!(
+        run(&["run", s.spec(), "-q", "--out", single.to_str().unwrap()]).0,
+        0
+    );
+    let (code, _, err) = run(&[
+        "run",
+        s.spec(),
+        "-q",
+        "--resume",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(tables(&out), tables(&single));
+}
+
+/// A checkpoint of the earlier journal format (bare rows, no checksums) is refused with the
+/// advice to restart, not misread.
+#[test]
+fn a_checkpoint_of_the_earlier_format_is_refused_with_the_restart_advice() {
+    let s = Study::new();
+    let out = s.out("o");
+    let mut child = s.start(&out, &[]);
+    kill_after_checkpoint(&mut child, &out, 2);
+    let path = out.join(".checkpoint/index.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    assert!(text.contains("journal_format = 2"), "{text}");
+    std::fs::write(
+        &path,
+        text.replace("journal_format = 2", "journal_format = 1"),
+    )
+    .unwrap();
+    let (code, _, err) = run(&[
+        "run",
+        s.spec(),
+        "-q",
+        "--resume",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("format 1") && err.contains("--restart"),
+        "{err}"
+    );
+    assert!(!out.join("manifest.toml").exists());
+}

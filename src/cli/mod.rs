@@ -34,6 +34,16 @@ pub const EXIT_CHECK_FAILED: u8 = 3;
 /// nothing of the interrupted run was committed.
 pub const EXIT_INTERRUPTED: u8 = 130;
 
+/// A command line that names a value kfmc cannot use (exit 2), outside any spec.
+#[derive(Debug, thiserror::Error)]
+#[error("invalid {flag}: {message}")]
+pub struct UsageError {
+    /// The flag (or variable) at fault, e.g. `--shard`.
+    pub flag: String,
+    /// What is wrong with its value.
+    pub message: String,
+}
+
 /// A failed `kfmc check` (its report is already printed).
 #[derive(Debug, thiserror::Error)]
 #[error("{failed} of {total} check cases failed")]
@@ -115,8 +125,31 @@ impl StudyArgs {
 /// A number of seconds ≥ 0 (clap's value parser for durations).
 fn seconds(text: &str) -> Result<f64, String> {
     match text.parse::<f64>() {
-        Ok(s) if s.is_finite() && s >= 0.0 => Ok(s),
+        Ok(s) if std::time::Duration::try_from_secs_f64(s).is_ok() => Ok(s),
+        Ok(s) if s.is_finite() && s >= 0.0 => Err(format!(
+            "`{text}` seconds is longer than kfmc can wait (at most {:.3e})",
+            std::time::Duration::MAX.as_secs_f64()
+        )),
         _ => Err(format!("`{text}` is not a number of seconds ≥ 0")),
+    }
+}
+
+/// A count of at least 1 (`--cpus`).
+fn at_least_one(text: &str) -> Result<usize, String> {
+    match text.trim().parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("`{text}` is not an integer ≥ 1")),
+    }
+}
+
+/// A number of parts, 1 to [`crate::study::MAX_SHARDS`] (`kfmc slurm --shards`).
+fn shard_count(text: &str) -> Result<usize, String> {
+    match text.trim().parse::<usize>() {
+        Ok(n) if (1..=crate::study::MAX_SHARDS).contains(&n) => Ok(n),
+        _ => Err(format!(
+            "`{text}` is not a number of parts from 1 to {}",
+            crate::study::MAX_SHARDS
+        )),
     }
 }
 
@@ -238,8 +271,8 @@ pub enum Command {
     Slurm {
         /// The experiment spec (TOML).
         spec: PathBuf,
-        /// Number of array tasks (parts).
-        #[arg(long)]
+        /// Number of array tasks (parts), 1 to 100,000.
+        #[arg(long, value_parser = shard_count)]
         shards: usize,
         /// Output folder (overrides the spec's `output`); the scripts go to `<out>/slurm/`.
         #[arg(long)]
@@ -250,8 +283,8 @@ pub enum Command {
         /// Time limit per task, in Slurm's format (e.g. 01:00:00).
         #[arg(long)]
         time: Option<String>,
-        /// CPUs per task (kfmc uses them all).
-        #[arg(long, default_value_t = 1)]
+        /// CPUs per task (kfmc uses them all), at least 1.
+        #[arg(long, default_value_t = 1, value_parser = at_least_one)]
         cpus: usize,
         /// Runs per cell (overrides `runs`) in every task.
         #[arg(long)]
@@ -319,7 +352,7 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
         /// Only print; write no file.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "out")]
         no_write: bool,
     },
     /// Print the RMSE summary (and divergence points) of a result folder.
@@ -426,13 +459,13 @@ fn shard_arg(
     spec: &std::path::Path,
     shard: Option<&str>,
     shards: Option<usize>,
-) -> Result<Option<crate::study::Shard>, KfmcError> {
+) -> anyhow::Result<Option<crate::study::Shard>> {
     crate::merge::shard_from(shard, shards, &|k| std::env::var(k).ok()).map_err(|message| {
-        KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
-            file: spec.to_path_buf(),
-            key_path: "--shard".into(),
+        anyhow::Error::from(UsageError {
+            flag: "--shard".into(),
             message,
-        }]))
+        })
+        .context(format!("running {}", spec.display()))
     })
 }
 
@@ -518,6 +551,7 @@ pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
                 return ExitCode::from(EXIT_CHECK_FAILED);
             }
             let code = match e.downcast_ref::<KfmcError>() {
+                _ if e.downcast_ref::<UsageError>().is_some() => EXIT_INVALID_SPEC,
                 Some(KfmcError::Spec(_)) => EXIT_INVALID_SPEC,
                 Some(KfmcError::Output(
                     crate::error::OutputError::Interrupted
@@ -772,6 +806,8 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             }
             let out_given = study.out.clone();
             let mut plan = study.plan(registry, Some(0))?;
+            plan.check_replications(replications, study.allow_large)
+                .map_err(KfmcError::from)?;
             let out = out_given.unwrap_or_else(|| plan.output.join("power"));
             plan.output = out.clone();
             let threads = study.threads(study.quiet);
@@ -819,7 +855,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             }
             let threads = study.threads(study.quiet);
             let StudyArgs {
-                spec, quiet, force, ..
+                spec,
+                quiet,
+                force,
+                allow_large,
+                ..
             } = study;
             if plan.assertions.is_empty() {
                 return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
@@ -840,6 +880,10 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 });
             let needs_power = plan.assertions.iter().any(|a| a.needs_replications());
             let replications = replications.or(plan.check_replications);
+            if let Some(r) = replications.filter(|_| needs_power) {
+                plan.check_replications(r, allow_large)
+                    .map_err(KfmcError::from)?;
+            }
             if needs_power && replications.is_none_or(|r| r == 0) {
                 return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
                     crate::error::SpecError {
@@ -1018,6 +1062,13 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Summary { dir, noise_scale } => {
+            if let Some(x) = noise_scale.filter(|x| !x.is_finite() || *x <= 0.0) {
+                return Err(UsageError {
+                    flag: "--noise-scale".into(),
+                    message: format!("{x} is not a truth-noise multiplier (a finite number > 0)"),
+                }
+                .into());
+            }
             let text = summary::render(&dir, noise_scale)
                 .map_err(KfmcError::from)
                 .map_err(|e| {
@@ -1058,16 +1109,25 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             })
             .map_err(KfmcError::from)?;
             plan.check_limits(false).map_err(KfmcError::from)?;
-            if shards == 0 {
-                anyhow::bail!("--shards must be at least 1");
+            // An array task runs `kfmc run --shards`, which cannot compute a filter kfmc
+            // does not run: every task would fail on the cluster.
+            if let Some(f) = plan.filters.iter().find(|f| f.external) {
+                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+                    crate::error::SpecError {
+                        file: spec.clone(),
+                        key_path: "filters".into(),
+                        message: format!(
+                            "filter `{}` is external (kind = \"external\"): the array tasks run `kfmc run`, which cannot compute it; shard `kfmc simulate --shard i/n` instead and score the merged simulation",
+                            f.label
+                        ),
+                    },
+                ]))
+                .into());
             }
             let abs =
                 |p: &std::path::Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
             let output = abs(&plan.output);
             let dir = output.join("slurm");
-            std::fs::create_dir_all(&dir).map_err(|e| {
-                anyhow::Error::from(e).context(format!("creating {}", dir.display()))
-            })?;
             let exe = std::env::current_exe().map_err(anyhow::Error::from)?;
             let files = crate::merge::slurm_scripts(
                 &exe,
@@ -1082,7 +1142,14 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     runs,
                     seed,
                 },
-            );
+            )
+            .map_err(|(flag, message)| UsageError {
+                flag: flag.into(),
+                message,
+            })?;
+            std::fs::create_dir_all(&dir).map_err(|e| {
+                anyhow::Error::from(e).context(format!("creating {}", dir.display()))
+            })?;
             for (name, text) in files {
                 let path = dir.join(&name);
                 crate::output::folder::write_atomic(&path, text.as_bytes()).map_err(|e| {

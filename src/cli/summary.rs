@@ -43,7 +43,24 @@ fn num(v: Option<f64>) -> String {
 
 /// Renders the summary of a result folder as text.
 pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
-    crate::output::folder::verify(dir)?;
+    let manifest = crate::output::folder::verify(dir)?;
+    if !manifest.tables.iter().any(|t| t.name == "summary") {
+        let holds: Vec<&str> = manifest.tables.iter().map(|t| t.name.as_str()).collect();
+        let kind = if manifest.exchange.is_some() {
+            "a simulation (`kfmc simulate`)"
+        } else if holds == ["power"] {
+            "a power study (`kfmc power`)"
+        } else {
+            "a result folder without an RMSE summary"
+        };
+        return Err(OutputError::Mismatch {
+            path: dir.to_path_buf(),
+            why: format!(
+                "is {kind} holding {}, not a study with summary.parquet: `kfmc summary` reads the folders of `kfmc run`, `score` and `check`",
+                holds.join(", ")
+            ),
+        });
+    }
     let path = dir.join("summary.parquet");
     let df = read(&path)?;
     let scen = strs(&df, "scenario", &path)?;
@@ -91,6 +108,21 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
         cells.insert((idx, state[i].clone()), text);
     }
     let mut out = String::new();
+    if rows.is_empty()
+        && let Some(wanted) = noise_scale
+    {
+        let mut scales: Vec<f64> = noise.iter().flatten().copied().collect();
+        scales.sort_by(f64::total_cmp);
+        scales.dedup();
+        let scales: Vec<String> = scales.iter().map(|s| s.to_string()).collect();
+        return Err(OutputError::Mismatch {
+            path,
+            why: format!(
+                "has no rows at noise scale {wanted} (it has {})",
+                scales.join(", ")
+            ),
+        });
+    }
     if rows.is_empty() {
         out.push_str("no rows match\n");
         return Ok(out);

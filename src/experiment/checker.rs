@@ -122,10 +122,11 @@ impl Checker {
                     1 => "a list of 1".to_string(),
                     k => format!("a list of {k}"),
                 };
-                self.err(
+                let msg = self.with_line(
                     key,
                     format!("expected a number or a list of {n} numbers, got {got}"),
                 );
+                self.err(key, msg);
                 return default.to_vec();
             }
         };
@@ -136,7 +137,8 @@ impl Checker {
                 } else {
                     key.to_string()
                 };
-                self.err(k, format!("{x} is not {what}"));
+                let msg = self.with_line(&k, format!("{x} is not {what}"));
+                self.err(k, msg);
                 return default.to_vec();
             }
         }
@@ -148,9 +150,23 @@ impl Checker {
     pub fn number(&mut self, key: &str, x: f64, ok: fn(f64) -> bool, what: &str) -> bool {
         let pass = ok(x);
         if !pass {
-            self.err(key, format!("{x} is not {what}"));
+            let msg = self.with_line(key, format!("{x} is not {what}"));
+            self.err(key, msg);
         }
         pass
+    }
+
+    /// `msg` with the line of the value at `key` when the spec holds that very key (a
+    /// default's problem has no line of its own).
+    fn with_line(&self, key: &str, msg: String) -> String {
+        match key_span(&self.text, key, true) {
+            Some(span) => {
+                let start = span.start.min(self.text.len());
+                let line = self.text[..start].matches('\n').count() + 1;
+                format!("{msg} (line {line})")
+            }
+            None => msg,
+        }
     }
 
     /// Whether the spec text holds a value at `key_path` (`scenarios[0].duration_s`), so a
@@ -420,6 +436,44 @@ mod tests {
         let c = Checker::new(Path::new("t.toml"), text);
         assert!(c.has("filters[0].\"r_std[θ\""));
         assert!(!c.has("filters[0].r_std"));
+    }
+
+    /// A value refused by `number` or `vector` names its line, as a parse error does; a
+    /// default (not in the file) has no line to name.
+    #[test]
+    fn value_errors_carry_the_line_of_the_value() {
+        let text = "runs = 3\n[model]\nkind = \"x\"\ndt_s = -0.1\n[[filters]]\nlabel = \"a\"\nq_std = [1.0, -2.0]\n";
+        let mut c = Checker::new(Path::new("t.toml"), text);
+        assert!(!c.number("model.dt_s", -0.1, |x| x > 0.0, "a positive number"));
+        assert!(!c.number("model.mass_kg", -1.0, |x| x > 0.0, "a positive number"));
+        let q = OneOrMany::Many(vec![1.0, -2.0]);
+        c.vector(
+            "filters[0].q_std",
+            Some(&q),
+            2,
+            &[1.0, 1.0],
+            |x| x >= 0.0,
+            "≥ 0",
+        );
+        c.vector(
+            "filters[0].q_std",
+            Some(&q),
+            3,
+            &[1.0; 3],
+            |x| x >= 0.0,
+            "≥ 0",
+        );
+        let e: Vec<String> = c.into_errors().iter().map(|e| e.to_string()).collect();
+        assert_eq!(
+            e[0],
+            "t.toml: model.dt_s: -0.1 is not a positive number (line 4)"
+        );
+        assert_eq!(e[1], "t.toml: model.mass_kg: -1 is not a positive number");
+        assert_eq!(e[2], "t.toml: filters[0].q_std[1]: -2 is not ≥ 0 (line 7)");
+        assert_eq!(
+            e[3],
+            "t.toml: filters[0].q_std: expected a number or a list of 3 numbers, got a list of 2 (line 7)"
+        );
     }
 
     #[test]

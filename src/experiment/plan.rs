@@ -500,6 +500,30 @@ impl Plan {
         }
     }
 
+    /// Whether `replications` whole studies of this plan (`kfmc power`, `kfmc check
+    /// --replications`) stay within the filter-step limit together: the limit bounds a
+    /// command's work, not one replication's.
+    pub fn check_replications(
+        &self,
+        replications: usize,
+        allow_large: bool,
+    ) -> Result<(), SpecErrors> {
+        let steps = self
+            .resources()
+            .filter_steps
+            .saturating_mul(replications as u128);
+        if allow_large || steps <= limits::MAX_FILTER_STEPS {
+            return Ok(());
+        }
+        Err(SpecErrors(vec![self.err(
+            "--replications",
+            format!(
+                "{replications} replications of this plan take {steps} filter steps (limit {}); use fewer replications or runs, or pass --allow-large",
+                limits::MAX_FILTER_STEPS
+            ),
+        )]))
+    }
+
     /// Counts cells, runs and steps.
     pub fn size(&self) -> PlanSize {
         // Saturating: an absurd plan is refused by `check_limits`, never shown wrapped.

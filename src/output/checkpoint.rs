@@ -4,12 +4,16 @@
 //! last), so the durable state is kept beside it: every row a [`super::TableWriter`] receives
 //! is also appended to that table's **journal**, a binary log of the row's values in column
 //! order, compressed as one zstd frame per cell (so that every cell boundary is a byte offset
-//! a resume can cut at). At a checkpoint (after a cell, at most every `--checkpoint-every` seconds)
+//! a resume can cut at). Every record carries its FNV-1a 64 checksum, and every cell ends
+//! with a record that numbers it and counts the rows before it, so that a resume can tell a
+//! damaged journal, or an index that does not describe it, from a sound one: zstd alone
+//! passes a flipped bit in a literal through as a different value. At a checkpoint (after a cell, at most every `--checkpoint-every` seconds)
 //! the journals are flushed and fsynced, then [`Index`] — which cells are complete and how
 //! many journal bytes hold them — replaces the previous one atomically. A kill at any moment
 //! therefore leaves an index that vouches only for bytes on disk.
 //!
-//! Resuming replays each journal up to the index's length through a fresh writer: the same
+//! Resuming replays each journal up to the index's length through a fresh writer, verifying
+//! every record and that the journal ends exactly at the index's last cell: the same
 //! rows in the same order, so the same row groups and the same bytes as a run that never
 //! stopped. The cells after the checkpoint are then computed as usual. Nothing is merged,
 //! so an uninterrupted run pays only for writing its rows a second time, unencoded.
@@ -33,8 +37,15 @@ const INDEX_FILE: &str = "index.toml";
 /// Each journal's write buffer: rows reach the file in blocks this large.
 pub const JOURNAL_BUFFER_BYTES: usize = 1 << 20;
 
-/// The journals' format: zstd frames of rows. An index of another format is refused.
-pub const JOURNAL_FORMAT: u32 = 1;
+/// The journals' format: zstd frames of checksummed row and cell-end records (format 1 had
+/// bare rows). An index of another format is refused.
+pub const JOURNAL_FORMAT: u32 = 2;
+
+/// A journal record's first byte: a table row follows.
+const TAG_ROW: u8 = 0;
+
+/// A journal record's first byte: the end of a cell follows (cells complete, rows before it).
+const TAG_CELL_END: u8 = 1;
 
 /// zstd's level for the journals: its fastest regular level, as the journal is written once
 /// and read only by a resume.
@@ -115,8 +126,42 @@ impl Index {
             .map(Some)
             .map_err(|e| OutputError::Format {
                 path,
-                message: format!("not a kfmc checkpoint index: {e}"),
+                message: format!(
+                    "not a kfmc checkpoint index: {e}; start over with `kfmc run SPEC --restart`"
+                ),
             })
+    }
+
+    /// Whether the index is coherent in itself: complete cells within its range, and one
+    /// journal per table at most. (That the journals hold what it says is checked as they
+    /// are replayed.)
+    pub fn check(&self, output: &Path) -> Result<(), OutputError> {
+        let path = dir(output).join(INDEX_FILE);
+        let bad = |why: String| OutputError::Mismatch {
+            path: path.clone(),
+            why: format!(
+                "is a damaged checkpoint index: {why}; start over with `kfmc run SPEC --restart`"
+            ),
+        };
+        if self.first_cell > self.end_cell || self.end_cell > self.cells {
+            return Err(bad(format!(
+                "its cells {}..{} are not within the plan's {}",
+                self.first_cell, self.end_cell, self.cells
+            )));
+        }
+        let range = self.end_cell - self.first_cell;
+        if self.cells_done > range {
+            return Err(bad(format!(
+                "it counts {} complete cells of {range}",
+                self.cells_done
+            )));
+        }
+        for (i, t) in self.tables.iter().enumerate() {
+            if self.tables[..i].iter().any(|u| u.name == t.name) {
+                return Err(bad(format!("it lists table `{}` twice", t.name)));
+            }
+        }
+        Ok(())
     }
 
     /// Replaces the index atomically; the journals must already be synced.
@@ -142,7 +187,7 @@ impl Index {
         let mut changes = [
             (self.journal_format != other.journal_format).then(|| {
                 format!(
-                    "its journals are in format {} (this kfmc writes {})",
+                    "its journals are in format {} (this kfmc reads and writes format {})",
                     self.journal_format, other.journal_format
                 )
             }),
@@ -298,6 +343,7 @@ impl Journal {
     pub fn record(&mut self, row: &[Value<'_>]) -> Result<(), OutputError> {
         let b = &mut self.scratch;
         b.clear();
+        b.push(TAG_ROW);
         for v in row {
             match *v {
                 Value::Str(s) => {
@@ -317,6 +363,29 @@ impl Journal {
                 Value::Bool(x) => b.push(x.map_or(0, |x| 1 + x as u8)),
             }
         }
+        self.append()?;
+        self.rows += 1;
+        Ok(())
+    }
+
+    /// Ends cell number `cells` (counted from the folder's first cell, from 1) after the
+    /// rows recorded so far, and the frame with it, so that the journal can be cut here;
+    /// returns its (bytes, rows) at this point (durable only after [`Journal::sync`]).
+    pub fn end_cell(&mut self, cells: u64) -> Result<(u64, u64), OutputError> {
+        let b = &mut self.scratch;
+        b.clear();
+        b.push(TAG_CELL_END);
+        b.extend_from_slice(&cells.to_le_bytes());
+        b.extend_from_slice(&self.rows.to_le_bytes());
+        self.append()?;
+        self.end_frame()
+    }
+
+    /// Appends the record in `scratch` with its checksum to the frame in progress.
+    fn append(&mut self) -> Result<(), OutputError> {
+        let sum = crate::sim::seed::hash_bytes(&self.scratch);
+        self.scratch.extend_from_slice(&sum.to_le_bytes());
+        let b = &self.scratch;
         let frame = match self.frame.as_mut() {
             Some(f) => f,
             None => {
@@ -328,9 +397,7 @@ impl Journal {
         };
         frame
             .write_all(b)
-            .map_err(io("cannot append to", &self.path))?;
-        self.rows += 1;
-        Ok(())
+            .map_err(io("cannot append to", &self.path))
     }
 
     /// Ends the frame in progress, so that the journal can be cut here; returns its (bytes,
@@ -367,10 +434,14 @@ fn damaged(path: &Path, why: String) -> OutputError {
 }
 
 /// Replays the first `bytes` bytes of the journal at `path`, whose rows have `columns`,
-/// calling `f` with each row in order. Returns the rows replayed.
+/// calling `f` with each row in order, after verifying its checksum. The bytes must end with
+/// the end of cell `cells` (none when `cells` is 0), every cell's end in order before it:
+/// an index that does not describe its journal is refused, not followed. Returns the rows
+/// replayed.
 pub fn replay(
     path: &Path,
     bytes: u64,
+    cells: u64,
     columns: &[ColumnDef],
     mut f: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
 ) -> Result<u64, OutputError> {
@@ -379,64 +450,110 @@ pub fn replay(
         .map_err(io("cannot start decompressing", path))?;
     let mut r = BufReader::with_capacity(1 << 16, decoder);
     let undecodable = |e: std::io::Error| damaged(path, format!("cannot be decoded ({e})"));
-    let read_exact = |r: &mut BufReader<_>, buf: &mut [u8]| -> Result<(), OutputError> {
-        r.read_exact(buf).map_err(|e| {
-            if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                damaged(path, format!("ends inside a row before byte {bytes}"))
-            } else {
-                undecodable(e)
-            }
-        })
-    };
+    // Every byte read is kept in `raw`, the record's bytes its checksum covers.
+    let read_exact =
+        |r: &mut BufReader<_>, raw: &mut Vec<u8>, n: usize| -> Result<usize, OutputError> {
+            let at = raw.len();
+            raw.resize(at + n, 0);
+            r.read_exact(&mut raw[at..]).map_err(|e| {
+                if e.kind() == std::io::ErrorKind::UnexpectedEof {
+                    damaged(path, format!("ends inside a record before byte {bytes}"))
+                } else {
+                    undecodable(e)
+                }
+            })?;
+            Ok(at)
+        };
+    let u64_at = |raw: &[u8], at: usize| u64::from_le_bytes(raw[at..at + 8].try_into().unwrap());
     // Strings are decoded into one buffer per row; the row's values borrow from it.
     let mut text = String::new();
     let mut spans: Vec<(usize, usize)> = Vec::new();
     let mut decoded: Vec<Value<'static>> = Vec::with_capacity(columns.len());
+    let mut raw: Vec<u8> = Vec::with_capacity(256);
     let mut done = 0u64;
-    let mut u8b = [0u8; 1];
-    let mut u32b = [0u8; 4];
-    let mut u64b = [0u8; 8];
-    // Rows until the stream ends at a row's start.
+    let mut cells_seen = 0u64;
+    // Whether the last record read ended a cell (so the bytes may end here).
+    let mut at_cell_end = true;
+    let mut record = 0u64;
+    // Records until the stream ends at a record's start.
     while !r.fill_buf().map_err(undecodable)?.is_empty() {
+        record += 1;
+        raw.clear();
+        read_exact(&mut r, &mut raw, 1)?;
+        let tag = raw[0];
+        if tag == TAG_CELL_END {
+            read_exact(&mut r, &mut raw, 16)?;
+            verify_checksum(&mut r, &raw, path, record, &read_exact)?;
+            let (cell, rows_before) = (u64_at(&raw, 1), u64_at(&raw, 9));
+            if cell != cells_seen + 1 || rows_before != done {
+                return Err(damaged(
+                    path,
+                    format!(
+                        "ends cell {cell} after {rows_before} rows where cell {} ends after {done}",
+                        cells_seen + 1
+                    ),
+                ));
+            }
+            cells_seen = cell;
+            at_cell_end = true;
+            continue;
+        }
+        if tag != TAG_ROW {
+            return Err(damaged(
+                path,
+                format!("has a record {record} of unknown kind {tag}"),
+            ));
+        }
         text.clear();
         spans.clear();
         decoded.clear();
         for c in columns {
             let v = match c.dtype {
                 Dtype::Str => {
-                    read_exact(&mut r, &mut u32b)?;
-                    let n = u32::from_le_bytes(u32b) as usize;
-                    let mut s = vec![0u8; n];
-                    read_exact(&mut r, &mut s)?;
-                    let s = String::from_utf8(s).map_err(|_| {
+                    let at = read_exact(&mut r, &mut raw, 4)?;
+                    let n = u32::from_le_bytes(raw[at..at + 4].try_into().unwrap()) as usize;
+                    // Read as it comes, not allocated up front: a damaged length must not
+                    // reserve gigabytes before its checksum can refuse it.
+                    let at = raw.len();
+                    let got = (&mut r)
+                        .take(n as u64)
+                        .read_to_end(&mut raw)
+                        .map_err(undecodable)?;
+                    if got < n {
+                        return Err(damaged(
+                            path,
+                            format!("ends inside a record before byte {bytes}"),
+                        ));
+                    }
+                    let s = std::str::from_utf8(&raw[at..at + n]).map_err(|_| {
                         damaged(path, format!("has a column {} that is not UTF-8", c.name))
                     })?;
                     spans.push((text.len(), text.len() + n));
-                    text.push_str(&s);
+                    text.push_str(s);
                     // Filled in below, once `text` no longer grows.
                     Value::Str("")
                 }
                 Dtype::F64 => {
-                    read_exact(&mut r, &mut u64b)?;
-                    let x = f64::from_bits(u64::from_le_bytes(u64b));
+                    let at = read_exact(&mut r, &mut raw, 8)?;
+                    let x = f64::from_bits(u64_at(&raw, at));
                     Value::F64((!x.is_nan()).then_some(x))
                 }
                 Dtype::I64 => {
-                    read_exact(&mut r, &mut u8b)?;
-                    if u8b[0] == 0 {
+                    let at = read_exact(&mut r, &mut raw, 1)?;
+                    if raw[at] == 0 {
                         Value::I64(None)
                     } else {
-                        read_exact(&mut r, &mut u64b)?;
-                        Value::I64(Some(i64::from_le_bytes(u64b)))
+                        let at = read_exact(&mut r, &mut raw, 8)?;
+                        Value::I64(Some(u64_at(&raw, at) as i64))
                     }
                 }
                 Dtype::U64 => {
-                    read_exact(&mut r, &mut u64b)?;
-                    Value::U64(u64::from_le_bytes(u64b))
+                    let at = read_exact(&mut r, &mut raw, 8)?;
+                    Value::U64(u64_at(&raw, at))
                 }
                 Dtype::Bool => {
-                    read_exact(&mut r, &mut u8b)?;
-                    Value::Bool(match u8b[0] {
+                    let at = read_exact(&mut r, &mut raw, 1)?;
+                    Value::Bool(match raw[at] {
                         0 => None,
                         1 => Some(false),
                         _ => Some(true),
@@ -445,6 +562,7 @@ pub fn replay(
             };
             decoded.push(v);
         }
+        verify_checksum(&mut r, &raw, path, record, &read_exact)?;
         let mut row: Vec<Value<'_>> = Vec::with_capacity(columns.len());
         let mut next_str = spans.iter();
         for v in &decoded {
@@ -458,8 +576,42 @@ pub fn replay(
         }
         f(&row)?;
         done += 1;
+        at_cell_end = false;
+    }
+    if !at_cell_end || cells_seen != cells {
+        return Err(damaged(
+            path,
+            format!(
+                "holds {cells_seen} complete cells{} where its checkpoint index counts {cells}",
+                if at_cell_end {
+                    ""
+                } else {
+                    " and rows after them"
+                }
+            ),
+        ));
     }
     Ok(done)
+}
+
+/// Reads the checksum that follows the record in `raw` and compares.
+fn verify_checksum<R: Read>(
+    r: &mut BufReader<R>,
+    raw: &[u8],
+    path: &Path,
+    record: u64,
+    read_exact: &impl Fn(&mut BufReader<R>, &mut Vec<u8>, usize) -> Result<usize, OutputError>,
+) -> Result<(), OutputError> {
+    let mut sum = Vec::with_capacity(8);
+    read_exact(r, &mut sum, 8)?;
+    let stored = u64::from_le_bytes(sum[..8].try_into().unwrap());
+    if stored != crate::sim::seed::hash_bytes(raw) {
+        return Err(damaged(
+            path,
+            format!("has a record {record} that fails its checksum"),
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -518,7 +670,8 @@ mod tests {
         for r in rows() {
             j.record(&r).unwrap();
         }
-        let (bytes, rows_done) = j.sync().unwrap();
+        let (bytes, rows_done) = j.end_cell(1).unwrap();
+        assert_eq!(j.sync().unwrap(), (bytes, rows_done));
         assert_eq!(rows_done, 3);
         j.record(&[
             Value::Str("lost"),
@@ -532,7 +685,7 @@ mod tests {
         drop(j);
 
         let mut back: Vec<String> = Vec::new();
-        let n = replay(&path, bytes, &cols(), |r| {
+        let n = replay(&path, bytes, 1, &cols(), |r| {
             back.push(format!("{r:?}"));
             Ok(())
         })
@@ -541,7 +694,7 @@ mod tests {
         let want: Vec<String> = rows().iter().map(|r| format!("{r:?}")).collect();
         assert_eq!(back, want);
         let mut neg_zero = None;
-        replay(&path, bytes, &cols(), |r| {
+        replay(&path, bytes, 1, &cols(), |r| {
             if let Value::F64(Some(x)) = r[1] {
                 neg_zero.get_or_insert(x.to_bits());
             }
@@ -553,11 +706,12 @@ mod tests {
         let mut j = Journal::reopen(&path, bytes, 3).unwrap();
         assert_eq!(std::fs::metadata(&path).unwrap().len(), bytes);
         j.record(&rows()[1]).unwrap();
-        let (b2, r2) = j.sync().unwrap();
+        let (b2, r2) = j.end_cell(2).unwrap();
+        j.sync().unwrap();
         assert_eq!(r2, 4);
         let mut last = String::new();
         assert_eq!(
-            replay(&path, b2, &cols(), |r| {
+            replay(&path, b2, 2, &cols(), |r| {
                 last = format!("{r:?}");
                 Ok(())
             })
@@ -573,7 +727,8 @@ mod tests {
         let path = d.path().join("t.journal");
         let mut j = Journal::create(&path).unwrap();
         j.record(&rows()[0]).unwrap();
-        let (bytes, _) = j.sync().unwrap();
+        let (bytes, _) = j.end_cell(1).unwrap();
+        j.sync().unwrap();
         drop(j);
         let err = Journal::reopen(&path, bytes + 5, 2)
             .err()
@@ -587,10 +742,126 @@ mod tests {
             .unwrap()
             .set_len(bytes - 3)
             .unwrap();
-        let err = replay(&path, bytes, &cols(), |_| Ok(()))
+        let err = replay(&path, bytes, 1, &cols(), |_| Ok(()))
             .err()
             .unwrap()
             .to_string();
         assert!(err.contains("damaged checkpoint journal"), "{err}");
+    }
+
+    /// A journal of `cells` cells of the test rows; returns its path's folder, the path, and
+    /// the (bytes, rows) at each cell's end.
+    fn journal_of(cells: u64) -> (tempfile::TempDir, PathBuf, Vec<(u64, u64)>) {
+        let d = tempfile::tempdir().unwrap();
+        let path = d.path().join("t.journal");
+        let mut j = Journal::create(&path).unwrap();
+        let mut ends = Vec::new();
+        for c in 1..=cells {
+            for r in rows() {
+                j.record(&r).unwrap();
+            }
+            ends.push(j.end_cell(c).unwrap());
+        }
+        j.sync().unwrap();
+        (d, path, ends)
+    }
+
+    fn replayed(path: &Path, bytes: u64, cells: u64) -> Result<Vec<String>, String> {
+        let mut back = Vec::new();
+        replay(path, bytes, cells, &cols(), |r| {
+            back.push(format!("{r:?}"));
+            Ok(())
+        })
+        .map_err(|e| e.to_string())?;
+        Ok(back)
+    }
+
+    /// Every single-bit flip anywhere in the journal is either refused as damaged (with the
+    /// advice to restart) or, where zstd ignores the bit, replays the very same rows: a
+    /// journal never replays rows that differ from the ones recorded.
+    #[test]
+    fn every_flipped_bit_is_refused_or_harmless() {
+        let (_d, path, ends) = journal_of(2);
+        let (bytes, _) = ends[1];
+        let good = replayed(&path, bytes, 2).unwrap();
+        assert_eq!(good.len(), 6);
+        let original = std::fs::read(&path).unwrap();
+        let (mut refused, mut harmless) = (0, 0);
+        for bit in 0..original.len() * 8 {
+            let mut flipped = original.clone();
+            flipped[bit / 8] ^= 1 << (bit % 8);
+            std::fs::write(&path, &flipped).unwrap();
+            match replayed(&path, bytes, 2) {
+                Err(e) => {
+                    assert!(
+                        e.contains("damaged checkpoint journal") && e.contains("--restart"),
+                        "{e}"
+                    );
+                    refused += 1;
+                }
+                Ok(back) => {
+                    assert_eq!(back, good, "bit {bit} changed the replayed rows");
+                    harmless += 1;
+                }
+            }
+        }
+        assert!(refused > harmless, "{refused} refused, {harmless} harmless");
+    }
+
+    /// The index must describe the journal: a cell count that differs from the cell ends
+    /// within its bytes, or bytes that stop inside a cell, are refused.
+    #[test]
+    fn an_index_that_does_not_describe_its_journal_is_refused() {
+        let (_d, path, ends) = journal_of(3);
+        for (k, &(bytes, _)) in ends.iter().enumerate() {
+            let k = k as u64 + 1;
+            assert_eq!(replayed(&path, bytes, k).unwrap().len() as u64, 3 * k);
+            for wrong in [0, k - 1, k + 1, 7] {
+                if wrong == k {
+                    continue;
+                }
+                let e = replayed(&path, bytes, wrong).unwrap_err();
+                assert!(
+                    e.contains(&format!("holds {k} complete cells")) && e.contains("--restart"),
+                    "{e}"
+                );
+            }
+        }
+        // Cut after the second cell's first frame bytes but before its end: not a boundary.
+        let e = replayed(&path, ends[1].0 - 1, 2).unwrap_err();
+        assert!(e.contains("damaged checkpoint journal"), "{e}");
+    }
+
+    /// An index counting more cells than its range, or a range outside the plan, is refused
+    /// before any journal is read.
+    #[test]
+    fn an_incoherent_index_is_refused() {
+        let d = tempfile::tempdir().unwrap();
+        let mut i = Index {
+            kfmc_version: "x".into(),
+            spec_hash: "h".into(),
+            master_seed: 1,
+            runs_per_cell: 2,
+            cells: 6,
+            first_cell: 2,
+            end_cell: 4,
+            trace_runs: 0,
+            export_estimates: false,
+            journal_format: JOURNAL_FORMAT,
+            cells_done: 2,
+            tables: Vec::new(),
+        };
+        i.check(d.path()).unwrap();
+        i.cells_done = 3;
+        let e = i.check(d.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("counts 3 complete cells of 2") && e.contains("--restart"),
+            "{e}"
+        );
+        i.cells_done = u64::MAX;
+        assert!(i.check(d.path()).is_err());
+        i.cells_done = 1;
+        i.end_cell = 9;
+        assert!(i.check(d.path()).is_err());
     }
 }

@@ -117,8 +117,9 @@ impl TableWriter {
     }
 
     /// Starts the table as [`TableWriter::create`] does, journaling every row into
-    /// `journal` from now on. With `resume_from = Some((bytes, rows))`, the journal's first
-    /// `bytes` bytes are first replayed into the table, each row also handed to `on_row`, and
+    /// `journal` from now on. With `resume_from = Some((bytes, rows, cells))`, the journal's
+    /// first `bytes` bytes, which must hold `cells` complete cells, are first replayed (and
+    /// verified) into the table, each row also handed to `on_row`, and
     /// the journal continues after them: the table receives exactly the rows, in the order,
     /// of the run that wrote the journal.
     pub(crate) fn journaled(
@@ -126,15 +127,15 @@ impl TableWriter {
         name: &str,
         columns: Vec<ColumnDef>,
         journal: &Path,
-        resume_from: Option<(u64, u64)>,
+        resume_from: Option<(u64, u64, u64)>,
         mut on_row: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
     ) -> Result<Self, OutputError> {
         let mut w = TableWriter::create(dir, name, columns)?;
         w.journal = Some(match resume_from {
             None => super::checkpoint::Journal::create(journal)?,
-            Some((bytes, rows)) => {
+            Some((bytes, rows, cells)) => {
                 let columns = w.columns.clone();
-                let replayed = super::checkpoint::replay(journal, bytes, &columns, |row| {
+                let replayed = super::checkpoint::replay(journal, bytes, cells, &columns, |row| {
                     w.push(row)?;
                     on_row(row)
                 })?;
@@ -157,10 +158,13 @@ impl TableWriter {
         self.journal.as_mut().map(|j| j.sync()).transpose()
     }
 
-    /// Ends the journal's frame after the last pushed row (a cell boundary); returns its
-    /// (bytes, rows) there.
-    pub(crate) fn end_journal_frame(&mut self) -> Result<Option<(u64, u64)>, OutputError> {
-        self.journal.as_mut().map(|j| j.end_frame()).transpose()
+    /// Ends cell number `cells` (from 1) in the journal after the last pushed row; returns
+    /// its (bytes, rows) there.
+    pub(crate) fn end_journal_cell(
+        &mut self,
+        cells: u64,
+    ) -> Result<Option<(u64, u64)>, OutputError> {
+        self.journal.as_mut().map(|j| j.end_cell(cells)).transpose()
     }
 
     /// Appends one row; values must follow the column order and types.

@@ -683,13 +683,37 @@ pub struct PlotOptions {
 pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotError> {
     let tables = Tables::load(dir)?;
     let out = opts.out.clone().unwrap_or_else(|| dir.join("figures"));
+    let figures = all_figures(&tables, &opts.only)?;
+    // A kind asked for by name that the data cannot give is an error, not an empty success.
+    let lacking: Vec<&str> = opts
+        .only
+        .iter()
+        .filter(|k| !figures.iter().any(|f| f.kind == **k))
+        .map(|k| k.name())
+        .collect();
+    if !lacking.is_empty() {
+        let mut available: Vec<&str> = all_figures(&tables, &[])?
+            .iter()
+            .map(|f| f.kind.name())
+            .collect();
+        available.dedup();
+        return Err(PlotError::NoFigures {
+            path: dir.to_path_buf(),
+            lacking: lacking.join(", "),
+            available: if available.is_empty() {
+                "none".into()
+            } else {
+                available.join(", ")
+            },
+        });
+    }
     std::fs::create_dir_all(&out).map_err(|source| PlotError::Io {
         action: "cannot create the figure folder",
         path: out.clone(),
         source,
     })?;
     let mut written = Vec::new();
-    for fig in all_figures(&tables, &opts.only)? {
+    for fig in figures {
         let path = out.join(format!("{}.{}", fig.name, opts.format.ext()));
         render::to_file(&fig, &path, opts.format)?;
         written.push(path);

@@ -72,6 +72,34 @@ pub struct Trajectory<const NX: usize, const NZ: usize> {
     pub x0_hat: Vector<NX>,
 }
 
+/// A factor L with L Lᵀ = Q, for drawing w = L ξ ~ N(0, Q): Q's Cholesky factor when Q is
+/// positive definite, else, for a singular but positive semi-definite Q (a noise that drives
+/// fewer directions than there are states), V·diag(√λ) from its symmetric eigenvalues.
+/// `None` when Q is not a finite, symmetric, positive semi-definite matrix: no Gaussian has
+/// it as covariance, and systems refuse such a model while validating
+/// ([`crate::system::additive::FilterKinds::configure_all`]).
+pub fn process_factor<const NX: usize>(q: &Matrix<NX, NX>) -> Option<Matrix<NX, NX>> {
+    // A Cholesky factorisation reads one triangle only: symmetry is checked first. The
+    // tolerance leaves room for the round-off of a discretised Q.
+    let scale = q.amax();
+    if !q.iter().all(|v| v.is_finite()) || (q - q.transpose()).amax() > 1e-9 * scale {
+        return None;
+    }
+    if let Some(c) = SmallCholesky::new(q) {
+        return Some(c.l());
+    }
+    let eig =
+        nalgebra::DMatrix::from_fn(NX, NX, |i, j| 0.5 * (q[(i, j)] + q[(j, i)])).symmetric_eigen();
+    // Round-off leaves the zero eigenvalues of a singular Q a few ulps either side of 0.
+    let floor = -1e-12 * scale;
+    if eig.eigenvalues.iter().any(|&l| l < floor) {
+        return None;
+    }
+    Some(Matrix::<NX, NX>::from_fn(|i, j| {
+        eig.eigenvectors[(i, j)] * eig.eigenvalues[j].max(0.0).sqrt()
+    }))
+}
+
 /// Simulates one run of `scenario` with the truth noise scaled by `noise_scale`.
 ///
 /// `p0_factor` is a lower-triangular L_0 with P_0 = L_0 L_0ᵀ when the initial estimate is
@@ -95,12 +123,14 @@ pub fn simulate<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, 
         z: model.measure(&x0, &scenario.controls[0]),
         available: model.availability(0),
     });
-    // A full model Q is sampled through its Cholesky factor; the planar models have none and
-    // keep the per-state std path unchanged (bit-identical tables).
-    let w_factor = model
-        .process_noise_covariance()
-        .and_then(|q| SmallCholesky::new(&q))
-        .map(|c| c.l() * noise_scale);
+    // A full model Q is sampled through a factor of it (its Cholesky factor when it is
+    // positive definite); the planar models have none and keep the per-state std path.
+    // A model whose Q has no factor was refused while validating; were one to get here, its
+    // truth must not silently take the per-state std instead of Q.
+    let w_factor = model.process_noise_covariance().map(|q| {
+        process_factor(&q).expect("a model's Q is checked positive semi-definite when validated")
+            * noise_scale
+    });
     let mut x = x0;
     for k in 1..=steps {
         let u = &scenario.controls[k];
@@ -154,6 +184,91 @@ mod tests {
         assert!((rb - ra * 2.0).amax() < 1e-15);
         assert_eq!(a.truth.len(), 1001);
         assert_eq!(a.measurements[0].z, model.measure(&sc.x0, &sc.controls[0]));
+    }
+
+    /// x_k = x_{k−1} + w_k with a full Q: the increments are the truth's process noise.
+    struct RandomWalk(Matrix<2, 2>);
+
+    impl Model<2, 1, 1> for RandomWalk {
+        fn dt_s(&self) -> f64 {
+            0.1
+        }
+        fn propagate(&self, x: &Vector<2>, _: &Vector<1>) -> Vector<2> {
+            *x
+        }
+        fn transition_jacobian(&self, _: &Vector<2>, _: &Vector<1>) -> Matrix<2, 2> {
+            Matrix::<2, 2>::identity()
+        }
+        fn measure(&self, x: &Vector<2>, _: &Vector<1>) -> Vector<1> {
+            Vector::<1>::new(x[0])
+        }
+        fn measurement_jacobian(&self, _: &Vector<2>, _: &Vector<1>) -> Matrix<1, 2> {
+            Matrix::<1, 2>::new(1.0, 0.0)
+        }
+        fn process_noise_covariance(&self) -> Option<Matrix<2, 2>> {
+            Some(self.0)
+        }
+    }
+
+    /// The truth's process-noise increments have the model's full Q as covariance, for a
+    /// positive definite Q and for a singular one (rank 1: one noise drives both states, as
+    /// a white-acceleration model's does), at noise scale 2 (covariance 4 Q). Seeded: 40,000
+    /// increments; each sample covariance entry must lie within 5 standard errors of 4 Q,
+    /// SE(Ĉ_ij) = √((C_ii C_jj + C_ij²)/N) (Gaussian increments). The per-state-std fallback
+    /// this replaces gives Ĉ_01 ≈ 0 where 4 Q_01 = 8 for the singular Q: 80 SE off.
+    #[test]
+    fn a_full_q_is_the_covariance_of_the_truth_noise_even_when_singular() {
+        let n = 40_000usize;
+        for q in [
+            Matrix::<2, 2>::new(1.0, 2.0, 2.0, 4.0),
+            Matrix::<2, 2>::new(1.0, 0.6, 0.6, 2.0),
+        ] {
+            let model = RandomWalk(q);
+            let sc = Scenario::<2, 1>::unforced("walk", Vector::<2>::zeros(), n);
+            let noise = TruthNoise {
+                process_std: Vector::<2>::zeros(),
+                measurement_std: Vector::<1>::repeat(1.0),
+            };
+            let draws = NoiseDraws::<2, 1>::draw(seed::run_seed(3, "walk", 0), n);
+            let tr = simulate(&model, &sc, &noise, 2.0, None, &draws);
+            let want = q * 4.0;
+            let mut c = Matrix::<2, 2>::zeros();
+            for k in 1..=n {
+                let w = tr.truth[k] - tr.truth[k - 1];
+                c += w * w.transpose();
+            }
+            c /= n as f64;
+            for (i, j) in [(0, 0), (0, 1), (1, 1)] {
+                let se = ((want[(i, i)] * want[(j, j)] + want[(i, j)].powi(2)) / n as f64).sqrt();
+                assert!(
+                    (c[(i, j)] - want[(i, j)]).abs() < 5.0 * se,
+                    "Q = {q:?}: Ĉ[{i},{j}] = {} vs 4Q = {} (SE {se})",
+                    c[(i, j)],
+                    want[(i, j)]
+                );
+            }
+        }
+    }
+
+    /// A factor reproduces Q (L Lᵀ = Q) for definite and singular Q; an indefinite, a
+    /// non-symmetric or a non-finite Q has none.
+    #[test]
+    fn process_factor_reproduces_q_or_refuses() {
+        for q in [
+            Matrix::<3, 3>::new(4.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 0.0),
+            Matrix::<3, 3>::new(2.0, 0.5, 0.1, 0.5, 1.0, 0.2, 0.1, 0.2, 3.0),
+            Matrix::<3, 3>::zeros(),
+        ] {
+            let l = process_factor(&q).unwrap();
+            assert!((l * l.transpose() - q).amax() < 1e-12, "{q:?}");
+        }
+        for q in [
+            Matrix::<3, 3>::new(1.0, 2.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 1.0),
+            Matrix::<3, 3>::new(1.0, 0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0),
+            Matrix::<3, 3>::new(f64::NAN, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0),
+        ] {
+            assert!(process_factor(&q).is_none(), "{q:?}");
+        }
     }
 
     #[test]

@@ -210,6 +210,18 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
         // A model with its own full Q is what its filters assume (times q_scale), so a q_std
         // would be silently ignored: the kinds refuse it.
         let full_q = model.process_noise_covariance().is_some();
+        // The truth draws w_k ~ N(0, Q) through a factor of Q: a Q that is no covariance is
+        // refused here rather than replaced by anything else.
+        if let Some(q) = model.process_noise_covariance()
+            && crate::sim::process_factor(&q).is_none()
+        {
+            c.err(
+                "model",
+                format!(
+                    "the {system} model's process-noise covariance Q is not a finite, symmetric, positive semi-definite matrix, so the truth cannot draw its noise from it"
+                ),
+            );
+        }
         let mut out = Vec::new();
         for f in filters {
             let key = f.key.clone();
@@ -286,7 +298,10 @@ impl AssumedStd {
         let bad_default = |given: bool, d: &[f64], ok: fn(f64) -> bool| {
             (!given).then(|| d.iter().position(|x| !ok(*x))).flatten()
         };
-        if let Some(i) = bad_default(q_std.is_some(), cx.process_std, non_negative) {
+        // With a full Q the filters assume it and never read the per-state std.
+        if !cx.full_q
+            && let Some(i) = bad_default(q_std.is_some(), cx.process_std, non_negative)
+        {
             c.err(
                 cx.key.clone(),
                 format!(
@@ -1056,5 +1071,73 @@ where
 
     fn layout(&self) -> &Layout {
         &self.sys.layout
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// x_k = x_{k−1} + w_k, z = x[0], with its own Q.
+    struct Walk(Matrix<2, 2>);
+
+    impl Model<2, 1, 1> for Walk {
+        fn dt_s(&self) -> f64 {
+            0.1
+        }
+        fn propagate(&self, x: &Vector<2>, _: &Vector<1>) -> Vector<2> {
+            *x
+        }
+        fn transition_jacobian(&self, _: &Vector<2>, _: &Vector<1>) -> Matrix<2, 2> {
+            Matrix::<2, 2>::identity()
+        }
+        fn measure(&self, x: &Vector<2>, _: &Vector<1>) -> Vector<1> {
+            Vector::<1>::new(x[0])
+        }
+        fn measurement_jacobian(&self, _: &Vector<2>, _: &Vector<1>) -> Matrix<1, 2> {
+            Matrix::<1, 2>::new(1.0, 0.0)
+        }
+        fn process_noise_covariance(&self) -> Option<Matrix<2, 2>> {
+            Some(self.0)
+        }
+    }
+
+    fn configure(q: Matrix<2, 2>, process_std: &[f64]) -> (usize, Vec<String>) {
+        let kinds = common_kinds::<2, 1, 1, Walk>();
+        let filters = vec![super::super::FilterTable {
+            key: "filters[0]".into(),
+            label: "ekf".into(),
+            kind: "ekf".into(),
+            keys: toml::Table::new(),
+        }];
+        let mut c = Checker::new(std::path::Path::new("t.toml"), "");
+        let entries = kinds.configure_all(
+            &filters,
+            &Walk(q),
+            "walk",
+            process_std,
+            &[0.1],
+            &|_| None,
+            &mut c,
+        );
+        let errors = c.into_errors().iter().map(|e| e.to_string()).collect();
+        (entries.len(), errors)
+    }
+
+    /// With a full Q the filters assume it, so the truth's per-state std (which a model
+    /// with a full Q need not have) is not demanded as the default of q_std; a Q that is no
+    /// covariance is refused at `model`, singular ones are accepted.
+    #[test]
+    fn a_full_q_needs_no_per_state_std_and_must_be_a_covariance() {
+        let singular = Matrix::<2, 2>::new(1.0, 2.0, 2.0, 4.0);
+        let (n, errors) = configure(singular, &[f64::NAN, -1.0]);
+        assert_eq!((n, errors.len()), (1, 0), "{errors:?}");
+        let indefinite = Matrix::<2, 2>::new(1.0, 2.0, 2.0, 1.0);
+        let (_, errors) = configure(indefinite, &[1.0, 1.0]);
+        assert_eq!(errors.len(), 1, "{errors:?}");
+        assert!(
+            errors[0].contains("t.toml: model: the walk model's process-noise covariance Q"),
+            "{errors:?}"
+        );
     }
 }

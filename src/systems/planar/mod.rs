@@ -261,7 +261,15 @@ impl System for PlanarSystem {
                 &measurement_std,
                 &|k| {
                     self.p1.get(k).map(|_| {
-                        format!("{k} reads y, θ, θ̇ directly and needs model.sensor = \"p1\"")
+                        // Only the running mean's reason is known here; another P1 kind (a
+                        // user's) is named as what it is.
+                        if k == "running_mean" {
+                            format!("{k} reads y, θ, θ̇ directly and needs model.sensor = \"p1\"")
+                        } else {
+                            format!(
+                                "filter kind `{k}` is registered for model.sensor = \"p1\" only, and this spec's sensor is \"imu\""
+                            )
+                        }
                     })
                 },
                 c,
@@ -291,7 +299,7 @@ impl System for PlanarSystem {
                 &|k| {
                     self.imu
                         .get(k)
-                        .map(|_| format!("{k} needs model.sensor = \"imu\""))
+                        .map(|_| format!("filter kind `{k}` is registered for model.sensor = \"imu\" only, and this spec's sensor is \"p1\""))
                 },
                 c,
             );
