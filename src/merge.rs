@@ -317,7 +317,12 @@ pub fn merge(dir: &Path, registry: &Registry) -> Result<MergeReport, KfmcError> 
             for_each_row_group(f, |df| {
                 let w = match writer.as_mut() {
                     Some(w) => w,
-                    None => writer.insert(TableWriter::create(dir, name, columns_of(&df, f)?)?),
+                    None => writer.insert(TableWriter::create_with_metadata(
+                        dir,
+                        name,
+                        columns_of(&df, f)?,
+                        &crate::score::table_metadata(name, &plan),
+                    )?),
                 };
                 w.append_frame(&df, f)
             })?;
