@@ -403,7 +403,12 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
                 stop_if_interrupted()?;
                 let w = match writer.as_mut() {
                     Some(w) => w,
-                    None => writer.insert(TableWriter::create(dir, name, columns_of(&df, f)?)?),
+                    None => writer.insert(TableWriter::create_with_metadata(
+                        dir,
+                        name,
+                        columns_of(&df, f)?,
+                        &crate::score::table_metadata(name, &plan),
+                    )?),
                 };
                 w.append_frame(&df, f)
             })?;

@@ -14,8 +14,19 @@
 //! | `nu_<z>`, `S_<zi>_<zj>` | optional: the innovation (null where z did not report) and its covariance, lower triangle: enable the NIS and whiteness tests |
 //! | `A_<qi>_<qj>` | optional: the error transition (row qi, column qj): enables the calibrated NEES verdict |
 //!
-//! The error convention is e = truth − estimate, angle quantities wrapped. File metadata
-//! `kfmc.spec_hash` and `kfmc.master_seed`, when present, must match the study.
+//! The error convention is e = truth − estimate, angle quantities wrapped.
+//!
+//! The file's stamp is two file-level metadata keys: `kfmc.world_stamp` (the study's
+//! [`Plan::world_stamp`], the hash of everything that makes run i's truth, measurements and
+//! prior) and `kfmc.master_seed`. kfmc writes both into every estimates file; a file whose
+//! keys name another world is refused, naming the simulation it belongs to, and a file
+//! without a stamp is read but reported ([`EstimateSet::unstamped`]) for `kfmc score` to warn
+//! and `kfmc check` to refuse.
+//!
+//! A run's rows cover every step 0..=K or none (a run left out): a run with some steps
+//! missing, or a step outside 0..=K, is an error naming the run and the step, raised before
+//! anything is scored. So is a NaN or infinite innovation or error-transition entry: null
+//! there means "not given", never NaN.
 //!
 //! Reading streams the files row group by row group into one fixed-width spill file per
 //! external filter (unlinked at once, so nothing is left behind even after a kill), indexed
@@ -43,6 +54,32 @@ pub const SCHEMA_VERSION: u32 = 1;
 
 /// The error convention every table uses, written into the simulation manifest.
 pub const ERROR_CONVENTION: &str = "e = truth - estimate; angle quantities wrapped";
+
+/// The metadata key of an estimates file's world stamp ([`Plan::world_stamp`]).
+pub const STAMP_KEY: &str = "kfmc.world_stamp";
+
+/// The metadata key of the master seed the file's runs were simulated with.
+pub const SEED_KEY: &str = "kfmc.master_seed";
+
+/// The stamp an estimates file made from the runs of `plan` carries: its two metadata keys
+/// and their values.
+pub fn stamp_metadata(plan: &Plan) -> Vec<(String, String)> {
+    vec![
+        (STAMP_KEY.into(), plan.world_stamp()),
+        (SEED_KEY.into(), plan.master_seed.to_string()),
+    ]
+}
+
+/// The file-level metadata kfmc writes into its table `name` of a study of `plan`: the
+/// stamp on `estimates`, nothing on the others (their bytes do not depend on the world's
+/// description).
+pub fn table_metadata(name: &str, plan: &Plan) -> Vec<(String, String)> {
+    if name == "estimates" {
+        stamp_metadata(plan)
+    } else {
+        Vec::new()
+    }
+}
 
 /// How an estimates file gives the covariance.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -186,6 +223,8 @@ pub struct EstimateSet {
     /// Per cell (scenario-major): the first row index and the samples K + 1 per run.
     cells: Vec<(u64, usize)>,
     runs: usize,
+    /// The files read that carry no world stamp.
+    unstamped: Vec<PathBuf>,
 }
 
 fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
@@ -244,6 +283,12 @@ fn detect_columns(
         innovations,
         transition,
     };
+    if names.iter().any(|c| c.starts_with("L_")) && names.iter().any(|c| c.starts_with("P_")) {
+        return Err(format_err(
+            path,
+            "both P_* and L_* columns given: give the covariance one way, as the lower triangle P_<qi>_<qj> or as a lower Cholesky factor L_<i>_<j>",
+        ));
+    }
     let covariance = if names.iter().any(|c| c.starts_with("L_")) {
         CovarianceForm::Cholesky
     } else {
@@ -337,7 +382,9 @@ impl EstimateSet {
             externals: Vec::new(),
             cells,
             runs: plan.runs,
+            unstamped: Vec::new(),
         };
+        let mut unstamped = Vec::new();
 
         for path in files {
             let file = File::open(path).map_err(|source| OutputError::Io {
@@ -345,12 +392,20 @@ impl EstimateSet {
                 path: path.clone(),
                 source,
             })?;
+            if !crate::output::table::starts_as_parquet(&file) {
+                return Err(format_err(
+                    path,
+                    "estimates must be Parquet (got a CSV?): the file does not begin with Parquet's `PAR1` marker; `kfmc schema estimates SPEC` lists the columns to write",
+                ));
+            }
             let mut reader = ParquetReader::new(file);
             let meta = reader
                 .get_metadata()
                 .map_err(|e| polars_err(path, e))?
                 .clone();
-            check_metadata(path, &meta, plan)?;
+            if !check_metadata(path, &meta, plan)? {
+                unstamped.push(path.clone());
+            }
             let names: Vec<String> = reader
                 .schema()
                 .map_err(|e| polars_err(path, e))?
@@ -360,6 +415,19 @@ impl EstimateSet {
             let cols = detect_columns(path, &names, &quantities, &measurements)?;
             let value_names = cols.value_columns();
             let width = cols.width();
+            // Where null means "not given" and a non-finite number is an error: the
+            // innovation and the error transition.
+            let nu_at = cols.nq() + cols.ntri();
+            let nu_range = if cols.innovations {
+                nu_at..nu_at + cols.nz()
+            } else {
+                0..0
+            };
+            let a_range = if cols.transition {
+                width - cols.nq() * cols.nq()..width
+            } else {
+                0..0
+            };
             let mut offset = 0usize;
             crate::output::table::for_each_row_group(path, |df| {
                 let height = df.height();
@@ -510,6 +578,36 @@ impl EstimateSet {
                     e.present[word] |= 1 << bit;
                     buf.clear();
                     buf.extend(values.iter().map(|c| c.get(i).unwrap_or(f64::NAN)));
+                    let non_finite = |t: &usize| values[*t].get(i).is_some_and(|v| !v.is_finite());
+                    if let Some(t) = nu_range.clone().chain(a_range.clone()).find(non_finite) {
+                        return Err(format_err(
+                            path,
+                            format!(
+                                "column `{}`: {} at {} (null means not given; a NaN or infinite value is an error)",
+                                value_names[t],
+                                buf[t],
+                                key()
+                            ),
+                        ));
+                    }
+                    let given = a_range
+                        .clone()
+                        .filter(|t| values[*t].get(i).is_some())
+                        .count();
+                    if given != 0 && given != a_range.len() {
+                        let t = a_range
+                            .clone()
+                            .find(|t| values[*t].get(i).is_none())
+                            .expect("some entry is null");
+                        return Err(format_err(
+                            path,
+                            format!(
+                                "column `{}`: null at {} where the row gives {given} other A_ entries (give the whole error transition of a step, or none)",
+                                value_names[t],
+                                key()
+                            ),
+                        ));
+                    }
                     match &mut pending {
                         Some((pe, start, data))
                             if *pe == ext && *start + (data.len() / width) as u64 == row =>
@@ -536,6 +634,9 @@ impl EstimateSet {
                 Ok(())
             })?;
         }
+        for e in &externals {
+            check_steps(e, plan, &set.cells)?;
+        }
         if let Some(f) = plan
             .filters
             .iter()
@@ -555,8 +656,14 @@ impl EstimateSet {
         Ok(EstimateSet {
             by_filter,
             externals,
+            unstamped,
             ..set
         })
+    }
+
+    /// The files read that carry no world stamp: nothing ties them to this study's runs.
+    pub fn unstamped(&self) -> &[PathBuf] {
+        &self.unstamped
     }
 
     /// The labels read and the files each came from.
@@ -628,37 +735,83 @@ fn write_rows(e: &External, start: u64, data: &[f64], width: usize) -> Result<()
         })
 }
 
-/// Checks the file's `kfmc.*` metadata against the study.
+/// Checks a run's rows of one external filter cover every step or none: a run with some
+/// steps missing is an error naming the file, the cell, the run and the first missing step.
+/// (A run with no rows at all is left for the runs' status: the study counts it missing.)
+fn check_steps(e: &External, plan: &Plan, cells: &[(u64, usize)]) -> Result<(), OutputError> {
+    let n_scales = plan.noise_scales.len();
+    let has = |row: u64| e.present[(row / 64) as usize] & (1 << (row % 64)) != 0;
+    for (ci, &(base, samples)) in cells.iter().enumerate() {
+        for r in 0..plan.runs as u64 {
+            let first = base + r * samples as u64;
+            let given = (0..samples as u64).filter(|k| has(first + k)).count();
+            if given == 0 || given == samples {
+                continue;
+            }
+            let k = (0..samples as u64)
+                .find(|k| !has(first + k))
+                .expect("a step is missing");
+            let path = e
+                .files
+                .first()
+                .map_or(Path::new("--estimates"), |p| p.as_path());
+            return Err(format_err(
+                path,
+                format!(
+                    "filter `{}`, scenario = {:?}, noise_scale = {}, run = {r}: no row for step {k} ({given} of its {samples} steps 0..={} are given); a run's rows cover every step from 0, the prior, or the run is left out whole{}",
+                    e.label,
+                    plan.scenarios[ci / n_scales].name,
+                    plan.noise_scales[ci % n_scales],
+                    samples - 1,
+                    if e.files.len() > 1 {
+                        format!(" (rows of `{}` read from {} files)", e.label, e.files.len())
+                    } else {
+                        String::new()
+                    }
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Checks the file's stamp against the study's world: returns whether the file is stamped
+/// (carries `kfmc.world_stamp`), and refuses one whose stamp or master seed names another
+/// simulation, saying which.
 fn check_metadata(
     path: &Path,
     meta: &polars::io::parquet::read::FileMetadata,
     plan: &Plan,
-) -> Result<(), OutputError> {
-    for kv in meta.key_value_metadata().iter().flatten() {
-        let value = kv.value.as_deref().unwrap_or("");
-        match kv.key.as_str() {
-            "kfmc.spec_hash" if value != plan.spec_hash => {
-                return Err(format_err(
-                    path,
-                    format!(
-                        "metadata kfmc.spec_hash = {value}, but the study's spec hashes to {}: these estimates were made for another spec's simulation",
-                        plan.spec_hash
-                    ),
-                ));
-            }
-            "kfmc.master_seed" if value != plan.master_seed.to_string() => {
-                return Err(format_err(
-                    path,
-                    format!(
-                        "metadata kfmc.master_seed = {value}, but the study's master seed is {}: these estimates are of other runs",
-                        plan.master_seed
-                    ),
-                ));
-            }
-            _ => {}
-        }
+) -> Result<bool, OutputError> {
+    let get = |key: &str| {
+        meta.key_value_metadata()
+            .iter()
+            .flatten()
+            .find(|kv| kv.key == key)
+            .map(|kv| kv.value.clone().unwrap_or_default())
+    };
+    let (stamp, seed) = (get(STAMP_KEY), get(SEED_KEY));
+    let ours = plan.world_stamp();
+    let foreign = stamp.as_ref().is_some_and(|s| *s != ours)
+        || seed
+            .as_ref()
+            .is_some_and(|s| *s != plan.master_seed.to_string());
+    if foreign {
+        let theirs: Vec<String> = [(STAMP_KEY, &stamp), (SEED_KEY, &seed)]
+            .into_iter()
+            .filter_map(|(k, v)| v.as_ref().map(|v| format!("{k} = {v}")))
+            .collect();
+        return Err(format_err(
+            path,
+            format!(
+                "these estimates were made on another simulation: the file belongs to the world {}, this study simulates world {ours} with master seed {} (experiment `{}`); score them against the simulation they were made from, or estimate again from this study's `kfmc simulate` tables",
+                theirs.join(", "),
+                plan.master_seed,
+                plan.name
+            ),
+        ));
     }
-    Ok(())
+    Ok(stamp.is_some())
 }
 
 /// One run's rows of one external filter.

@@ -5,7 +5,9 @@
 //! run by run. Tables: `truth` (the true quantities and world states), `measurements` (what
 //! a filter receives: z with nulls where a sensor did not report, and the inputs) and
 //! `initial` (each run's seed and the prior kfmc's filters start from); the manifest says
-//! what they mean ([`crate::output::manifest::ExchangeEntry`]).
+//! what they mean ([`crate::output::manifest::ExchangeEntry`]) and gives the world stamp an
+//! estimates file made from them carries. A run's step-0 row of `measurements` has null z:
+//! the run starts from its prior, and no sensor reports at step 0.
 
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
@@ -14,7 +16,7 @@ use crate::experiment::Plan;
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::{ExchangeEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
-use crate::runner::{RunObserver, execute};
+use crate::runner::{RunObserver, execute_windowed, window_for};
 use crate::study::{ExecOptions, StudyReport};
 use crate::trial::Unit;
 
@@ -63,9 +65,11 @@ pub fn simulate(
         run: i % n_runs,
     };
     let first_unit = cells.start * n_runs;
-    execute::<_, KfmcError>(
+    // Every run keeps its trajectory: the window holds as many as fit its bytes.
+    execute_windowed::<_, KfmcError>(
         (cells.end - cells.start) * n_runs,
         opts.threads,
+        window_for(crate::study::trajectory_bytes(&world_only), opts.threads),
         |i| trial.run(&unit_of(first_unit + i)),
         observer,
         |r| {
@@ -90,7 +94,14 @@ pub fn simulate(
                 row.extend(f64s(tr.world.get(k * nw..(k + 1) * nw).unwrap_or(&[])));
                 truth.push(&row)?;
                 let mut row = key.to_vec();
-                row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                if k == 0 {
+                    // A run starts from its prior: no sensor reports at step 0. (The seeds'
+                    // running mean is handed the noise-free h(x0) there, inside kfmc; that
+                    // is not a measurement, and an external filter must not receive it.)
+                    row.extend((0..nz).map(|_| Value::F64(None)));
+                } else {
+                    row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                }
                 row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
                 measurements.push(&row)?;
             }
@@ -129,7 +140,10 @@ pub fn simulate(
         schema_version: crate::score::SCHEMA_VERSION,
         error_convention: crate::score::ERROR_CONVENTION.into(),
         run_seeds: "per run: seed column of initial.parquet (from the master seed, the scenario name and the run index)".into(),
-        estimates_metadata: vec!["kfmc.spec_hash".into(), "kfmc.master_seed".into()],
+        estimates_metadata: vec![
+            crate::score::STAMP_KEY.into(),
+            crate::score::SEED_KEY.into(),
+        ],
     });
     let tables = folder.commit(finished, manifest)?;
     Ok(StudyReport {

@@ -11,7 +11,7 @@ use crate::metrics::{RunStatus, StepAccumulator};
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::{Manifest, QuantityEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
-use crate::runner::{RunObserver, execute};
+use crate::runner::{RunObserver, execute_windowed, window_for};
 use crate::spill::Spill;
 use crate::trial::{Trial, Unit, UnitResult, build};
 
@@ -588,8 +588,9 @@ fn run_in(
                 columns: Vec<crate::output::schema::ColumnDef>,
                 on_row: &mut dyn FnMut(&[Value<'_>]) -> Result<(), OutputError>|
      -> Result<TableWriter, OutputError> {
+        let metadata = crate::score::table_metadata(name, plan);
         if !journaling {
-            return TableWriter::create(dir, name, columns);
+            return TableWriter::create_with_metadata(dir, name, columns, &metadata);
         }
         let journal = crate::output::checkpoint::journal_path(dir, name);
         let from = match &resume {
@@ -608,7 +609,7 @@ fn run_in(
                     })?,
             ),
         };
-        TableWriter::journaled(dir, name, columns, &journal, from, on_row)
+        TableWriter::journaled(dir, name, columns, &metadata, &journal, from, on_row)
     };
     let mut ignore = |_: &[Value<'_>]| Ok(());
     // The divergence trackers look across cells: a resume rebuilds them from the replayed
@@ -692,9 +693,16 @@ fn run_in(
         run: i % n_runs,
     };
     let first_unit = (cells.start + cells_resumed) * n_runs;
-    let executed = execute::<_, KfmcError>(
+    // An exported run's result carries its whole trajectory: the window holds fewer of them.
+    let unit_bytes = if plan.export_estimates {
+        trajectory_bytes(plan)
+    } else {
+        0
+    };
+    let executed = execute_windowed::<_, KfmcError>(
         (cells.end - cells.start - cells_resumed) * n_runs,
         opts.threads,
+        window_for(unit_bytes, opts.threads),
         |i| trial.run(&unit_of(first_unit + i)),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
@@ -751,6 +759,23 @@ fn run_in(
         runs: done,
         cells_resumed: cells_resumed as u64,
     })
+}
+
+/// About the bytes a run's result holds when it keeps its trajectories for every filter of
+/// `plan` (the longest scenario's truth, z, u and world states, and per filter the estimate,
+/// P's lower triangle, ν, S and A per step), for [`crate::runner::window_for`].
+pub(crate) fn trajectory_bytes(plan: &Plan) -> u64 {
+    let l = plan.layout();
+    let (nq, nz) = (l.quantities.len() as u64, l.measurements.len() as u64);
+    let world = nq + nz + l.inputs.len() as u64 + l.world_state_names().len() as u64;
+    let filter = nq + nq * (nq + 1) / 2 + nz + nz * (nz + 1) / 2 + nq * nq;
+    let samples = plan
+        .scenarios
+        .iter()
+        .map(|s| s.steps as u64 + 1)
+        .max()
+        .unwrap_or(1);
+    samples * 8 * (world + plan.filters.len() as u64 * filter)
 }
 
 /// The identity a checkpoint of this run carries, with nothing done yet.
@@ -1000,6 +1025,7 @@ pub(crate) fn manifest_for(
         dt_s: plan.dt_s(),
         spec_path: plan.spec_path.display().to_string(),
         spec_hash: plan.spec_hash.clone(),
+        world_stamp: plan.world_stamp(),
         master_seed: plan.master_seed,
         runs_per_cell: plan.runs as u64,
         cells: size.cells as u64,

@@ -57,6 +57,40 @@ struct Study {
     _tmp: tempfile::TempDir,
     dir: PathBuf,
     ext_spec: PathBuf,
+    /// The stamp of the run's estimates.parquet (its `kfmc.*` metadata).
+    stamp: Vec<(String, String)>,
+}
+
+impl Study {
+    /// Writes `df` carrying the run's stamp, as a writer outside kfmc would.
+    fn write(&self, df: &DataFrame, path: &Path) {
+        write_with(df, path, &self.stamp);
+    }
+}
+
+/// The `kfmc.*` file metadata of a Parquet file.
+fn stamp_of(path: &Path) -> Vec<(String, String)> {
+    let mut r = ParquetReader::new(fs::File::open(path).unwrap());
+    let meta = r.get_metadata().unwrap().clone();
+    let mut kv: Vec<(String, String)> = meta
+        .key_value_metadata()
+        .iter()
+        .flatten()
+        .filter(|kv| kv.key.starts_with("kfmc."))
+        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
+        .collect();
+    kv.sort();
+    kv
+}
+
+fn write_with(df: &DataFrame, path: &Path, meta: &[(String, String)]) {
+    let mut df = df.clone();
+    ParquetWriter::new(fs::File::create(path).unwrap())
+        .with_key_value_metadata(Some(
+            polars::io::parquet::write::KeyValueMetadata::from_static(meta.to_vec()),
+        ))
+        .finish(&mut df)
+        .unwrap();
 }
 
 fn ok(cmd: &mut std::process::Command) -> std::process::Output {
@@ -92,7 +126,8 @@ fn study_of(kind: &str) -> Study {
     let kf = all
         .filter(&all.column("filter").unwrap().str().unwrap().equal("kf"))
         .unwrap();
-    write(&kf, &dir.join("kf.parquet"));
+    let stamp = stamp_of(&dir.join("run/estimates.parquet"));
+    write_with(&kf, &dir.join("kf.parquet"), &stamp);
     ok(kfmc()
         .args(["simulate", "-q", "--out"])
         .arg(dir.join("sim"))
@@ -101,6 +136,7 @@ fn study_of(kind: &str) -> Study {
         _tmp: tmp,
         dir,
         ext_spec,
+        stamp,
     }
 }
 
@@ -307,7 +343,7 @@ fn row_trouble_becomes_the_runs_status_and_the_batch_completes() {
     let scen = good.column("scenario").unwrap().str().unwrap().clone();
     let noise = good.column("noise_scale").unwrap().f64().unwrap().clone();
     let first_cell = |i: usize| scen.get(i) == Some("hover") && noise.get(i) == Some(1.0);
-    // Run 3: a NaN estimate at step 5. Run 4: rows from step 7 on missing.
+    // Run 3: a NaN estimate at step 5 (a filter that blew up says so in its estimate).
     let est_x: Vec<Option<f64>> = (0..good.height())
         .map(|i| {
             let v = good.column("est_x").unwrap().f64().unwrap().get(i);
@@ -318,14 +354,10 @@ fn row_trouble_becomes_the_runs_status_and_the_batch_completes() {
             }
         })
         .collect();
-    let keep: BooleanChunked = (0..good.height())
-        .map(|i| !(first_cell(i) && run.get(i) == Some(4) && step.get(i).unwrap() >= 7))
-        .collect();
     let mut df = good.clone();
     df.with_column(Column::new("est_x".into(), est_x)).unwrap();
-    let df = df.filter(&keep).unwrap();
     let path = s.dir.join("trouble.parquet");
-    write(&df, &path);
+    s.write(&df, &path);
     let o = score(&s, &[&path], "score");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let runs = read(&s.dir.join("score/runs.parquet"));
@@ -371,15 +403,7 @@ fn row_trouble_becomes_the_runs_status_and_the_batch_completes() {
             "estimates: est_x is null or non-finite".into()
         )
     );
-    assert_eq!(
-        status(4),
-        (
-            "numerical_failure".into(),
-            Some(7),
-            "estimates: no row for step 7".into()
-        )
-    );
-    assert_ne!(status(5).0, "numerical_failure");
+    assert_ne!(status(4).0, "numerical_failure");
     // Every run of every filter has its row.
     assert_eq!(runs.height(), 2 * 2 * 2 * 12);
 }
@@ -572,4 +596,379 @@ fn filterpy_ekf_on_p1_equals_kfmc_ekf() {
             assert!((x - y).abs() <= 1e-9 * x.abs(), "{c}: {x} vs {y}");
         }
     }
+}
+
+/// `kfmc run --export-estimates` of the run spec at another master seed, its `kf` rows with
+/// their stamp.
+fn exported_at_seed(s: &Study, seed: &str) -> (DataFrame, Vec<(String, String)>) {
+    let out = s.dir.join(format!("run_seed{seed}"));
+    ok(kfmc()
+        .args(["run", "-q", "--export-estimates", "--seed", seed, "--out"])
+        .arg(&out)
+        .arg(s.dir.join("run.toml")));
+    let all = read(&out.join("estimates.parquet"));
+    let kf = all
+        .filter(&all.column("filter").unwrap().str().unwrap().equal("kf"))
+        .unwrap();
+    (kf, stamp_of(&out.join("estimates.parquet")))
+}
+
+fn value<'a>(stamp: &'a [(String, String)], key: &str) -> &'a str {
+    &stamp.iter().find(|(k, _)| k == key).unwrap().1
+}
+
+#[test]
+fn estimates_of_another_simulation_are_refused_naming_it_and_the_stamp_ignores_comments_and_filters()
+ {
+    let s = study();
+    // kfmc's own export carries the stamp, and the simulation's manifest states it.
+    let keys: Vec<&str> = s.stamp.iter().map(|(k, _)| k.as_str()).collect();
+    assert_eq!(keys, ["kfmc.master_seed", "kfmc.world_stamp"]);
+    assert_eq!(value(&s.stamp, "kfmc.master_seed"), "7");
+    let world = value(&s.stamp, "kfmc.world_stamp").to_string();
+    assert_eq!(world.len(), 16);
+    let manifest = fs::read_to_string(s.dir.join("sim/manifest.toml")).unwrap();
+    assert!(
+        manifest.contains(&format!("world_stamp = \"{world}\"")),
+        "{manifest}"
+    );
+    // The run spec's export is accepted by the external spec, which differs in its filters.
+    let o = score(&s, &[&s.dir.join("kf.parquet")], "score");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("warning"), "{err}");
+    // So by that spec with comments, another layout and another filter list.
+    let text = fs::read_to_string(&s.ext_spec).unwrap();
+    let edited = format!(
+        "# simulated for the FilterPy comparison\n{}",
+        text.replace("master_seed = 7", "master_seed   =   7   # the seed")
+            .replace(
+                "[[filters]]\nlabel = \"sqrt\"\nkind = \"sqrt\"",
+                "[[filters]]\nkind = \"ukf\"\nlabel = \"u\""
+            )
+            .replace("runs = 12", "runs = 12\ntrace_runs = 2")
+    );
+    assert_ne!(edited, text);
+    let edited_spec = s.dir.join("edited.toml");
+    fs::write(&edited_spec, edited).unwrap();
+    ok(kfmc()
+        .args(["simulate", "-q", "--out"])
+        .arg(s.dir.join("sim_edited"))
+        .arg(&edited_spec));
+    ok(kfmc()
+        .args(["score", "-q"])
+        .arg(s.dir.join("sim_edited"))
+        .arg("--estimates")
+        .arg(s.dir.join("kf.parquet")));
+
+    // Estimates made on master seed 8, scored against the seed-7 simulation: refused, naming
+    // the simulation the file belongs to, before anything is written.
+    let (kf8, stamp8) = exported_at_seed(&s, "8");
+    assert_eq!(value(&stamp8, "kfmc.master_seed"), "8");
+    let world8 = value(&stamp8, "kfmc.world_stamp").to_string();
+    assert_ne!(world8, world);
+    let path = s.dir.join("kf8.parquet");
+    write_with(&kf8, &path, &stamp8);
+    let o = score(&s, &[&path], "score8");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    for expect in [
+        "made on another simulation".to_string(),
+        format!("kfmc.world_stamp = {world8}, kfmc.master_seed = 8"),
+        format!("this study simulates world {world} with master seed 7"),
+        path.to_string_lossy().to_string(),
+    ] {
+        assert!(err.contains(&expect), "expected `{expect}` in {err}");
+    }
+    assert!(!s.dir.join("score8").exists());
+}
+
+/// The external spec with a `[check]` assertion any of the filters meets.
+fn check_spec(s: &Study) -> PathBuf {
+    let path = s.dir.join("check.toml");
+    let text = fs::read_to_string(&s.ext_spec).unwrap()
+        + "[check]\n[[check.assert]]\nkind = \"rmse_below\"\nfilter = \"kf\"\nstate = \"x\"\nmax = 1000.0\n";
+    fs::write(&path, text).unwrap();
+    path
+}
+
+fn check(spec: &Path, out: &Path, files: &[&Path], extra: &[&str]) -> std::process::Output {
+    kfmc()
+        .args(["check", "-q", "--out"])
+        .arg(out)
+        .arg(spec)
+        .args(extra)
+        .arg("--estimates")
+        .args(files)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn unstamped_estimates_warn_in_score_and_are_refused_by_check() {
+    let s = study();
+    // Without file metadata, estimates of another simulation (master seed 8) cannot be told
+    // from data: score judges them with a warning, check refuses them.
+    let (kf8, _) = exported_at_seed(&s, "8");
+    let path = s.dir.join("unstamped.parquet");
+    write(&kf8, &path);
+    let o = score(&s, &[&path], "score");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains(&format!(
+            "warning: {} carries no world stamp",
+            path.display()
+        )),
+        "{err}"
+    );
+    let world = value(&s.stamp, "kfmc.world_stamp");
+    assert!(
+        err.contains(&format!("kfmc.world_stamp = {world}, kfmc.master_seed = 7")),
+        "the warning says how to stamp: {err}"
+    );
+
+    let spec = check_spec(&s);
+    let o = check(&spec, &s.dir.join("chk"), &[&path], &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("carries no world stamp"), "{err}");
+    assert!(err.contains("--allow-unstamped"), "{err}");
+    assert!(!s.dir.join("chk").exists());
+
+    let o = check(
+        &spec,
+        &s.dir.join("chk_allowed"),
+        &[&path],
+        &["--allow-unstamped"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert!(err.contains("warning:"), "{err}");
+
+    // The stamped file of this simulation passes without a word.
+    let o = check(
+        &spec,
+        &s.dir.join("chk_stamped"),
+        &[&s.dir.join("kf.parquet")],
+        &[],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert!(!err.contains("warning"), "{err}");
+}
+
+#[test]
+fn partial_runs_and_non_finite_values_are_refused_naming_run_and_step() {
+    let s = study();
+    let good = read(&s.dir.join("kf.parquet"));
+    let h = good.height();
+    let (run, step) = (
+        good.column("run").unwrap().i64().unwrap().clone(),
+        good.column("step").unwrap().i64().unwrap().clone(),
+    );
+    let scen = good.column("scenario").unwrap().str().unwrap().clone();
+    let noise = good.column("noise_scale").unwrap().f64().unwrap().clone();
+    let at = |i: usize, r: i64, k: Option<i64>| {
+        scen.get(i) == Some("hover")
+            && noise.get(i) == Some(1.0)
+            && run.get(i) == Some(r)
+            && k.is_none_or(|k| step.get(i) == Some(k))
+    };
+    let nu = good
+        .get_column_names()
+        .into_iter()
+        .find(|c| c.starts_with("nu_"))
+        .unwrap()
+        .to_string();
+    let with_value = |col: &str, v: Option<f64>| {
+        let c = good.column(col).unwrap().f64().unwrap();
+        let vals: Vec<Option<f64>> = (0..h)
+            .map(|i| if at(i, 3, Some(5)) { v } else { c.get(i) })
+            .collect();
+        let mut df = good.clone();
+        df.with_column(Column::new(col.into(), vals)).unwrap();
+        df
+    };
+    let keep = |f: &dyn Fn(usize) -> bool| {
+        let m: BooleanChunked = (0..h).map(f).collect();
+        good.filter(&m).unwrap()
+    };
+    let mut shifted = good.clone();
+    let steps: Vec<i64> = (0..h)
+        .map(|i| step.get(i).unwrap() + at(i, 2, None) as i64)
+        .collect();
+    shifted
+        .with_column(Column::new("step".into(), steps))
+        .unwrap();
+    let key = |r: i64, k: i64| {
+        format!("scenario = \"hover\", noise_scale = 1, run = {r}, step = {k}, filter = \"kf\"")
+    };
+    let cases: Vec<(&str, DataFrame, String)> = vec![
+        (
+            "no_step_0",
+            keep(&|i| step.get(i) != Some(0)),
+            "filter `kf`, scenario = \"hover\", noise_scale = 1, run = 0: no row for step 0 (50 of its 51 steps".into(),
+        ),
+        (
+            "partial_run",
+            keep(&|i| !(at(i, 4, None) && step.get(i).unwrap() >= 7)),
+            "run = 4: no row for step 7 (7 of its 51 steps 0..=50 are given)".into(),
+        ),
+        (
+            "shifted",
+            shifted,
+            format!("column `step`: outside 0..=50 at {}", key(2, 51)),
+        ),
+        (
+            "nan_nu",
+            with_value(&nu, Some(f64::NAN)),
+            format!("column `{nu}`: NaN at {}", key(3, 5)),
+        ),
+        (
+            "inf_a",
+            with_value("A_x_x", Some(f64::INFINITY)),
+            format!("column `A_x_x`: inf at {}", key(3, 5)),
+        ),
+        (
+            "partial_a",
+            with_value("A_x_x", None),
+            format!("column `A_x_x`: null at {}", key(3, 5)),
+        ),
+    ];
+    for (name, df, expect) in cases {
+        let path = s.dir.join(format!("{name}.parquet"));
+        s.write(&df, &path);
+        let o = score(&s, &[&path], &format!("score_{name}"));
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{name}: {err}");
+        assert!(err.contains(&*path.to_string_lossy()), "{name}: {err}");
+        assert!(
+            err.contains(&expect),
+            "{name}: expected `{expect}` in {err}"
+        );
+        assert!(
+            !s.dir.join(format!("score_{name}")).exists(),
+            "{name}: refused after scoring had begun"
+        );
+    }
+}
+
+#[test]
+fn a_csv_both_covariance_forms_and_a_file_for_the_folder_get_messages_that_say_so() {
+    let s = study();
+    let csv = s.dir.join("estimates.csv");
+    fs::write(
+        &csv,
+        "scenario,noise_scale,run,step,filter\nhover,1,0,0,kf\n",
+    )
+    .unwrap();
+    let o = score(&s, &[&csv], "score_csv");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("estimates must be Parquet (got a CSV?)"),
+        "{err}"
+    );
+
+    let good = read(&s.dir.join("kf.parquet"));
+    let mut both = good.clone();
+    for i in 0..6 {
+        for j in 0..=i {
+            both.with_column(Column::new(
+                format!("L_{i}_{j}").into(),
+                vec![1.0; good.height()],
+            ))
+            .unwrap();
+        }
+    }
+    let path = s.dir.join("both.parquet");
+    s.write(&both, &path);
+    let o = score(&s, &[&path], "score_both");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("both P_* and L_* columns given"), "{err}");
+
+    let o = kfmc()
+        .arg("score")
+        .arg(s.dir.join("kf.parquet"))
+        .arg("--estimates")
+        .arg(s.dir.join("kf.parquet"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("is a file; kfmc score takes the folder `kfmc simulate` wrote"),
+        "{err}"
+    );
+}
+
+#[test]
+fn measurements_have_no_step_0_measurement_and_schema_says_so() {
+    let s = study();
+    let m = read(&s.dir.join("sim/measurements.parquet"));
+    let step = m.column("step").unwrap().i64().unwrap().clone();
+    let z: Vec<String> = m
+        .get_column_names()
+        .into_iter()
+        .filter(|c| c.starts_with("z_"))
+        .map(|c| c.to_string())
+        .collect();
+    assert_eq!(z.len(), 3);
+    let (first, later) = (
+        m.filter(&step.equal(0)).unwrap(),
+        m.filter(&step.gt(0)).unwrap(),
+    );
+    // 2 scenarios × 2 scales × 12 runs start at step 0.
+    assert_eq!(first.height(), 48);
+    for c in &z {
+        assert_eq!(first.column(c).unwrap().null_count(), 48, "{c} at step 0");
+        // The positions sensor reports at every later step.
+        assert_eq!(later.column(c).unwrap().null_count(), 0, "{c} after step 0");
+    }
+    let out = ok(kfmc().args(["schema", "measurements"]).arg(&s.ext_spec));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("null at step 0"), "{text}");
+    let out = ok(kfmc().args(["schema", "estimates"]).arg(&s.ext_spec));
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = |name: &str| {
+        text.lines()
+            .find(|l| l.split_whitespace().next() == Some(name))
+            .unwrap_or_else(|| panic!("no {name} in {text}"))
+            .to_string()
+    };
+    assert!(!line("noise_scale").contains("nullable"), "{text}");
+    assert!(line("est_x").contains("nullable"), "{text}");
+    let world = value(&s.stamp, "kfmc.world_stamp");
+    assert!(
+        text.contains(&format!("kfmc.world_stamp = {world}, kfmc.master_seed = 7")),
+        "{text}"
+    );
+}
+
+#[test]
+fn the_pyarrow_stamping_example_stamps_a_file_that_check_then_accepts() {
+    if !python_has("pyarrow, tomllib") {
+        assert!(
+            std::env::var("KFMC_REQUIRE_INTEROP").is_err(),
+            "KFMC_REQUIRE_INTEROP is set but pyarrow (or Python ≥ 3.11) is missing"
+        );
+        eprintln!("skipped: pip install pyarrow (Python ≥ 3.11) to run it");
+        return;
+    }
+    let s = study();
+    let path = s.dir.join("plain.parquet");
+    write(&read(&s.dir.join("kf.parquet")), &path);
+    assert!(stamp_of(&path).is_empty());
+    ok(std::process::Command::new("python3")
+        .arg(repo().join("examples/python/stamp_estimates.py"))
+        .arg(s.dir.join("sim"))
+        .arg(&path));
+    assert_eq!(stamp_of(&path), s.stamp);
+    let spec = check_spec(&s);
+    let o = check(&spec, &s.dir.join("chk"), &[&path], &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(0), "{err}");
+    assert!(!err.contains("warning"), "{err}");
 }

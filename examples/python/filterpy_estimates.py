@@ -14,8 +14,9 @@ It reads `kfmc simulate`'s measurements.parquet (z, null where a sensor did not 
 inputs u) and initial.parquet (each run's prior x̂_0, P_0) with pyarrow, runs a FilterPy filter
 and writes one row per (scenario, noise_scale, run, step): est_*, the lower triangle P_*, the
 innovation nu_* with S_*, and the error transition A = (I − K H) F, which gives kfmc's
-calibrated NEES verdict. The file's metadata carries the simulation's spec hash and master
-seed, so `kfmc score` refuses estimates of another study.
+calibrated NEES verdict. The file's metadata carries the simulation's stamp (its world stamp
+and master seed, from manifest.toml), so `kfmc score` and `kfmc check` refuse estimates of
+another simulation.
 
 Models:
 * `l1` — FilterPy's KalmanFilter on the linear quadrotor L1 (position sensor, Δt = 0.1 s).
@@ -63,7 +64,7 @@ def read_manifest(path):
     quantities = [{"name": n} for n in re.findall(r'\[\[quantities\]\]\s*name = "([^"]+)"', text)]
     meas = re.search(r'^measurements = \[(.*)\]$', head, re.M).group(1)
     return {
-        "spec_hash": scalar("spec_hash"),
+        "world_stamp": scalar("world_stamp"),
         "master_seed": int(scalar("master_seed")),
         "quantities": quantities,
         "measurements": re.findall(r'"([^"]+)"', meas),
@@ -267,7 +268,7 @@ def main():
     table = pa.table(arrays, names=list(cols) + names)
     table = table.replace_schema_metadata(
         {
-            "kfmc.spec_hash": manifest["spec_hash"],
+            "kfmc.world_stamp": manifest["world_stamp"],
             "kfmc.master_seed": str(manifest["master_seed"]),
         }
     )

@@ -311,6 +311,10 @@ pub enum Command {
         /// simulate`'s tables of the same spec, runs and seed).
         #[arg(long, num_args = 1..)]
         estimates: Vec<PathBuf>,
+        /// Judge estimates files that carry no world stamp (`kfmc.world_stamp`), with a
+        /// warning: nothing then ties them to this spec's runs.
+        #[arg(long, requires = "estimates")]
+        allow_unstamped: bool,
         /// Replications for the `rejection_rate` assertions (overrides `check.replications`):
         /// they are judged on `kfmc power`'s table, written to `<out>/power`.
         #[arg(long, short = 'R')]
@@ -420,8 +424,12 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
     let mut s = String::new();
     let mut noted = std::collections::BTreeSet::new();
     for c in &cols {
+        // Keys identify a row: a null there is refused, as a value's null means "not given".
+        let key =
+            ["scenario", "noise_scale", "run", "step", "t", "filter"].contains(&c.name.as_str());
         let ty = match c.dtype {
             Dtype::Str => "string",
+            Dtype::F64 if key => "float64",
             Dtype::F64 => "float64 (nullable)",
             Dtype::I64 => "int64",
             Dtype::U64 => "uint64",
@@ -432,21 +440,30 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
         let note = match (table, group) {
             _ if !first => "",
             (SchemaTable::Estimates, "nu" | "S") => {
-                "  optional: the NIS and whiteness tests; nu null where z did not report"
+                "  optional: the NIS and whiteness tests; nu null where z did not report (NaN is an error)"
             }
-            (SchemaTable::Estimates, "A") => "  optional: the calibrated NEES verdict",
+            (SchemaTable::Estimates, "A") => {
+                "  optional: the calibrated NEES verdict; a step's entries all given or all null"
+            }
+            (SchemaTable::Estimates, "step") => {
+                "  every step 0..=K of a run (0: the prior), or none of them"
+            }
             (SchemaTable::Estimates, "P") => "  or L_<i>_<j>, a lower Cholesky factor",
             (SchemaTable::Estimates, "filter") => "  a [[filters]] label with kind = \"external\"",
-            (SchemaTable::Measurements, "z") => "  null where the sensor did not report",
+            (SchemaTable::Measurements, "z") => {
+                "  null where the sensor did not report; null at step 0 (a run starts from its prior, with no measurement)"
+            }
             _ => "",
         };
         s.push_str(&format!("{:<24} {ty}{note}\n", c.name));
     }
     if table == SchemaTable::Estimates {
         s.push_str(&format!(
-            "\nerror convention: {}\nfile metadata checked when present: kfmc.spec_hash = {}, kfmc.master_seed = {}\n",
+            "\nerror convention: {}\nfile metadata (the stamp; kfmc score warns and kfmc check refuses without it): {} = {}, {} = {}\n",
             crate::score::ERROR_CONVENTION,
-            plan.spec_hash,
+            crate::score::STAMP_KEY,
+            plan.world_stamp(),
+            crate::score::SEED_KEY,
             plan.master_seed
         ));
     }
@@ -469,11 +486,52 @@ fn shard_arg(
     })
 }
 
-/// Reads the external filters' estimates into `plan`, naming the files on trouble.
-fn attach_estimates(plan: &mut Plan, files: &[PathBuf]) -> anyhow::Result<()> {
+/// What a command does with an estimates file that carries no world stamp.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Unstamped {
+    /// Read it, with a warning on stderr (`kfmc score`, `kfmc check --allow-unstamped`).
+    Warn,
+    /// Refuse it (`kfmc check`: a CI gate passes only on data tied to its spec's runs).
+    Refuse,
+}
+
+/// Reads the external filters' estimates into `plan`, naming the files on trouble; files
+/// without a world stamp are warned about or refused, as `unstamped` says.
+fn attach_estimates(
+    plan: &mut Plan,
+    files: &[PathBuf],
+    unstamped: Unstamped,
+) -> anyhow::Result<()> {
     let set = crate::score::EstimateSet::load(plan, files)
         .map_err(KfmcError::from)
         .map_err(|e| anyhow::Error::from(e).context("reading the estimates"))?;
+    let stamp = format!(
+        "{} = {}, {} = {}",
+        crate::score::STAMP_KEY,
+        plan.world_stamp(),
+        crate::score::SEED_KEY,
+        plan.master_seed
+    );
+    for path in set.unstamped() {
+        let why = format!(
+            "{} carries no world stamp: nothing ties its rows to this study's runs (estimates of another simulation would be judged as data). A writer stamps its file with the metadata {stamp} (`kfmc schema estimates SPEC` shows them)",
+            path.display()
+        );
+        match unstamped {
+            Unstamped::Warn => eprintln!("warning: {why}"),
+            Unstamped::Refuse => {
+                return Err(anyhow::Error::from(KfmcError::from(
+                    crate::error::OutputError::Format {
+                        path: path.clone(),
+                        message: format!(
+                            "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped"
+                        ),
+                    },
+                ))
+                .context("reading the estimates"));
+            }
+        }
+    }
     plan.estimates = Some(std::sync::Arc::new(set));
     Ok(())
 }
@@ -726,6 +784,12 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             quiet,
             force,
         } => {
+            if dir.is_file() {
+                return Err(anyhow::anyhow!(
+                    "{} is a file; kfmc score takes the folder `kfmc simulate` wrote: kfmc score SIM_DIR --estimates FILE…",
+                    dir.display()
+                ));
+            }
             let manifest = crate::output::folder::verify(&dir)
                 .map_err(KfmcError::from)
                 .map_err(|e| {
@@ -764,7 +828,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 output: Some(out.unwrap_or_else(|| dir.join("score"))),
                 trace_runs: None,
             })?;
-            attach_estimates(&mut plan, &estimates)?;
+            attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
             let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
             let observer = ProgressObserver::new(!quiet);
             let report = crate::study::run(
@@ -847,11 +911,17 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             study,
             junit,
             estimates,
+            allow_unstamped,
             replications,
         } => {
             let mut plan = study.plan(registry, None)?;
             if !estimates.is_empty() {
-                attach_estimates(&mut plan, &estimates)?;
+                let unstamped = if allow_unstamped {
+                    Unstamped::Warn
+                } else {
+                    Unstamped::Refuse
+                };
+                attach_estimates(&mut plan, &estimates, unstamped)?;
             }
             let threads = study.threads(study.quiet);
             let StudyArgs {

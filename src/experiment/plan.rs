@@ -161,6 +161,9 @@ pub struct Plan {
     pub spec_text: String,
     /// FNV-1a 64 hash of the spec text (hex).
     pub spec_hash: String,
+    /// The canonical text of everything but the master seed that determines each run's
+    /// truth, measurements and prior ([`Plan::world_stamp`] hashes it with the seed).
+    pub world: String,
     /// `model.kind`: the system.
     pub kind: String,
     /// The configured system (world, filters, evaluated quantities).
@@ -584,6 +587,20 @@ impl Plan {
         } else {
             Err(SpecErrors(errs))
         }
+    }
+
+    /// The stamp of the simulated world: FNV-1a 64 (hex) of [`Plan::world`] and the master
+    /// seed. Run i of two plans with one stamp has the same truth, measurements and prior,
+    /// whatever their filters, run counts, comments or key order; an estimates file carries
+    /// it as `kfmc.world_stamp` ([`crate::score::stamp_metadata`]).
+    pub fn world_stamp(&self) -> String {
+        format!(
+            "{:016x}",
+            hash_str(&format!(
+                "{}master_seed = {}\n",
+                self.world, self.master_seed
+            ))
+        )
     }
 
     fn err(&self, key: &str, msg: impl Into<String>) -> SpecError {
@@ -1386,12 +1403,24 @@ pub fn validate(
             return Err(SpecErrors(c.into_errors()));
         }
     };
+    let world = world_canonical(
+        &kind,
+        &spec.model,
+        &spec.scenarios,
+        initial,
+        spec.initial_estimate
+            .as_deref()
+            .and_then(|i| i.p0_std.as_ref()),
+        &noise_scales,
+        draws,
+    );
     Ok(Plan {
         name,
         description: spec.description,
         spec_path: path.to_path_buf(),
         spec_text: text.to_string(),
         spec_hash: format!("{:016x}", hash_str(text)),
+        world,
         kind,
         scenarios: system
             .scenarios()
@@ -1424,6 +1453,85 @@ pub fn validate(
     })
 }
 
+/// The canonical text of a world (all of [`Plan::world`]): the system, its model table, the
+/// scenarios (sorted, as a run's streams depend on its scenario's name, not its position),
+/// the prior's settings, the noise multipliers and how their draws relate. Tables are written
+/// with sorted keys and numbers by their bits, so neither comments, key order, formatting nor
+/// `1` against `1.0` change it. Filters, run counts and the judging settings are left out:
+/// they do not change what run i's world is.
+#[allow(clippy::too_many_arguments)]
+fn world_canonical(
+    kind: &str,
+    model: &toml::Table,
+    scenarios: &[toml::Table],
+    initial: InitialMode,
+    p0_std: Option<&super::spec::OneOrMany>,
+    noise_scales: &[f64],
+    draws: Draws,
+) -> String {
+    let mut model = model.clone();
+    model.remove("kind");
+    let mut scen: Vec<String> = scenarios
+        .iter()
+        .map(|s| canonical_value(&toml::Value::Table(s.clone())))
+        .collect();
+    scen.sort();
+    let p0 = match p0_std {
+        None => "default".to_string(),
+        Some(super::spec::OneOrMany::One(v)) => canonical_f64(*v),
+        Some(super::spec::OneOrMany::Many(v)) => {
+            let items: Vec<String> = v.iter().map(|x| canonical_f64(*x)).collect();
+            format!("[{}]", items.join(","))
+        }
+    };
+    let scales: Vec<String> = noise_scales.iter().map(|x| canonical_f64(*x)).collect();
+    format!(
+        "kfmc world 1\nkind = {kind:?}\nmodel = {}\nscenarios = [{}]\ninitial = {initial:?}\np0_std = {p0}\nnoise_scales = [{}]\ndraws = {draws:?}\n",
+        canonical_value(&toml::Value::Table(model)),
+        scen.join(","),
+        scales.join(","),
+    )
+}
+
+/// A number by its bits (−0 as 0), so every spelling of one value gives one text.
+fn canonical_f64(v: f64) -> String {
+    let v = if v == 0.0 { 0.0 } else { v };
+    format!("f{:016x}", v.to_bits())
+}
+
+/// A TOML value in one spelling: tables with sorted keys, integers that are exact floats as
+/// those floats (a model parameter written `1` means `1.0`).
+fn canonical_value(v: &toml::Value) -> String {
+    match v {
+        toml::Value::String(s) => format!("{s:?}"),
+        toml::Value::Integer(i) => {
+            let f = *i as f64;
+            if f as i64 == *i && f.abs() < 9_007_199_254_740_992.0 {
+                canonical_f64(f)
+            } else {
+                format!("i{i}")
+            }
+        }
+        toml::Value::Float(f) => canonical_f64(*f),
+        toml::Value::Boolean(b) => b.to_string(),
+        toml::Value::Datetime(d) => format!("d{d}"),
+        toml::Value::Array(a) => {
+            let items: Vec<String> = a.iter().map(canonical_value).collect();
+            format!("[{}]", items.join(","))
+        }
+        toml::Value::Table(t) => {
+            let mut items: Vec<(&String, String)> =
+                t.iter().map(|(k, v)| (k, canonical_value(v))).collect();
+            items.sort_by(|a, b| a.0.cmp(b.0));
+            let items: Vec<String> = items
+                .into_iter()
+                .map(|(k, v)| format!("{k:?}={v}"))
+                .collect();
+            format!("{{{}}}", items.join(","))
+        }
+    }
+}
+
 /// The `kind` of a `[[filters]]` entry whose estimates come from outside kfmc.
 pub const EXTERNAL_KIND: &str = "external";
 
@@ -1438,5 +1546,97 @@ mod tests {
         assert_eq!(v[0], 0.2);
         assert_eq!(v[2], 0.6);
         assert_eq!(*v.last().unwrap(), 50.0);
+    }
+
+    const WORLD: &str = r#"
+name = "stamp"
+master_seed = 7
+runs = 12
+[model]
+kind = "linear_quadrotor"
+sensor = "positions"
+[[scenarios]]
+name = "hover"
+x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]
+duration_s = 5.0
+[[scenarios]]
+name = "drift"
+x0 = [0.0, 0.5, 0.0, -0.5, 2.0, 0.0]
+duration_s = 3.0
+[noise]
+scales = [1.0, 3.0]
+[[filters]]
+label = "kf"
+kind = "ekf"
+[initial_estimate]
+mode = "sampled"
+p0_std = 1.0
+"#;
+
+    fn stamp(text: &str) -> String {
+        crate::experiment::parse(text, Path::new("stamp.toml"))
+            .expect("a valid spec")
+            .world_stamp()
+    }
+
+    #[test]
+    fn the_world_stamp_ignores_what_does_not_change_the_world() {
+        let base = stamp(WORLD);
+        // Comments, layout, key order and number spelling.
+        let reformatted = WORLD
+            .replace("[model]\n", "# the truth\n[model]   # here\n")
+            .replace(
+                "kind = \"linear_quadrotor\"\nsensor = \"positions\"",
+                "sensor = 'positions'\nkind    =   \"linear_quadrotor\"",
+            )
+            .replace("duration_s = 5.0", "duration_s = 5");
+        assert_ne!(reformatted, WORLD);
+        assert_eq!(stamp(&reformatted), base);
+        // The filters, the run count, the name and the judging settings.
+        let filters = WORLD
+            .replace("kind = \"ekf\"", "kind = \"external\"")
+            .replace("runs = 12", "runs = 3\ntrace_runs = 1")
+            .replace("name = \"stamp\"", "name = \"other\"")
+            + "[[filters]]\nlabel = \"sqrt\"\nkind = \"sqrt\"\n[consistency]\nalpha = 0.01\n";
+        assert_eq!(stamp(&filters), base);
+        // Scenario order: a run's streams follow its scenario's name.
+        let (head, rest) = WORLD.split_once("[[scenarios]]").unwrap();
+        let (hover, rest) = rest.split_once("[[scenarios]]").unwrap();
+        let (drift, tail) = rest.split_once("[noise]").unwrap();
+        let swapped = format!("{head}[[scenarios]]{drift}[[scenarios]]{hover}[noise]{tail}");
+        assert_eq!(stamp(&swapped), base);
+    }
+
+    #[test]
+    fn the_world_stamp_follows_what_changes_the_world() {
+        let base = stamp(WORLD);
+        for (from, to) in [
+            ("master_seed = 7", "master_seed = 8"),
+            ("scales = [1.0, 3.0]", "scales = [1.0, 2.0]"),
+            (
+                "scales = [1.0, 3.0]",
+                "scales = [1.0, 3.0]\ndraws = \"fresh\"",
+            ),
+            ("duration_s = 5.0", "duration_s = 4.0"),
+            ("x0 = [1.0, 0.0,", "x0 = [1.5, 0.0,"),
+            ("name = \"drift\"", "name = \"drift2\""),
+            ("p0_std = 1.0", "p0_std = 2.0"),
+            ("mode = \"sampled\"", "mode = \"truth\""),
+            (
+                "sensor = \"positions\"",
+                "sensor = \"positions\"\nmeasurement_noise_std = 0.2",
+            ),
+        ] {
+            let changed = WORLD.replace(from, to);
+            assert_ne!(changed, WORLD, "{from}");
+            assert_ne!(stamp(&changed), base, "{from} → {to} kept the stamp");
+        }
+        // The seed override (`--seed`) changes it as the spec's key does.
+        let mut plan = crate::experiment::parse(WORLD, Path::new("stamp.toml")).unwrap();
+        plan.master_seed = 8;
+        assert_eq!(
+            plan.world_stamp(),
+            stamp(&WORLD.replace("master_seed = 7", "master_seed = 8"))
+        );
     }
 }

@@ -133,6 +133,10 @@ pub struct Manifest {
     pub spec_path: String,
     /// FNV-1a 64 of the spec text.
     pub spec_hash: String,
+    /// The stamp of the simulated world ([`crate::experiment::Plan::world_stamp`]): what an
+    /// estimates file made from this folder's runs carries as `kfmc.world_stamp`.
+    #[serde(default)]
+    pub world_stamp: String,
     /// Master seed actually used (after `--seed`).
     pub master_seed: u64,
     /// Runs per cell actually used (after `--runs`).

@@ -36,6 +36,22 @@ enum Buffer {
 /// Rows per Parquet row group; bounds the writer's memory.
 pub const FLUSH_ROWS: usize = 65_536;
 
+/// Values (rows × columns) per row group of `estimates`, the one wide table whose rows come
+/// from every run: a row holds each quantity's covariance and error transition (77 values
+/// on the planar quadrotor, hundreds on the drone), so [`FLUSH_ROWS`] of them would buffer
+/// over 100 MB before the encoder's copies. The other tables keep [`FLUSH_ROWS`], and with
+/// it their bytes.
+pub const ESTIMATES_GROUP_VALUES: usize = 1 << 20;
+
+/// Rows per row group of the table `name` with `columns` columns.
+fn rows_per_group(name: &str, columns: usize) -> usize {
+    if name == "estimates" {
+        (ESTIMATES_GROUP_VALUES / columns.max(1)).clamp(1, FLUSH_ROWS)
+    } else {
+        FLUSH_ROWS
+    }
+}
+
 /// Writes one table to `<dir>/.<name>.parquet.partial` and renames it to `<name>.parquet` on
 /// [`TableWriter::commit`]. Dropped without a commit, it deletes its temporary file.
 pub struct TableWriter {
@@ -45,6 +61,8 @@ pub struct TableWriter {
     columns: Vec<ColumnDef>,
     buffers: Vec<Buffer>,
     buffered: usize,
+    /// Rows per row group ([`rows_per_group`]).
+    flush_rows: usize,
     rows: u64,
     writer: Option<polars::io::parquet::write::BatchedWriter<SharedFile>>,
     /// The buffered file under the writer: polars encodes page headers and the footer in
@@ -62,6 +80,18 @@ pub struct TableWriter {
 impl TableWriter {
     /// Starts a table `name` in `dir` with the given columns.
     pub fn create(dir: &Path, name: &str, columns: Vec<ColumnDef>) -> Result<Self, OutputError> {
+        Self::create_with_metadata(dir, name, columns, &[])
+    }
+
+    /// Starts a table as [`TableWriter::create`] does, whose footer will carry these
+    /// file-level key-value pairs (the stamp of an estimates file, say). Without pairs the
+    /// file is the one `create` writes.
+    pub fn create_with_metadata(
+        dir: &Path,
+        name: &str,
+        columns: Vec<ColumnDef>,
+        metadata: &[(String, String)],
+    ) -> Result<Self, OutputError> {
         let path = dir.join(format!("{name}.parquet"));
         let tmp = dir.join(format!(".{name}.parquet.partial"));
         let file = File::create(&tmp).map_err(|source| OutputError::Io {
@@ -83,8 +113,11 @@ impl TableWriter {
             1 << 16,
             file,
         ))));
+        let key_value = (!metadata.is_empty())
+            .then(|| polars::io::parquet::write::KeyValueMetadata::from_static(metadata.to_vec()));
         let writer = ParquetWriter::new(file.clone())
             .with_compression(ParquetCompression::Zstd(None))
+            .with_key_value_metadata(key_value)
             .batched(&schema)
             .map_err(|source| OutputError::Polars {
                 action: "cannot start writing",
@@ -105,6 +138,7 @@ impl TableWriter {
             name: name.to_string(),
             path,
             tmp,
+            flush_rows: rows_per_group(name, columns.len()),
             columns,
             buffers,
             buffered: 0,
@@ -122,15 +156,17 @@ impl TableWriter {
     /// verified) into the table, each row also handed to `on_row`, and
     /// the journal continues after them: the table receives exactly the rows, in the order,
     /// of the run that wrote the journal.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn journaled(
         dir: &Path,
         name: &str,
         columns: Vec<ColumnDef>,
+        metadata: &[(String, String)],
         journal: &Path,
         resume_from: Option<(u64, u64, u64)>,
         mut on_row: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
     ) -> Result<Self, OutputError> {
-        let mut w = TableWriter::create(dir, name, columns)?;
+        let mut w = TableWriter::create_with_metadata(dir, name, columns, metadata)?;
         w.journal = Some(match resume_from {
             None => super::checkpoint::Journal::create(journal)?,
             Some((bytes, rows, cells)) => {
@@ -195,7 +231,7 @@ impl TableWriter {
             j.record(row)?;
         }
         self.buffered += 1;
-        if self.buffered >= FLUSH_ROWS {
+        if self.buffered >= self.flush_rows {
             self.flush()?;
         }
         Ok(())
@@ -451,20 +487,117 @@ pub fn for_each_row_group(
     Ok(std::sync::Arc::unwrap_or_clone(meta))
 }
 
-/// Reads a whole Parquet table.
+/// Whether a file begins with Parquet's `PAR1` marker: a file that does not is no Parquet
+/// file at all (a CSV, say), while one that does but is damaged is left for the reader's
+/// own message.
+pub fn starts_as_parquet(file: &File) -> bool {
+    use std::os::unix::fs::FileExt;
+    let mut head = [0u8; 4];
+    file.read_exact_at(&mut head, 0).is_ok() && &head == b"PAR1"
+}
+
+/// Reads a whole Parquet table, refusing one with two rows of one key
+/// ([`unique_keys`]).
 pub fn read(path: &Path) -> Result<DataFrame, OutputError> {
     let file = File::open(path).map_err(|source| OutputError::Io {
         action: "cannot open",
         path: path.to_path_buf(),
         source,
     })?;
-    ParquetReader::new(file)
+    let df = ParquetReader::new(file)
         .finish()
         .map_err(|source| OutputError::Polars {
             action: "cannot read",
             path: path.to_path_buf(),
             source,
+        })?;
+    unique_keys(&df, path)?;
+    Ok(df)
+}
+
+/// Refuses a table read from `path` that has two rows of one key: the key columns are those
+/// of its name ([`super::schema::row_keys`]); a table of another name, or without all of its
+/// key columns (the columns of a partial read), is not checked.
+pub fn unique_keys(df: &DataFrame, path: &Path) -> Result<(), OutputError> {
+    use std::collections::HashMap;
+    use std::hash::{Hash, Hasher};
+    let Some(keys) = path
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .and_then(super::schema::row_keys)
+    else {
+        return Ok(());
+    };
+    let Ok(cols) = keys
+        .iter()
+        .map(|k| df.column(k).map(|c| c.as_materialized_series().clone()))
+        .collect::<PolarsResult<Vec<Series>>>()
+    else {
+        return Ok(());
+    };
+    // Each key column as exact ids: strings interned, numbers by their bits, null apart.
+    let ids: Vec<Vec<Option<u64>>> = cols
+        .iter()
+        .map(|c| -> Vec<Option<u64>> {
+            let mut interned: HashMap<Option<&str>, u64> = HashMap::new();
+            match c.dtype() {
+                DataType::String => c
+                    .str()
+                    .map(|a| {
+                        a.iter()
+                            .map(|v| {
+                                let n = interned.len() as u64;
+                                Some(*interned.entry(v).or_insert(n))
+                            })
+                            .collect()
+                    })
+                    .unwrap_or_default(),
+                DataType::Float64 => c
+                    .f64()
+                    .map(|a| a.iter().map(|v| v.map(f64::to_bits)).collect())
+                    .unwrap_or_default(),
+                _ => c
+                    .cast(&DataType::Int64)
+                    .ok()
+                    .and_then(|c| {
+                        c.i64()
+                            .ok()
+                            .map(|a| a.iter().map(|v| v.map(|x| x as u64)).collect())
+                    })
+                    .unwrap_or_default(),
+            }
         })
+        .collect();
+    if ids.iter().any(|v| v.len() != df.height()) {
+        return Ok(());
+    }
+    let same = |i: usize, j: usize| ids.iter().all(|c| c[i] == c[j]);
+    let hash_row = |i: usize| {
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        for c in &ids {
+            c[i].hash(&mut h);
+        }
+        h.finish()
+    };
+    let mut seen: HashMap<u64, usize> = HashMap::with_capacity(df.height());
+    for i in 0..df.height() {
+        let j = *seen.entry(hash_row(i)).or_insert(i);
+        if j != i && same(i, j) {
+            let key: Vec<String> = keys
+                .iter()
+                .zip(&cols)
+                .map(|(k, c)| format!("{k} = {}", c.get(i).map_or("?".into(), |v| v.to_string())))
+                .collect();
+            return Err(OutputError::Format {
+                path: path.to_path_buf(),
+                message: format!(
+                    "rows {j} and {i} have one key ({}): a kfmc table has one row per key; the file was altered or assembled by hand",
+                    key.join(", ")
+                ),
+            });
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -517,5 +650,70 @@ mod tests {
         assert_eq!(b.get(n - 1), Some((n - 1) as f64));
         assert_eq!(b.get(n), None, "NaN is written as null");
         assert!(!dir.path().join(".t.parquet.partial").exists());
+    }
+
+    fn summary_cols() -> Vec<ColumnDef> {
+        let c = |name: &str, dtype| ColumnDef {
+            name: name.into(),
+            dtype,
+        };
+        vec![
+            c("scenario", Dtype::Str),
+            c("noise_scale", Dtype::F64),
+            c("filter", Dtype::Str),
+            c("q_scale", Dtype::F64),
+            c("r_scale", Dtype::F64),
+            c("state", Dtype::Str),
+            c("rmse_mean", Dtype::F64),
+        ]
+    }
+
+    fn summary_with(rows: &[(&str, f64, &str, f64)]) -> (tempfile::TempDir, PathBuf) {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = TableWriter::create(dir.path(), "summary", summary_cols()).unwrap();
+        for (scenario, noise, state, v) in rows {
+            w.push(&[
+                Value::Str(scenario),
+                Value::F64(Some(*noise)),
+                Value::Str("kf"),
+                Value::F64(Some(1.0)),
+                Value::F64(Some(1.0)),
+                Value::Str(state),
+                Value::F64(Some(*v)),
+            ])
+            .unwrap();
+        }
+        let (path, _) = w.commit().unwrap();
+        (dir, path)
+    }
+
+    #[test]
+    fn a_table_with_two_rows_of_one_key_is_refused_when_read() {
+        // Rows that differ in any key column are distinct, whatever their values.
+        let (_d, ok) = summary_with(&[
+            ("a", 1.0, "x", 0.5),
+            ("a", 1.0, "y", 0.5),
+            ("a", 2.0, "x", 0.5),
+            ("b", 1.0, "x", 0.5),
+        ]);
+        assert_eq!(read(&ok).unwrap().height(), 4);
+        // A forged second row of one key: the reader would otherwise keep one of the two.
+        let (_d, forged) = summary_with(&[
+            ("a", 1.0, "x", 0.5),
+            ("a", 1.0, "y", 0.5),
+            ("a", 1.0, "x", 0.9),
+        ]);
+        let err = read(&forged).unwrap_err().to_string();
+        assert!(err.contains("rows 0 and 2 have one key"), "{err}");
+        assert!(err.contains("state = "), "{err}");
+        assert!(err.contains("summary.parquet"), "{err}");
+    }
+
+    #[test]
+    fn estimates_row_groups_are_bounded_by_values_and_other_tables_by_rows() {
+        // The planar quadrotor's estimates: 5 keys and 72 values.
+        assert_eq!(rows_per_group("estimates", 77), (1 << 20) / 77);
+        assert_eq!(rows_per_group("estimates", 3), FLUSH_ROWS);
+        assert_eq!(rows_per_group("traces", 77), FLUSH_ROWS);
     }
 }

@@ -419,6 +419,7 @@ impl Table {
             cols.extend(df.columns().iter().cloned());
         }
         let df = DataFrame::new(height, cols).map_err(polars_err)?;
+        crate::output::table::unique_keys(&df, &path)?;
         Ok(Some(Table { path, df }))
     }
 

@@ -48,6 +48,25 @@ pub fn interrupted() -> bool {
 /// Units per window: large enough to keep every core busy, small enough to bound memory.
 const WINDOW: usize = 256;
 
+/// Bytes of results one window may hold. Up to three windows are alive at once (being run,
+/// queued, being folded), so results that keep a run's trajectories (every run of `kfmc
+/// run --export-estimates` or `kfmc simulate`) stay near 100 MB whatever the run count.
+pub const WINDOW_BYTES: u64 = 32 << 20;
+
+/// Units per window when each unit's result holds about `unit_bytes` bytes: at most
+/// [`WINDOW`], at most [`WINDOW_BYTES`] of results, and never fewer than the threads (0 =
+/// all cores) so that every core has a unit. The window does not change any result, only
+/// how many are held at once.
+pub fn window_for(unit_bytes: u64, threads: usize) -> usize {
+    let threads = if threads == 0 {
+        default_threads()
+    } else {
+        threads
+    };
+    let fit = usize::try_from(WINDOW_BYTES / unit_bytes.max(1)).unwrap_or(WINDOW);
+    fit.clamp(threads.clamp(1, WINDOW), WINDOW)
+}
+
 /// Runs `work(i)` for every unit index `i` in `0..units` on `threads` threads (0 = all
 /// cores) and feeds each result to `sink` in index order. Units are indices, not a list, so
 /// nothing here grows with the number of runs.
@@ -60,12 +79,29 @@ pub fn execute<R, E>(
     threads: usize,
     work: impl Fn(usize) -> R + Sync,
     observer: &dyn RunObserver,
+    sink: impl FnMut(R) -> Result<(), E> + Send,
+) -> Result<(), E>
+where
+    R: Send,
+    E: From<KfmcError> + Send,
+{
+    execute_windowed(units, threads, WINDOW, work, observer, sink)
+}
+
+/// [`execute`] with `window` units per window ([`window_for`]).
+pub fn execute_windowed<R, E>(
+    units: usize,
+    threads: usize,
+    window: usize,
+    work: impl Fn(usize) -> R + Sync,
+    observer: &dyn RunObserver,
     mut sink: impl FnMut(R) -> Result<(), E> + Send,
 ) -> Result<(), E>
 where
     R: Send,
     E: From<KfmcError> + Send,
 {
+    let window_units = window.max(1);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -88,7 +124,7 @@ where
             Ok(())
         });
         let mut stopped = false;
-        for start in (0..units).step_by(WINDOW) {
+        for start in (0..units).step_by(window_units) {
             if failed.load(std::sync::atomic::Ordering::Relaxed) {
                 break;
             }
@@ -96,7 +132,7 @@ where
                 stopped = true;
                 break;
             }
-            let window = start..(start + WINDOW).min(units);
+            let window = start..(start + window_units).min(units);
             let results: Vec<R> = pool.install(|| {
                 window
                     .into_par_iter()
@@ -136,6 +172,17 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_window_holds_about_window_bytes_of_results_and_a_unit_per_thread() {
+        // Runs that keep no trajectory: the full window.
+        assert_eq!(window_for(0, 2), WINDOW);
+        // An exported planar run (1,001 samples × 155 values): 27 of them fill 32 MiB.
+        assert_eq!(window_for(1001 * 8 * 155, 2), 27);
+        // Huge units: one per thread, never none.
+        assert_eq!(window_for(u64::MAX, 8), 8);
+        assert_eq!(window_for(u64::MAX, 1000), WINDOW);
+    }
+
+    #[test]
     fn results_arrive_in_unit_order_for_any_thread_count() {
         let units: Vec<usize> = (0..2000).collect();
         for threads in [1, 2, 3] {
@@ -143,6 +190,23 @@ mod tests {
             execute::<_, KfmcError>(
                 units.len(),
                 threads,
+                |u| u * 3,
+                &NullObserver,
+                |r| {
+                    seen.push(r);
+                    Ok(())
+                },
+            )
+            .unwrap();
+            assert_eq!(seen, units.iter().map(|u| u * 3).collect::<Vec<_>>());
+        }
+        // Any window size, down to one unit, gives the same order.
+        for window in [1, 7, 1000] {
+            let mut seen = Vec::new();
+            execute_windowed::<_, KfmcError>(
+                units.len(),
+                2,
+                window,
                 |u| u * 3,
                 &NullObserver,
                 |r| {
