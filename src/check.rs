@@ -7,21 +7,53 @@ use std::path::Path;
 use polars::prelude::*;
 
 use crate::error::OutputError;
+use std::collections::HashMap;
+
 use crate::experiment::Plan;
-use crate::experiment::plan::Assertion;
+use crate::experiment::plan::{Assertion, FilterPlan};
+use crate::metrics::consistency::{VERDICT, test_names};
 use crate::output::table::read;
 
-/// One evaluated test case (an assertion applied to one matching cell).
+/// One evaluated test case (an assertion applied to one cell the spec declares).
 #[derive(Clone, Debug, PartialEq)]
 pub struct CaseResult {
     /// The assertion kind (`consistent`, `rmse_below`, …).
     pub kind: String,
-    /// The case name, e.g. `consistent[basic noise=1 ekf q=1 r=1]`.
+    /// The case name, e.g. `consistent[basic noise=1 ekf q=1 r=1]` (an external filter,
+    /// which carries no multipliers, by its label alone: `consistent[basic noise=1 mine]`).
     pub name: String,
-    /// Whether it holds.
+    /// Whether it holds: judged on every run the spec declares, and the assertion holds.
     pub pass: bool,
+    /// Whether it could not be judged on the runs the spec declares (runs missing, too many
+    /// numerical failures, a test that could not be computed): never a pass, and reported
+    /// apart from a failure (`kfmc check` exits 4 when nothing failed but something is
+    /// incomplete).
+    pub incomplete: bool,
     /// The numbers behind the outcome.
     pub detail: String,
+}
+
+impl CaseResult {
+    /// A case judged on its data: it holds or it fails.
+    fn judged(kind: &str, name: String, pass: bool, detail: String) -> Self {
+        CaseResult {
+            kind: kind.into(),
+            name,
+            pass,
+            incomplete: false,
+            detail,
+        }
+    }
+    /// A case that could not be judged on the runs the spec declares.
+    fn incomplete(kind: &str, name: String, why: String) -> Self {
+        CaseResult {
+            kind: kind.into(),
+            name,
+            pass: false,
+            incomplete: true,
+            detail: format!("incomplete: {why}"),
+        }
+    }
 }
 
 /// Per row: the cell's display name, its scenario and its filter label.
@@ -42,6 +74,12 @@ impl Table {
             df: read(path)?,
             path: path.to_path_buf(),
         })
+    }
+    fn of(df: DataFrame, path: &Path) -> Self {
+        Table {
+            df,
+            path: path.to_path_buf(),
+        }
     }
     fn err(&self, e: PolarsError) -> OutputError {
         OutputError::Polars {
@@ -71,6 +109,23 @@ impl Table {
         let col = self.df.column(c).map_err(|e| self.err(e))?;
         Ok(col.bool().map_err(|e| self.err(e))?.iter().collect())
     }
+    /// Each row's cell key.
+    fn keys(&self) -> Result<Vec<CellKey>, OutputError> {
+        let sc = self.str("scenario")?;
+        let f = self.str("filter")?;
+        let noise = self.f64("noise_scale")?;
+        let q = self.f64("q_scale")?;
+        let r = self.f64("r_scale")?;
+        Ok((0..sc.len())
+            .map(|i| CellKey {
+                scenario: sc[i].clone(),
+                noise: noise[i].map(f64::to_bits),
+                filter: f[i].clone(),
+                q: q[i].map(f64::to_bits),
+                r: r[i].map(f64::to_bits),
+            })
+            .collect())
+    }
     /// Cell names per row and the (scenario, filter) columns for matching.
     fn cells(&self) -> Result<Cells, OutputError> {
         let sc = self.str("scenario")?;
@@ -78,18 +133,8 @@ impl Table {
         let noise = self.f64("noise_scale")?;
         let q = self.f64("q_scale")?;
         let r = self.f64("r_scale")?;
-        let g = |v: Option<f64>| v.map_or("—".into(), |x| format!("{x}"));
         let names = (0..sc.len())
-            .map(|i| {
-                format!(
-                    "{} noise={} {} q={} r={}",
-                    sc[i],
-                    g(noise[i]),
-                    f[i],
-                    g(q[i]),
-                    g(r[i])
-                )
-            })
+            .map(|i| cell_name(&sc[i], noise[i], &f[i], q[i].zip(r[i])))
             .collect();
         Ok(Cells {
             names,
@@ -97,6 +142,138 @@ impl Table {
             filter: f,
         })
     }
+}
+
+/// A cell's display name: an external filter has no multipliers (null `q_scale`/`r_scale`),
+/// so it is named by its label alone.
+fn cell_name(scenario: &str, noise: Option<f64>, filter: &str, qr: Option<(f64, f64)>) -> String {
+    match qr {
+        Some((q, r)) => format!("{scenario} noise={} {filter} q={q} r={r}", fmt_g(noise)),
+        None => format!("{scenario} noise={} {filter}", fmt_g(noise)),
+    }
+}
+
+/// The key columns of a cell row, floats by their bits (as the tables hold them).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+struct CellKey {
+    scenario: String,
+    noise: Option<u64>,
+    filter: String,
+    q: Option<u64>,
+    r: Option<u64>,
+}
+
+/// One cell the spec declares, as `check` expects to find it in the tables.
+struct PlannedCell<'a> {
+    key: CellKey,
+    name: String,
+    scenario: &'a str,
+    filter: &'a FilterPlan,
+}
+
+/// The plan's cells (scenario × noise scale × filter variant), in table order.
+fn planned_cells(plan: &Plan) -> Vec<PlannedCell<'_>> {
+    let mut out = Vec::new();
+    for s in &plan.scenarios {
+        for &noise in &plan.noise_scales {
+            for f in &plan.filters {
+                let qr = (!f.external).then_some((f.q_scale, f.r_scale));
+                out.push(PlannedCell {
+                    key: CellKey {
+                        scenario: s.name.clone(),
+                        noise: Some(noise.to_bits()),
+                        filter: f.label.clone(),
+                        q: qr.map(|(q, _)| q.to_bits()),
+                        r: qr.map(|(_, r)| r.to_bits()),
+                    },
+                    name: cell_name(&s.name, Some(noise), &f.label, qr),
+                    scenario: &s.name,
+                    filter: f,
+                });
+            }
+        }
+    }
+    out
+}
+
+/// Per cell of runs.parquet: which runs below each evaluation's bound have a row, and which
+/// of them failed numerically.
+#[derive(Clone, Debug, Default)]
+struct RunCounts {
+    /// Per bound: rows with `run` below it.
+    present: Vec<u64>,
+    /// Per bound: of those, runs with status `numerical_failure`.
+    failed: Vec<u64>,
+    /// The failed run of lowest index, and why it failed.
+    first_failure: Option<(i64, String)>,
+}
+
+/// Counts the runs of every cell of `runs.parquet` below each of `bounds`, one row group at
+/// a time (the table holds a row per run).
+fn count_runs(path: &Path, bounds: &[usize]) -> Result<HashMap<CellKey, RunCounts>, OutputError> {
+    let mut out: HashMap<CellKey, RunCounts> = HashMap::new();
+    crate::output::table::for_each_row_group(path, |df| {
+        let t = Table::of(df, path);
+        let keys = t.keys()?;
+        let (run, status, detail) = (t.i64("run")?, t.str("status")?, t.str("status_detail")?);
+        for (i, key) in keys.into_iter().enumerate() {
+            let c = out.entry(key).or_insert_with(|| RunCounts {
+                present: vec![0; bounds.len()],
+                failed: vec![0; bounds.len()],
+                first_failure: None,
+            });
+            let Some(run) = run[i].filter(|r| *r >= 0) else {
+                continue;
+            };
+            let failed = status[i] == "numerical_failure";
+            for (b, &bound) in bounds.iter().enumerate() {
+                if (run as u64) < bound as u64 {
+                    c.present[b] += 1;
+                    c.failed[b] += u64::from(failed);
+                }
+            }
+            if failed && c.first_failure.as_ref().is_none_or(|(r, _)| run < *r) {
+                c.first_failure = Some((run, detail[i].clone()));
+            }
+        }
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// Why a case of `cell` on its first `runs` runs cannot be judged on the runs the spec
+/// declares (`bound` indexes the evaluation's counts), or `None` when it can.
+fn runs_problem(
+    counts: Option<&RunCounts>,
+    bound: usize,
+    runs: usize,
+    max_failed: f64,
+    cell: &str,
+) -> Option<String> {
+    let Some(c) = counts else {
+        return Some(format!(
+            "no runs of {cell} in runs.parquet; the spec declares {runs}"
+        ));
+    };
+    let (present, failed) = (c.present[bound], c.failed[bound]);
+    if present < runs as u64 {
+        return Some(format!(
+            "{} of the {runs} runs of {cell} the spec declares are missing",
+            runs as u64 - present
+        ));
+    }
+    // A fraction of the declared runs: the tolerance does not grow as runs go missing.
+    if failed as f64 > max_failed * runs as f64 {
+        let first = c
+            .first_failure
+            .as_ref()
+            .map(|(r, d)| format!("; first: run {r}: {d}"))
+            .unwrap_or_default();
+        return Some(format!(
+            "{failed} of the {runs} runs of {cell} failed numerically, more than check.max_failed_runs = {max_failed} allows{first}"
+        ));
+    }
+    None
 }
 
 fn fmt_g(v: Option<f64>) -> String {
@@ -107,7 +284,72 @@ fn fmt(v: Option<f64>) -> String {
     v.map_or("null".into(), |x| format!("{x:.4}"))
 }
 
-/// Evaluates every assertion of `plan` against the tables in `dir`.
+/// One evaluation of the consistency tests: the whole cell at the study's α, or a subset's
+/// first `runs` runs at its own α.
+#[derive(Clone, Copy, Debug)]
+struct Evaluation {
+    runs: usize,
+    alpha: f64,
+}
+
+/// The rows of consistency.parquet of each cell, split into its evaluations: the study
+/// writes a cell's evaluations one after the other, each with its tests in the fixed order
+/// of [`test_names`], so a test that does not come after the previous one starts the next
+/// evaluation. An evaluation that computed no test has no rows, so each block goes to the
+/// next evaluation in the plan's order whose α it has and whose run count it does not
+/// exceed.
+fn consistency_blocks(
+    t: &Table,
+    order: &[String],
+    evaluations: &[Evaluation],
+) -> Result<HashMap<CellKey, Vec<Option<Vec<usize>>>>, OutputError> {
+    let keys = t.keys()?;
+    let (test, alpha, runs) = (t.str("test")?, t.f64("alpha")?, t.i64("runs")?);
+    // Per cell: blocks of (α, largest runs value, rows).
+    let mut blocks: HashMap<CellKey, Vec<(Option<f64>, i64, Vec<usize>, usize)>> = HashMap::new();
+    for (i, key) in keys.into_iter().enumerate() {
+        let at = order
+            .iter()
+            .position(|n| *n == test[i])
+            .unwrap_or(usize::MAX);
+        let list = blocks.entry(key).or_default();
+        let new_block = match list.last() {
+            Some((a, _, _, last)) => *a != alpha[i] || at == usize::MAX || at <= *last,
+            None => true,
+        };
+        if new_block {
+            list.push((alpha[i], 0, Vec::new(), at));
+        }
+        let b = list.last_mut().expect("pushed above");
+        b.1 = b.1.max(runs[i].unwrap_or(0));
+        b.2.push(i);
+        b.3 = at;
+    }
+    Ok(blocks
+        .into_iter()
+        .map(|(key, list)| {
+            let mut assigned: Vec<Option<Vec<usize>>> = vec![None; evaluations.len()];
+            let mut e = 0;
+            for (a, runs, rows, _) in list {
+                while e < evaluations.len()
+                    && !(a == Some(evaluations[e].alpha) && runs <= evaluations[e].runs as i64)
+                {
+                    e += 1;
+                }
+                if e == evaluations.len() {
+                    break;
+                }
+                assigned[e] = Some(rows);
+                e += 1;
+            }
+            (key, assigned)
+        })
+        .collect())
+}
+
+/// Evaluates every assertion of `plan` against the tables in `dir`: one case per assertion
+/// and cell the spec declares, each judged on the runs the spec declares or else
+/// incomplete.
 pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError> {
     crate::output::folder::verify(dir)?;
     let mut out = Vec::new();
@@ -118,6 +360,31 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
         None
     };
     let summary = Table::open(&dir.join("summary.parquet"))?;
+    let order = test_names(&plan.system.layout().quantity_names());
+    // The whole cell, then each subset, as the study evaluates them.
+    let mut evaluations = vec![Evaluation {
+        runs: plan.runs,
+        alpha: plan.consistency.as_ref().map_or(plan.alpha, |c| c.alpha),
+    }];
+    if let Some(c) = &plan.consistency {
+        evaluations.extend(
+            c.subsets
+                .iter()
+                .map(|&(runs, alpha)| Evaluation { runs, alpha }),
+        );
+    }
+    let bounds: Vec<usize> = evaluations.iter().map(|e| e.runs).collect();
+    let counts = count_runs(&dir.join("runs.parquet"), &bounds)?;
+    let max_failed = plan.check_max_failed_runs;
+    let cells = planned_cells(plan);
+    let has_covariance = |f: &FilterPlan| {
+        f.external
+            || plan
+                .system
+                .filters()
+                .get(f.entry)
+                .is_none_or(|i| i.has_covariance)
+    };
     for a in plan.assertions.iter().filter(|a| !a.needs_replications()) {
         let before = out.len();
         let (kind, filter, scenario) = match a {
@@ -132,25 +399,18 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                 filter, scenario, ..
             } => ("rmse_below", filter, scenario),
         };
-        let matches = |sc: &str, f: &str| {
-            scenario.as_ref().is_none_or(|s| s == sc) && filter.as_ref().is_none_or(|x| x == f)
+        let matches = |c: &PlannedCell<'_>| {
+            scenario.as_ref().is_none_or(|s| s == c.scenario)
+                && filter.as_ref().is_none_or(|x| *x == c.filter.label)
         };
         match a {
             Assertion::RejectionRate { .. } => {}
             Assertion::TestPasses { tests, .. } => {
                 let t = cons.as_ref().expect("opened above");
-                let Cells {
-                    names,
-                    scenario: sc,
-                    filter: f,
-                } = t.cells()?;
+                let blocks = consistency_blocks(t, &order, &evaluations)?;
                 let test = t.str("test")?;
                 // With subsets, one cell holds the same test at several (runs, α): name them.
-                let subsets = plan
-                    .consistency
-                    .as_ref()
-                    .is_some_and(|c| !c.subsets.is_empty());
-                let (alpha, n_runs) = (t.f64("alpha")?, t.i64("runs")?);
+                let subsets = evaluations.len() > 1;
                 let (stat, lo, hi, p, pass, dir) = (
                     t.f64("statistic")?,
                     t.f64("lower")?,
@@ -159,69 +419,127 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                     t.bool("pass")?,
                     t.str("direction")?,
                 );
-                for i in 0..names.len() {
-                    if !matches(&sc[i], &f[i]) || !tests.contains(&test[i]) {
-                        continue;
+                // Without a filter named, the assertion covers the filters that have tests
+                // (a filter without a covariance has none, by its kind).
+                let covered = |c: &PlannedCell<'_>| {
+                    matches(c) && (filter.is_some() || has_covariance(c.filter))
+                };
+                for c in cells.iter().filter(|c| covered(c)) {
+                    for (e, ev) in evaluations.iter().enumerate() {
+                        let mut cell = c.name.clone();
+                        if subsets {
+                            cell += &format!(" N={} α={}", ev.runs, ev.alpha);
+                        }
+                        let rows = blocks
+                            .get(&c.key)
+                            .and_then(|b| b[e].as_deref())
+                            .unwrap_or(&[]);
+                        for want in tests {
+                            // The per-step fractions are descriptive, kept for the whole
+                            // cell only.
+                            if e > 0 && want.ends_with("_steps_inside") {
+                                continue;
+                            }
+                            let label = if tests.len() > 1 || kind == "test_passes" {
+                                format!("{kind}[{cell} {want}]")
+                            } else {
+                                format!("{kind}[{cell}]")
+                            };
+                            if let Some(why) =
+                                runs_problem(counts.get(&c.key), e, ev.runs, max_failed, &cell)
+                            {
+                                out.push(CaseResult::incomplete(kind, label, why));
+                                continue;
+                            }
+                            let Some(&i) = rows.iter().find(|&&i| test[i] == *want) else {
+                                out.push(CaseResult::incomplete(
+                                    kind,
+                                    label,
+                                    not_computed(want, &cell, rows, &test),
+                                ));
+                                continue;
+                            };
+                            // A p-value is part of every test but the descriptive fractions.
+                            let needs_p = !want.ends_with("_steps_inside");
+                            let computed = stat[i].is_some_and(f64::is_finite)
+                                && pass[i].is_some()
+                                && (!needs_p || p[i].is_some_and(f64::is_finite));
+                            if !computed {
+                                out.push(CaseResult::incomplete(
+                                    kind,
+                                    label,
+                                    format!(
+                                        "{want} of {cell} could not be computed (statistic {}, p-value {})",
+                                        fmt(stat[i]),
+                                        fmt(p[i])
+                                    ),
+                                ));
+                                continue;
+                            }
+                            let bounds = match (lo[i], hi[i]) {
+                                (Some(l), Some(h)) => {
+                                    format!("in [{}, {}]", fmt(Some(l)), fmt(Some(h)))
+                                }
+                                (Some(l), None) => format!("≥ {}", fmt(Some(l))),
+                                _ => String::new(),
+                            };
+                            let d = if dir[i].is_empty() {
+                                String::new()
+                            } else {
+                                format!(", {}", dir[i])
+                            };
+                            let detail = if *want == VERDICT {
+                                format!(
+                                    "smallest p-value of the NEES and NIS tests = {} (must exceed α/2 = {}){d}",
+                                    fmt(stat[i]),
+                                    fmt(lo[i])
+                                )
+                            } else {
+                                format!("{want} = {} {bounds} (p = {}{d})", fmt(stat[i]), fmt(p[i]))
+                            };
+                            out.push(CaseResult::judged(
+                                kind,
+                                label,
+                                pass[i] == Some(true),
+                                detail,
+                            ));
+                        }
                     }
-                    let mut cell = names[i].clone();
-                    if subsets {
-                        cell += &format!(" N={} α={}", n_runs[i].unwrap_or(0), fmt_g(alpha[i]));
-                    }
-                    let label = if tests.len() > 1 || kind == "test_passes" {
-                        format!("{kind}[{cell} {}]", test[i])
-                    } else {
-                        format!("{kind}[{cell}]")
-                    };
-                    let bounds = match (lo[i], hi[i]) {
-                        (Some(l), Some(h)) => format!("in [{}, {}]", fmt(Some(l)), fmt(Some(h))),
-                        (Some(l), None) => format!("≥ {}", fmt(Some(l))),
-                        _ => String::new(),
-                    };
-                    let d = if dir[i].is_empty() {
-                        String::new()
-                    } else {
-                        format!(", {}", dir[i])
-                    };
-                    let detail = if test[i] == "verdict" {
-                        format!(
-                            "smallest p-value of the NEES and NIS tests = {} (must exceed α/2 = {}){d}",
-                            fmt(stat[i]),
-                            fmt(lo[i])
-                        )
-                    } else {
-                        format!(
-                            "{} = {} {bounds} (p = {}{d})",
-                            test[i],
-                            fmt(stat[i]),
-                            fmt(p[i])
-                        )
-                    };
-                    out.push(CaseResult {
-                        kind: kind.into(),
-                        name: label,
-                        pass: pass[i] == Some(true),
-                        detail,
-                    });
                 }
             }
             Assertion::RmseBelow { state, max, .. } => {
-                let Cells {
-                    names,
-                    scenario: sc,
-                    filter: f,
-                } = summary.cells()?;
+                let keys = summary.keys()?;
                 let st = summary.str("state")?;
                 let mean = summary.f64("rmse_mean")?;
-                for i in 0..names.len() {
-                    if !matches(&sc[i], &f[i]) || &st[i] != state {
+                for c in cells.iter().filter(|c| matches(c)) {
+                    let label = format!("rmse_below[{} {state}]", c.name);
+                    if let Some(why) =
+                        runs_problem(counts.get(&c.key), 0, plan.runs, max_failed, &c.name)
+                    {
+                        out.push(CaseResult::incomplete(kind, label, why));
                         continue;
                     }
-                    out.push(CaseResult {
-                        kind: kind.into(),
-                        name: format!("rmse_below[{} {state}]", names[i]),
-                        pass: mean[i].is_some_and(|m| m < *max),
-                        detail: format!("rmse_mean = {} (must be < {max})", fmt(mean[i])),
-                    });
+                    let row = (0..keys.len()).find(|&i| keys[i] == c.key && st[i] == *state);
+                    match row.map(|i| mean[i]) {
+                        Some(Some(m)) if m.is_finite() => out.push(CaseResult::judged(
+                            kind,
+                            label,
+                            m < *max,
+                            format!("rmse_mean = {} (must be < {max})", fmt(Some(m))),
+                        )),
+                        other => out.push(CaseResult::incomplete(
+                            kind,
+                            label,
+                            format!(
+                                "rmse_mean of {} {state} could not be computed ({})",
+                                c.name,
+                                match other {
+                                    None => "no row in summary.parquet".to_string(),
+                                    Some(v) => format!("rmse_mean = {}", fmt(v)),
+                                }
+                            ),
+                        )),
+                    }
                 }
             }
         }
@@ -230,20 +548,41 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
     Ok(out)
 }
 
-/// Closes one assertion's cases: none matched is a failure of its own, and a negative
-/// control passes exactly when the assertion's own cases fail.
+/// Why test `want` of `cell` has no row: what the cell's evaluation did compute says which
+/// part was missing.
+fn not_computed(want: &str, cell: &str, rows: &[usize], test: &[String]) -> String {
+    if rows.is_empty() {
+        return format!("{cell} has no consistency tests at all: {want} could not be computed");
+    }
+    let has = |n: &str| rows.iter().any(|&i| test[i] == n);
+    if want == VERDICT && !has("nees_time_average") && has("nees_run_average_t") {
+        return format!(
+            "the verdict of {cell} could not be computed: the calibrated NEES test needs every run's error transition (the filter gave it for some runs only), or, for a filter that gives none, at least 20 runs for the model-free test"
+        );
+    }
+    format!("{want} of {cell} could not be computed (no row in consistency.parquet)")
+}
+
+/// Closes one assertion's cases: none at all is a case of its own that could not be
+/// judged, and a negative control passes exactly when the assertion's own cases fail (an
+/// incomplete case stays incomplete: it was not judged either way).
 fn settle(a: &Assertion, kind: &str, out: &mut Vec<CaseResult>, before: usize) {
     if out.len() == before {
-        out.push(CaseResult {
-            kind: kind.into(),
-            name: format!("{kind}[no matching rows]"),
-            pass: false,
-            detail: "no table row matches this assertion (does the filter carry a covariance?)"
-                .into(),
-        });
+        out.push(CaseResult::incomplete(
+            kind,
+            format!("{kind}[no matching rows]"),
+            "no table row matches this assertion (does the filter carry a covariance?)".into(),
+        ));
     } else if a.expect_fail() {
         for case in &mut out[before..] {
             case.name = format!("negative_control:{}", case.name);
+            if case.incomplete {
+                case.detail = format!(
+                    "expected to fail, but it could not be judged: {}",
+                    case.detail
+                );
+                continue;
+            }
             case.detail = format!(
                 "expected to fail, and it {}: {}",
                 if case.pass { "passed" } else { "failed" },
@@ -305,7 +644,24 @@ pub fn evaluate_power(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, Output
             if !keep {
                 continue;
             }
+            let name = format!(
+                "rejection_rate[{} N={} α={} {}]",
+                names[i],
+                runs[i].unwrap_or(0),
+                fmt_g(alpha[i]),
+                test[i]
+            );
             let (Some(p), Some(l), Some(h)) = (rate[i], lo[i], hi[i]) else {
+                out.push(CaseResult::incomplete(
+                    "rejection_rate",
+                    name,
+                    format!(
+                        "the rejection rate of {} could not be computed ({} of {} replications judged)",
+                        names[i],
+                        rejections[i].map_or("null".into(), |r| r.to_string()),
+                        reps[i].unwrap_or(0)
+                    ),
+                ));
                 continue;
             };
             let (low, high) = if *interval { (l, h) } else { (p, p) };
@@ -321,17 +677,11 @@ pub fn evaluate_power(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, Output
             } else {
                 "must be"
             };
-            out.push(CaseResult {
-                kind: "rejection_rate".into(),
-                name: format!(
-                    "rejection_rate[{} N={} α={} {}]",
-                    names[i],
-                    runs[i].unwrap_or(0),
-                    fmt_g(alpha[i]),
-                    test[i]
-                ),
+            out.push(CaseResult::judged(
+                "rejection_rate",
+                name,
                 pass,
-                detail: format!(
+                format!(
                     "rejected in {} of {} replications: rate {} [{}, {}] ({what} {bounds})",
                     rejections[i].unwrap_or(0),
                     reps[i].unwrap_or(0),
@@ -339,31 +689,46 @@ pub fn evaluate_power(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, Output
                     fmt(Some(l)),
                     fmt(Some(h)),
                 ),
-            });
+            ));
         }
         settle(a, "rejection_rate", &mut out, before);
     }
     Ok(out)
 }
 
+/// Counts of a check's cases: (failed, incomplete); the rest passed.
+pub fn tally(cases: &[CaseResult]) -> (usize, usize) {
+    let incomplete = cases.iter().filter(|c| c.incomplete).count();
+    let failed = cases.iter().filter(|c| !c.pass && !c.incomplete).count();
+    (failed, incomplete)
+}
+
 /// The readable report.
 pub fn render(experiment: &str, cases: &[CaseResult]) -> String {
-    let failed = cases.iter().filter(|c| !c.pass).count();
+    let (failed, incomplete) = tally(cases);
     let mut s = format!(
-        "kfmc check {experiment}: {} cases, {} passed, {failed} failed\n",
+        "kfmc check {experiment}: {} cases, {} passed, {failed} failed, {incomplete} incomplete\n",
         cases.len(),
-        cases.len() - failed
+        cases.len() - failed - incomplete
     );
     let w = cases
         .iter()
         .map(|c| c.name.chars().count())
         .max()
         .unwrap_or(10);
+    // The outcome column is as wide as its widest word.
+    let o = if incomplete > 0 { 10 } else { 4 };
     for c in cases {
         let _ = writeln!(
             s,
-            "  {}  {:<w$}  {}",
-            if c.pass { "PASS" } else { "FAIL" },
+            "  {:<o$}  {:<w$}  {}",
+            if c.incomplete {
+                "INCOMPLETE"
+            } else if c.pass {
+                "PASS"
+            } else {
+                "FAIL"
+            },
             c.name,
             c.detail
         );
@@ -379,18 +744,20 @@ fn xml_escape(s: &str) -> String {
         .replace('\'', "&apos;")
 }
 
-/// JUnit XML: one `<testcase>` per case, failures with their numbers.
+/// JUnit XML: one `<testcase>` per case, failures with their numbers; an incomplete case is
+/// a `<failure type="incomplete">` whose message names the cell and the count.
 pub fn junit(experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
-    let failed = cases.iter().filter(|c| !c.pass).count();
+    let (failed, incomplete) = tally(cases);
+    let failures = failed + incomplete;
     let mut s = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n");
     let _ = writeln!(
         s,
-        "<testsuites name=\"kfmc check\" tests=\"{}\" failures=\"{failed}\" time=\"{seconds:.3}\">",
+        "<testsuites name=\"kfmc check\" tests=\"{}\" failures=\"{failures}\" time=\"{seconds:.3}\">",
         cases.len()
     );
     let _ = writeln!(
         s,
-        "  <testsuite name=\"{}\" tests=\"{}\" failures=\"{failed}\" errors=\"0\" time=\"{seconds:.3}\">",
+        "  <testsuite name=\"{}\" tests=\"{}\" failures=\"{failures}\" errors=\"0\" time=\"{seconds:.3}\">",
         xml_escape(experiment),
         cases.len()
     );
@@ -409,9 +776,10 @@ pub fn junit(experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
                 xml_escape(&c.detail)
             );
         } else {
+            let kind = if c.incomplete { "incomplete" } else { "failed" };
             let _ = writeln!(
                 s,
-                ">\n      <failure message=\"{}\">{}</failure>\n    </testcase>",
+                ">\n      <failure type=\"{kind}\" message=\"{}\">{}</failure>\n    </testcase>",
                 xml_escape(&c.detail),
                 xml_escape(&c.detail)
             );
@@ -419,4 +787,79 @@ pub fn junit(experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
     }
     s.push_str("  </testsuite>\n</testsuites>\n");
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn counts(present: u64, failed: u64) -> RunCounts {
+        RunCounts {
+            present: vec![present],
+            failed: vec![failed],
+            first_failure: (failed > 0).then(|| (4, "non-finite estimate".into())),
+        }
+    }
+
+    #[test]
+    fn a_case_is_judged_only_on_the_declared_runs() {
+        let cell = "basic noise=1 ekf q=1 r=1";
+        assert_eq!(runs_problem(Some(&counts(10, 0)), 0, 10, 0.0, cell), None);
+        // Missing runs: named with their count, whatever the tolerance for failures.
+        let why = runs_problem(Some(&counts(2, 0)), 0, 10, 1.0, cell).unwrap();
+        assert_eq!(
+            why,
+            "8 of the 10 runs of basic noise=1 ekf q=1 r=1 the spec declares are missing"
+        );
+        assert!(runs_problem(None, 0, 10, 1.0, cell).is_some());
+        // Failures: beyond the fraction of the declared runs, not within it (1/10 ≤ 0.1).
+        let why = runs_problem(Some(&counts(10, 1)), 0, 10, 0.0, cell).unwrap();
+        assert!(
+            why.starts_with("1 of the 10 runs of basic noise=1 ekf q=1 r=1 failed numerically")
+                && why.ends_with("first: run 4: non-finite estimate"),
+            "{why}"
+        );
+        assert_eq!(runs_problem(Some(&counts(10, 1)), 0, 10, 0.1, cell), None);
+        assert!(runs_problem(Some(&counts(10, 2)), 0, 10, 0.1, cell).is_some());
+    }
+
+    #[test]
+    fn incomplete_cases_are_counted_apart_and_never_pass() {
+        let cases = vec![
+            CaseResult::judged("consistent", "a".into(), true, String::new()),
+            CaseResult::judged("consistent", "b".into(), false, String::new()),
+            CaseResult::incomplete("consistent", "c".into(), "2 of 10 runs".into()),
+        ];
+        assert_eq!(tally(&cases), (1, 1));
+        let text = render("x", &cases);
+        assert!(
+            text.starts_with("kfmc check x: 3 cases, 1 passed, 1 failed, 1 incomplete\n"),
+            "{text}"
+        );
+        assert!(
+            text.contains("INCOMPLETE  c  incomplete: 2 of 10 runs"),
+            "{text}"
+        );
+        let xml = junit("x", &cases, 0.0);
+        assert!(xml.contains("tests=\"3\" failures=\"2\""), "{xml}");
+        assert!(
+            xml.contains("<failure type=\"incomplete\" message=\"incomplete: 2 of 10 runs\">"),
+            "{xml}"
+        );
+        // A negative control that could not be judged stays incomplete.
+        let a = Assertion::TestPasses {
+            kind: "consistent".into(),
+            tests: vec![VERDICT.into()],
+            filter: None,
+            scenario: None,
+            expect_fail: true,
+        };
+        let mut out = vec![CaseResult::incomplete(
+            "consistent",
+            "c".into(),
+            "why".into(),
+        )];
+        settle(&a, "consistent", &mut out, 0);
+        assert!(out[0].incomplete && !out[0].pass, "{:?}", out[0]);
+    }
 }

@@ -101,13 +101,21 @@ pub struct StudyReport {
 
 /// The key values of a cell row: scenario, noise scale, filter label, q_scale, r_scale.
 fn cell_key<'a>(scenario: &'a str, noise: f64, f: &'a FilterPlan) -> [Value<'a>; 5] {
+    let [q, r] = scale_keys(f);
     [
         Value::Str(scenario),
         Value::F64(Some(noise)),
         Value::Str(&f.label),
-        Value::F64(Some(f.q_scale)),
-        Value::F64(Some(f.r_scale)),
+        q,
+        r,
     ]
+}
+
+/// The `q_scale` and `r_scale` key values of a filter variant: null for an external filter,
+/// whose tuning is its own and which kfmc never scales.
+fn scale_keys(f: &FilterPlan) -> [Value<'static>; 2] {
+    let own = |v: f64| Value::F64((!f.external).then_some(v));
+    [own(f.q_scale), own(f.r_scale)]
 }
 
 /// The across-run quantile levels of the summary and sensors tables.
@@ -963,8 +971,8 @@ impl<'a> DivergenceFeed<'a> {
             Value::Str(s),
             Value::F64(Some(noise)),
             Value::Str(label),
-            Value::F64(Some(q)),
-            Value::F64(Some(r)),
+            Value::F64(q),
+            Value::F64(r),
             ..,
         ] = row
         else {
@@ -972,10 +980,11 @@ impl<'a> DivergenceFeed<'a> {
         };
         let si = p.scenarios.iter().position(|x| x.name == *s)?;
         let scale = p.noise_scales.iter().position(|x| x == noise)?;
-        let fi = p
-            .filters
-            .iter()
-            .position(|f| f.label == *label && f.q_scale == *q && f.r_scale == *r)?;
+        // An external filter's multipliers are null, a kfmc filter's are numbers.
+        let fi = p.filters.iter().position(|f| {
+            let own = |v: f64| (!f.external).then_some(v);
+            f.label == *label && own(f.q_scale) == *q && own(f.r_scale) == *r
+        })?;
         Some((si, scale, fi))
     }
 }
@@ -1104,12 +1113,8 @@ pub(crate) fn divergence_tables(
     for (si, s) in plan.scenarios.iter().enumerate() {
         for (fi, f) in plan.filters.iter().enumerate() {
             let tracker = &mut trackers[si * nf + fi];
-            let key = [
-                Value::Str(&s.name),
-                Value::Str(&f.label),
-                Value::F64(Some(f.q_scale)),
-                Value::F64(Some(f.r_scale)),
-            ];
+            let [q, r] = scale_keys(f);
+            let key = [Value::Str(&s.name), Value::Str(&f.label), q, r];
             for (i, state) in states.iter().enumerate() {
                 // Runs that never crossed are censored beyond the largest scale: +∞ in the
                 // ordering, so a quantile that needs them is unknown (null), not invented.

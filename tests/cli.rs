@@ -273,6 +273,28 @@ fn check_passes_on_the_tuned_spec_and_fails_with_exit_3_when_q_is_mistuned() {
 }
 
 #[test]
+fn check_refuses_zero_replications_as_power_does() {
+    // `power --replications 0` is refused (exit 2); so is `check --replications 0`, whether or
+    // not the spec has a rejection_rate assertion.
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = repo().join("experiments/ci_consistency.toml");
+    for cmd in ["check", "power"] {
+        let (code, _, err) = output(&[
+            cmd,
+            spec.to_str().unwrap(),
+            "--replications",
+            "0",
+            "--quiet",
+            "--out",
+            tmp.path().join(cmd).to_str().unwrap(),
+        ]);
+        assert_eq!(code, 2, "{cmd}: {err}");
+        assert!(err.contains("--replications"), "{cmd}: {err}");
+        assert!(!tmp.path().join(cmd).exists(), "{cmd} ran");
+    }
+}
+
+#[test]
 fn check_without_assertions_or_with_a_bad_one_is_an_invalid_spec() {
     let tmp = tempfile::tempdir().unwrap();
     let (_d, spec) = spec_in_tempdir(&small_spec(&tmp.path().join("o"), 2, "[1.0]", EKF_AND_MEAN));

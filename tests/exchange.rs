@@ -112,12 +112,18 @@ fn study() -> Study {
 
 /// [`study`] with the `kf` entry of another kind.
 fn study_of(kind: &str) -> Study {
+    study_runs(kind, 12)
+}
+
+/// [`study_of`] with `runs` runs per cell.
+fn study_runs(kind: &str, runs: usize) -> Study {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().to_path_buf();
     let run_spec = dir.join("run.toml");
     let ext_spec = dir.join("ext.toml");
-    fs::write(&run_spec, RUN_SPEC.replace("KIND", kind)).unwrap();
-    fs::write(&ext_spec, RUN_SPEC.replace("KIND", "external")).unwrap();
+    let spec = RUN_SPEC.replace("runs = 12", &format!("runs = {runs}"));
+    fs::write(&run_spec, spec.replace("KIND", kind)).unwrap();
+    fs::write(&ext_spec, spec.replace("KIND", "external")).unwrap();
     ok(kfmc()
         .args(["run", "-q", "--export-estimates", "--out"])
         .arg(dir.join("run"))
@@ -163,9 +169,30 @@ fn scored_equals_run(s: &Study) {
     let o = score(s, &[&s.dir.join("kf.parquet")], "score");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for t in ["runs", "steps", "summary", "divergence", "divergence_runs"] {
-        let a = fs::read(s.dir.join(format!("run/{t}.parquet"))).unwrap();
-        let b = fs::read(s.dir.join(format!("score/{t}.parquet"))).unwrap();
-        assert!(a == b, "{t}.parquet differs between run and score");
+        let (a, b) = (
+            read(&s.dir.join(format!("run/{t}.parquet"))),
+            read(&s.dir.join(format!("score/{t}.parquet"))),
+        );
+        // An external filter carries no multipliers: its q_scale and r_scale are null, kfmc's
+        // own filter's are 1; every other column is the run's.
+        let filter = b.column("filter").unwrap().str().unwrap().clone();
+        for c in ["q_scale", "r_scale"] {
+            let v = b.column(c).unwrap().f64().unwrap().clone();
+            for (f, v) in filter.iter().zip(v.iter()) {
+                match f {
+                    Some("kf") => assert_eq!(v, None, "{t}.{c} of the external kf"),
+                    _ => assert_eq!(v, Some(1.0), "{t}.{c} of {f:?}"),
+                }
+            }
+        }
+        let (a, b) = (
+            a.drop_many(["q_scale", "r_scale"]),
+            b.drop_many(["q_scale", "r_scale"]),
+        );
+        assert!(
+            a.equals_missing(&b),
+            "{t}.parquet differs between run and score"
+        );
     }
     let (a, b) = (
         read(&s.dir.join("run/consistency.parquet")),
@@ -481,7 +508,7 @@ fn filterpy_kf_equals_kfmc_kf_and_the_negative_control_catches_q_times_4() {
     );
     let xml = fs::read_to_string(&junit).unwrap();
     assert!(
-        xml.contains("name=\"negative_control:consistent[hover noise=1 filterpy_kf_q4 q=1 r=1]\""),
+        xml.contains("name=\"negative_control:consistent[hover noise=1 filterpy_kf_q4]\""),
         "{xml}"
     );
     // FilterPy's KF and kfmc's agree run by run, and so do their verdicts.
@@ -684,10 +711,18 @@ fn estimates_of_another_simulation_are_refused_naming_it_and_the_stamp_ignores_c
 }
 
 /// The external spec with a `[check]` assertion any of the filters meets.
-fn check_spec(s: &Study) -> PathBuf {
+fn check_spec_rmse(s: &Study) -> PathBuf {
     let path = s.dir.join("check.toml");
     let text = fs::read_to_string(&s.ext_spec).unwrap()
         + "[check]\n[[check.assert]]\nkind = \"rmse_below\"\nfilter = \"kf\"\nstate = \"x\"\nmax = 1000.0\n";
+/// The external spec at noise scale 1 alone (at 3 the nominal KF is rightly optimistic),
+/// with a `consistent` assertion on `kf` (and `extra` in `[check]`).
+fn check_spec(s: &Study, extra: &str) -> PathBuf {
+    let text = fs::read_to_string(&s.ext_spec)
+        .unwrap()
+        .replace("scales = [1.0, 3.0]", "scales = [1.0]")
+        + &format!("[check]\n{extra}\n[[check.assert]]\nkind = \"consistent\"\nfilter = \"kf\"\n");
+    let path = s.dir.join(format!("check_{}.toml", extra.len()));
     fs::write(&path, text).unwrap();
     path
 }
@@ -728,7 +763,7 @@ fn unstamped_estimates_warn_in_score_and_are_refused_by_check() {
         "the warning says how to stamp: {err}"
     );
 
-    let spec = check_spec(&s);
+    let spec = check_spec_rmse(&s);
     let o = check(&spec, &s.dir.join("chk"), &[&path], &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
@@ -851,6 +886,118 @@ fn partial_runs_and_non_finite_values_are_refused_naming_run_and_step() {
             !s.dir.join(format!("score_{name}")).exists(),
             "{name}: refused after scoring had begun"
         );
+/// `kfmc check` of `spec` on estimates `file`: (exit code, report, stderr, JUnit XML).
+fn check_with(
+    s: &Study,
+    spec: &Path,
+    file: &Path,
+    out: &str,
+) -> (Option<i32>, String, String, String) {
+    let junit = s.dir.join(format!("{out}.xml"));
+    let o = kfmc()
+        .args(["check", "-q", "--out"])
+        .arg(s.dir.join(out))
+        .arg("--junit")
+        .arg(&junit)
+        .arg(spec)
+        .arg("--estimates")
+        .arg(file)
+        .output()
+        .unwrap();
+    (
+        o.status.code(),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+        fs::read_to_string(&junit).unwrap_or_default(),
+    )
+}
+
+/// The rows of the `kf` estimates at noise scale 1, with `keep` and with column `c` replaced
+/// at `(run, step)` of the first cell (hover, noise 1).
+fn edited(
+    good: &DataFrame,
+    keep: impl Fn(i64, i64) -> bool,
+    edit: Option<(&str, i64, i64, f64)>,
+) -> DataFrame {
+    let col_i = |c: &str| good.column(c).unwrap().i64().unwrap().clone();
+    let (run, step) = (col_i("run"), col_i("step"));
+    let scen = good.column("scenario").unwrap().str().unwrap().clone();
+    let noise = good.column("noise_scale").unwrap().f64().unwrap().clone();
+    let first = |i: usize| scen.get(i) == Some("hover") && noise.get(i) == Some(1.0);
+    let at = |i: usize| (run.get(i).unwrap(), step.get(i).unwrap());
+    let mut df = good.clone();
+    if let Some((c, r, k, v)) = edit {
+        let col: Vec<Option<f64>> = (0..good.height())
+            .map(|i| {
+                if first(i) && at(i) == (r, k) {
+                    Some(v)
+                } else {
+                    good.column(c).unwrap().f64().unwrap().get(i)
+                }
+            })
+            .collect();
+        df.with_column(Column::new(c.into(), col)).unwrap();
+    }
+    let mask: BooleanChunked = (0..good.height())
+        .map(|i| noise.get(i) == Some(1.0) && (!first(i) || keep(at(i).0, at(i).1)))
+        .collect();
+    df.filter(&mask).unwrap()
+}
+
+#[test]
+fn check_is_incomplete_when_runs_fail_numerically_beyond_max_failed_runs() {
+    // Run 3 of (hover, noise 1) hands kfmc a covariance that is not positive definite at step
+    // 5: a valid file, and a numerical failure of that run. 1 of 12 runs is more than the
+    // default max_failed_runs = 0 allows, and within 0.1.
+    let s = study();
+    let good = read(&s.dir.join("kf.parquet"));
+    let path = s.dir.join("not_pd.parquet");
+    s.write(
+        &edited(&good, |_, _| true, Some(("P_x_x", 3, 5, -1.0))),
+        &path,
+    );
+
+    let (code, report, err, xml) = check_with(&s, &check_spec(&s, ""), &path, "strict");
+    assert_eq!(code, Some(4), "{report}{err}");
+    assert!(
+        report.contains(": 2 cases, 1 passed, 0 failed, 1 incomplete"),
+        "{report}"
+    );
+    assert!(
+        report.contains("INCOMPLETE  consistent[hover noise=1 kf]"),
+        "{report}"
+    );
+    // The JUnit failure is the incomplete one, naming the cell and the count.
+    assert!(
+        xml.contains("name=\"consistent[hover noise=1 kf]\"")
+            && xml.contains("<failure type=\"incomplete\" message=\"incomplete: 1 of the 12 runs of hover noise=1 kf failed numerically, more than check.max_failed_runs = 0 allows; first: run 3"),
+        "{xml}"
+    );
+    // An external filter's case is named by its label: it carries no q/r multipliers.
+    assert!(!xml.contains("kf q="), "{xml}");
+
+    let (code, report, err, _) = check_with(
+        &s,
+        &check_spec(&s, "max_failed_runs = 0.1"),
+        &path,
+        "lenient",
+    );
+    assert!(matches!(code, Some(0 | 3)), "{report}{err}");
+    assert!(!report.contains("INCOMPLETE"), "{report}");
+    assert!(
+        report.contains("  consistent[hover noise=1 kf]"),
+        "{report}"
+    );
+
+    // The key is a fraction, refused outside [0, 1] with its key path.
+    for bad in [
+        "max_failed_runs = 1.5",
+        "max_failed_runs = -0.1",
+        "max_failed_runs = nan",
+    ] {
+        let (code, _, err, _) = check_with(&s, &check_spec(&s, bad), &path, "bad");
+        assert_eq!(code, Some(2), "{bad}: {err}");
+        assert!(err.contains("check.max_failed_runs"), "{bad}: {err}");
     }
 }
 
@@ -966,9 +1113,72 @@ fn the_pyarrow_stamping_example_stamps_a_file_that_check_then_accepts() {
         .arg(s.dir.join("sim"))
         .arg(&path));
     assert_eq!(stamp_of(&path), s.stamp);
-    let spec = check_spec(&s);
+    let spec = check_spec_rmse(&s);
     let o = check(&spec, &s.dir.join("chk"), &[&path], &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{err}");
     assert!(!err.contains("warning"), "{err}");
+fn check_never_passes_a_cell_whose_runs_are_missing() {
+    // Only runs 0 and 1 of (hover, noise 1): the verdict would be computed on 2 of 12 runs.
+    // Either the estimates are refused before scoring (exit 1, naming the run) or the case is
+    // incomplete (exit 4, naming the cell and the count); never a pass.
+    let s = study();
+    let good = read(&s.dir.join("kf.parquet"));
+    let path = s.dir.join("two_runs.parquet");
+    s.write(&edited(&good, |run, _| run < 2, None), &path);
+    let (code, report, err, xml) = check_with(&s, &check_spec(&s, ""), &path, "missing");
+    match code {
+        Some(4) => {
+            assert!(
+                report.contains("INCOMPLETE  consistent[hover noise=1 kf]"),
+                "{report}"
+            );
+            assert!(
+                xml.contains("<failure type=\"incomplete\" message=\"incomplete: 10 of the 12 runs of hover noise=1 kf"),
+                "{xml}"
+            );
+        }
+        Some(1) => assert!(err.contains("run 2"), "{err}"),
+        other => panic!("exit {other:?}: {report}{err}"),
+    }
+}
+
+#[test]
+fn check_is_incomplete_when_the_calibrated_test_cannot_be_computed() {
+    // One non-finite A_x_x of one row: that run has no error transition, so the calibrated
+    // NEES test of the cell cannot be computed. With 12 runs the cell's verdict used to
+    // vanish (3 cases instead of 4, all passed); with 20 the model-free test used to stand in
+    // for the calibrated one the filter selects. Either the file is refused before scoring
+    // (exit 1, naming the column) or the case is incomplete (exit 4); never a pass.
+    for runs in [12, 20] {
+        let s = study_runs("ekf", runs);
+        let good = read(&s.dir.join("kf.parquet"));
+        let path = s.dir.join("nan_a.parquet");
+        s.write(
+            &edited(&good, |_, _| true, Some(("A_x_x", 3, 5, f64::NAN))),
+            &path,
+        );
+        let (code, report, err, xml) = check_with(&s, &check_spec(&s, ""), &path, "nan_a");
+        match code {
+            Some(4) => {
+                // Every declared cell has its case; the others are judged either way.
+                assert!(
+                    report.contains(": 2 cases, 1 passed, 0 failed, 1 incomplete"),
+                    "N={runs}: {report}"
+                );
+                assert!(
+                    report.contains("INCOMPLETE  consistent[hover noise=1 kf]"),
+                    "N={runs}: {report}"
+                );
+                assert!(
+                    xml.contains(
+                        "the calibrated NEES test needs every run&apos;s error transition"
+                    ),
+                    "N={runs}: {xml}"
+                );
+            }
+            Some(1) => assert!(err.contains("A_x_x"), "N={runs}: {err}"),
+            other => panic!("N={runs}: exit {other:?}: {report}{err}"),
+        }
+    }
 }

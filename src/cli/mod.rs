@@ -5,6 +5,9 @@
 //! * 1 — a runtime failure (I/O, an unreadable result folder);
 //! * 2 — an invalid spec or invalid command-line usage;
 //! * 3 — `kfmc check`: the study ran and at least one assertion failed;
+//! * 4 — `kfmc check`: no assertion failed, but at least one case could not be judged on the
+//!   runs the spec declares (runs missing, numerical failures beyond `check.max_failed_runs`,
+//!   a test that could not be computed): incomplete, never a pass;
 //! * 130 — interrupted by SIGINT or SIGTERM (nothing committed, partial files removed; `kfmc
 //!   run` keeps its checkpoint for `--resume`).
 
@@ -30,6 +33,9 @@ pub const EXIT_FAILURE: u8 = 1;
 pub const EXIT_INVALID_SPEC: u8 = 2;
 /// Exit code: `kfmc check` found a failing assertion.
 pub const EXIT_CHECK_FAILED: u8 = 3;
+/// Exit code: `kfmc check` found no failing assertion, but a case it could not judge on the
+/// runs the spec declares (incomplete).
+pub const EXIT_CHECK_INCOMPLETE: u8 = 4;
 /// Exit code: stopped by SIGINT or SIGTERM (128 + SIGINT's number, as shells report it);
 /// nothing of the interrupted run was committed.
 pub const EXIT_INTERRUPTED: u8 = 130;
@@ -44,17 +50,18 @@ pub struct UsageError {
     pub message: String,
 }
 
-/// A failed `kfmc check` (its report is already printed).
+/// A failed or incomplete `kfmc check` (its report is already printed).
 #[derive(Debug, thiserror::Error)]
-#[error("{failed} of {total} check cases failed")]
+#[error("{failed} of {total} check cases failed, {incomplete} incomplete")]
 pub struct CheckFailed {
     failed: usize,
+    incomplete: usize,
     total: usize,
 }
 
 /// kfmc — judge state estimators statistically with seeded Monte Carlo studies.
 #[derive(Debug, Parser)]
-#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed, 130 interrupted (SIGINT/SIGTERM; nothing committed; `run --resume` continues).")]
+#[command(name = "kfmc", version, about, long_about = None, after_help = "Exit codes: 0 success, 1 runtime failure, 2 invalid spec or usage, 3 a `check` assertion failed, 4 a `check` case incomplete (judged on fewer runs than declared, or a test not computed) and none failed, 130 interrupted (SIGINT/SIGTERM; nothing committed; `run --resume` continues).")]
 pub struct Cli {
     /// The command.
     #[command(subcommand)]
@@ -299,7 +306,8 @@ pub enum Command {
         dir: PathBuf,
     },
     /// Run a study and evaluate its `[check]` assertions (consistency verdicts, RMSE bounds,
-    /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 2 for an invalid spec.
+    /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 4 when none fails but one
+    /// could not be judged on the runs the spec declares (incomplete), 2 for an invalid spec.
     Check {
         /// The spec (with a `[check]` section) and the shared overrides.
         #[command(flatten)]
@@ -317,7 +325,7 @@ pub enum Command {
         allow_unstamped: bool,
         /// Replications for the `rejection_rate` assertions (overrides `check.replications`):
         /// they are judged on `kfmc power`'s table, written to `<out>/power`.
-        #[arg(long, short = 'R')]
+        #[arg(long, short = 'R', value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
         replications: Option<usize>,
     },
     /// Search a filter's Q scale (and R scale with --tune-r) for consistency or minimum RMSE:
@@ -604,9 +612,14 @@ pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
     match dispatch(cli, registry) {
         Ok(()) => ExitCode::from(EXIT_OK),
         Err(e) => {
-            if e.downcast_ref::<CheckFailed>().is_some() {
-                // The report already said what failed.
-                return ExitCode::from(EXIT_CHECK_FAILED);
+            if let Some(c) = e.downcast_ref::<CheckFailed>() {
+                // The report already said what failed: a judged failure outranks a case that
+                // could not be judged.
+                return ExitCode::from(if c.failed > 0 {
+                    EXIT_CHECK_FAILED
+                } else {
+                    EXIT_CHECK_INCOMPLETE
+                });
             }
             let code = match e.downcast_ref::<KfmcError>() {
                 _ if e.downcast_ref::<UsageError>().is_some() => EXIT_INVALID_SPEC,
@@ -1017,10 +1030,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     |e| anyhow::Error::from(e).context(format!("writing {}", path.display())),
                 )?;
             }
-            let failed = cases.iter().filter(|c| !c.pass).count();
-            if failed > 0 {
+            let (failed, incomplete) = crate::check::tally(&cases);
+            if failed + incomplete > 0 {
                 return Err(CheckFailed {
                     failed,
+                    incomplete,
                     total: cases.len(),
                 }
                 .into());

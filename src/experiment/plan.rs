@@ -196,6 +196,9 @@ pub struct Plan {
     pub assertions: Vec<Assertion>,
     /// `check.replications`: the replications of the `rejection_rate` assertions.
     pub check_replications: Option<usize>,
+    /// `check.max_failed_runs`: the fraction of a cell's declared runs that may fail
+    /// numerically before `kfmc check` calls its cases incomplete (default 0).
+    pub check_max_failed_runs: f64,
     /// Whether to write every run's estimates in the exchange format (`estimates.parquet`,
     /// `kfmc run --export-estimates`).
     pub export_estimates: bool,
@@ -1311,6 +1314,17 @@ pub fn validate(
     if check_replications == Some(0) {
         c.err("check.replications", "must be at least 1");
     }
+    let check_max_failed_runs = spec
+        .check
+        .as_ref()
+        .and_then(|t| t.max_failed_runs)
+        .unwrap_or(0.0);
+    if !(0.0..=1.0).contains(&check_max_failed_runs) {
+        c.err(
+            "check.max_failed_runs",
+            format!("{check_max_failed_runs} is not a fraction in [0, 1]"),
+        );
+    }
 
     if runs == 0 {
         c.err("runs", "must be at least 1");
@@ -1446,6 +1460,7 @@ pub fn validate(
         consistency,
         assertions,
         check_replications,
+        check_max_failed_runs,
         export_estimates: false,
         estimates: None,
         draws,

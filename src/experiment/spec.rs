@@ -81,6 +81,9 @@ pub struct CheckSpec {
     /// Replications of the whole study for the `rejection_rate` assertions (`kfmc check`
     /// then runs `kfmc power`; `--replications` overrides).
     pub replications: Option<usize>,
+    /// The fraction of a cell's declared runs that may fail numerically before its cases are
+    /// incomplete rather than judged (default 0: every declared run must complete).
+    pub max_failed_runs: Option<f64>,
     /// The assertions (`[[check.assert]]`).
     #[serde(default, rename = "assert")]
     pub asserts: Vec<TableOf<AssertSpec>>,

@@ -310,6 +310,9 @@ pub struct CellSums {
     nees_sum: f64,
     /// Σ ρ_r over the runs, `None` once a run has no error transition.
     rho: Option<f64>,
+    /// Counted runs that exposed an error transition: the calibrated NEES test is the one a
+    /// filter selects when any run has one, so a mixture means it could not be computed.
+    rho_runs: usize,
     nis_n: u64,
     nis_dof: u64,
     nis_sum: f64,
@@ -339,6 +342,7 @@ impl CellSums {
             nees_n: 0,
             nees_sum: -0.0,
             rho: Some(-0.0),
+            rho_runs: 0,
             nis_n: 0,
             nis_dof: 0,
             nis_sum: -0.0,
@@ -384,6 +388,7 @@ impl CellSums {
         let nf = self.n as f64;
         self.nees_n += r.nees_n;
         self.nees_sum += r.nees_sum;
+        self.rho_runs += usize::from(r.rho_sum.is_some());
         // NEES effective dof: ρ_r = 1 + (2/(n·K_r)) Σ tr(P⁻¹W), averaged over the runs.
         self.rho = self.rho.and_then(|a| {
             r.rho_sum
@@ -577,13 +582,23 @@ impl CellSums {
         // The verdict: both calibrated tests at α/2 (Bonferroni) ⇒ false-alarm rate ≤ α. A
         // filter without an error transition (a marginal of a larger state, say) has no
         // calibrated NEES test; with N ≥ 20 runs the model-free run-average t-test, valid for
-        // any filter, stands in for it.
+        // any filter, stands in for it. A filter whose runs expose the transition selects the
+        // calibrated test: when some of its runs lack it, the calibrated test cannot be
+        // computed and nothing stands in, so no verdict is written rather than one from
+        // another test.
         let nees = nees.or_else(|| {
-            (self.used >= 20)
+            (self.used >= 20 && self.rho_runs == 0)
                 .then(|| out.iter().find(|t| t.test == "nees_run_average_t").cloned())
                 .flatten()
         });
-        if let (Some(a), Some(b)) = (&nees, &nis) {
+        // A p-value that is missing or NaN is a verdict that could not be computed: none is
+        // written (NaN compares false, and `f64::min` would drop it silently).
+        let judged =
+            |t: &TestResult| t.statistic.is_finite() && t.p_value.is_some_and(f64::is_finite);
+        if let (Some(a), Some(b)) = (&nees, &nis)
+            && judged(a)
+            && judged(b)
+        {
             let (pa, pb) = (a.p_value.unwrap_or(0.0), b.p_value.unwrap_or(0.0));
             let pass = pa > alpha / 2.0 && pb > alpha / 2.0;
             // The failing test's side of its band's centre (its expected value) says which way.
@@ -757,6 +772,68 @@ mod tests {
                 t.test
             );
         }
+    }
+
+    /// 25 runs of a two-state filter with an error transition on every run.
+    fn runs_25() -> Vec<RunConsistency> {
+        (0..25)
+            .map(|i| {
+                let i = i as f64 / 10.0;
+                RunConsistency {
+                    first_step: Some(1),
+                    nees_sum: 20.0 + i,
+                    nees_n: 10,
+                    rho_sum: Some(1.0),
+                    nis_sum: 10.0 + i,
+                    nis_dof: 10,
+                    nis_n: 10,
+                    nme_sum: vec![0.1 * i, -0.2 * i],
+                    lag_prod: vec![0.1 * i, -0.1],
+                    lag_pairs: vec![9, 8],
+                    w_sq: 10.0,
+                    initial_nees: None,
+                }
+            })
+            .collect()
+    }
+
+    fn verdict(runs: &[RunConsistency]) -> Option<TestResult> {
+        cell_tests(runs, 2, &["a", "b"], 0.05, (None, None))
+            .into_iter()
+            .find(|t| t.test == VERDICT)
+    }
+
+    #[test]
+    fn a_run_without_its_error_transition_leaves_no_verdict_rather_than_another_test() {
+        let mut runs = runs_25();
+        assert!(verdict(&runs).is_some(), "the calibrated verdict");
+        // One run of a filter that exposes the transition lacks it: the calibrated NEES test
+        // cannot be computed, and the model-free test (N ≥ 20) must not stand in for it.
+        runs[7].rho_sum = None;
+        assert_eq!(verdict(&runs), None);
+        let tests = cell_tests(&runs, 2, &["a", "b"], 0.05, (None, None));
+        assert!(tests.iter().all(|t| t.test != "nees_time_average"));
+        assert!(tests.iter().any(|t| t.test == "nees_run_average_t"));
+        // A filter that exposes no transition on any run selects the model-free test.
+        for r in &mut runs {
+            r.rho_sum = None;
+        }
+        let v = verdict(&runs).expect("the model-free verdict at N = 25");
+        let t = cell_tests(&runs, 2, &["a", "b"], 0.05, (None, None))
+            .into_iter()
+            .find(|t| t.test == "nees_run_average_t")
+            .unwrap();
+        assert!(v.statistic <= t.p_value.unwrap());
+    }
+
+    #[test]
+    fn a_nan_p_value_leaves_no_verdict() {
+        let mut runs = runs_25();
+        runs[3].nis_sum = f64::NAN;
+        let tests = cell_tests(&runs, 2, &["a", "b"], 0.05, (None, None));
+        let nis = tests.iter().find(|t| t.test == "nis_time_average").unwrap();
+        assert!(nis.statistic.is_nan());
+        assert_eq!(verdict(&runs), None, "{tests:?}");
     }
 
     #[test]
