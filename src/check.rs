@@ -476,11 +476,19 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                                 ));
                                 continue;
                             }
+                            // "in" or "outside" by the row's own verdict, so the line never
+                            // reads "in" beside a failure.
+                            let ok = pass[i] == Some(true);
                             let bounds = match (lo[i], hi[i]) {
-                                (Some(l), Some(h)) => {
-                                    format!("in [{}, {}]", fmt(Some(l)), fmt(Some(h)))
+                                (Some(l), Some(h)) => format!(
+                                    "{} [{}, {}]",
+                                    if ok { "in" } else { "outside" },
+                                    fmt(Some(l)),
+                                    fmt(Some(h))
+                                ),
+                                (Some(l), None) => {
+                                    format!("{} {}", if ok { "≥" } else { "<" }, fmt(Some(l)))
                                 }
-                                (Some(l), None) => format!("≥ {}", fmt(Some(l))),
                                 _ => String::new(),
                             };
                             let d = if dir[i].is_empty() {
@@ -490,7 +498,7 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                             };
                             let detail = if *want == VERDICT {
                                 format!(
-                                    "smallest p-value of the NEES and NIS tests = {} (must exceed α/2 = {}){d}",
+                                    "Bonferroni p-value 2·min(p_NEES, p_NIS) = {} (must exceed α = {}){d}",
                                     fmt(stat[i]),
                                     fmt(lo[i])
                                 )

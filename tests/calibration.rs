@@ -123,6 +123,47 @@ fn verdict_whiteness_and_bias_reject_at_their_stated_rates_under_the_null() {
 }
 
 #[test]
+fn whiteness_false_alarm_rate_is_at_most_alpha_whatever_the_innovations_scale() {
+    // White innovations whose covariance is c² times the filter's S (gain still optimal, so
+    // the whitened innovations are N(0, c²) and still white): the whiteness test must keep
+    // its false-alarm rate ≤ α at every c, within 3 binomial standard deviations over 600
+    // exact null cells (20 runs × 30 steps × 3 components, 3 lags). The NIS test is the
+    // one that must see c.
+    let trials = 600;
+    let tol = 3.0 * (ALPHA * (1.0 - ALPHA) / trials as f64).sqrt();
+    for c in [0.5, 1.0, 10.0] {
+        let mut rng = Pcg64::seed_from_u64(4);
+        let (mut white, mut nis) = (0, 0);
+        for _ in 0..trials {
+            let mut cell = null_cell(&mut rng, 20, 30, 6, 3, 3);
+            for r in &mut cell {
+                let c2 = c * c;
+                r.nis_sum *= c2;
+                r.w_sq *= c2;
+                r.lag_prod.iter_mut().for_each(|p| *p *= c2);
+            }
+            let tests = cell_tests(&cell, 6, &["a"], ALPHA, (None, None));
+            let fails = |name: &str| tests.iter().any(|t| t.test == name && !t.pass);
+            white += fails("innovation_whiteness") as usize;
+            nis += fails("nis_time_average") as usize;
+        }
+        let rate = white as f64 / trials as f64;
+        assert!(
+            rate <= ALPHA + tol,
+            "c = {c}: whiteness false-alarm rate {rate}"
+        );
+        // Bonferroni over 3 nearly independent lags rejects at nearly α, not at 0.
+        assert!(rate > 0.01, "c = {c}: whiteness rejects at {rate}");
+        let nis_rate = nis as f64 / trials as f64;
+        if c == 1.0 {
+            assert!(within_binomial(nis_rate, ALPHA, trials), "NIS {nis_rate}");
+        } else {
+            assert_eq!(nis, trials, "c = {c}: the NIS test sees the scale");
+        }
+    }
+}
+
+#[test]
 fn verdict_detects_a_wrong_covariance_scale() {
     // NEES drawn as 1.1·χ²(n): a filter whose P is 10 % too small must be called optimistic.
     let mut rng = Pcg64::seed_from_u64(3);

@@ -304,7 +304,8 @@ fn reference_cell_tests(
     }
     let lags = runs[0].lag_prod.len();
     let w_sq: f64 = runs.iter().map(|r| r.w_sq).sum();
-    if lags > 0 && w_sq > 0.0 {
+    if lags > 0 && nis_dof > 0 && w_sq > 0.0 {
+        let variance = w_sq / nis_dof as f64;
         let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
         let mut worst: Option<(f64, f64, f64)> = None;
         for l in 0..lags {
@@ -313,11 +314,11 @@ fn reference_cell_tests(
             if pairs == 0 {
                 continue;
             }
-            let z = prod / (pairs as f64).sqrt();
-            let rho_l = prod / w_sq;
-            let bound = crit * (pairs as f64).sqrt() / w_sq;
+            let m = pairs as f64;
+            let rho_l = prod / m / variance;
+            let z = rho_l * m.sqrt();
             if worst.is_none_or(|(wz, _, _)| z.abs() > wz) {
-                worst = Some((z.abs(), rho_l, bound));
+                worst = Some((z.abs(), rho_l, crit / m.sqrt()));
             }
         }
         if let Some((z, rho_l, bound)) = worst {
@@ -359,15 +360,15 @@ fn reference_cell_tests(
                 Direction::Pessimistic
             }
         };
-        let p = pa.min(pb);
+        let p = (2.0 * pa.min(pb)).min(1.0);
         let direction = (!pass).then(|| if pa <= pb { side(a) } else { side(b) });
         out.push(TestResult {
             test: VERDICT.into(),
             statistic: p,
-            lower: Some(alpha / 2.0),
+            lower: Some(alpha),
             upper: None,
             dof: None,
-            p_value: Some((2.0 * pa.min(pb)).min(1.0)),
+            p_value: Some(p),
             pass,
             direction,
         });

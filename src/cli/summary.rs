@@ -8,6 +8,7 @@ use std::path::Path;
 use polars::prelude::*;
 
 use crate::error::OutputError;
+use crate::metrics::consistency::verdict_band;
 use crate::output::table::read;
 
 fn fmt_err(path: &Path, e: PolarsError) -> OutputError {
@@ -252,6 +253,7 @@ fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, 
         f64s(&df, "upper", path)?,
     );
     let alpha = f64s(&df, "alpha", path)?;
+    let (dof, p_value) = (f64s(&df, "dof", path)?, f64s(&df, "p_value", path)?);
     let pass: Vec<Option<bool>> = df
         .column("pass")
         .and_then(|c| c.bool().cloned())
@@ -265,6 +267,24 @@ fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, 
         .iter()
         .collect();
     let g = |v: Option<f64>| v.map_or("—".to_string(), |x| format!("{x}"));
+    let key_of = |i: usize| {
+        let label = match (q[i], r[i]) {
+            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{} q×{q} r×{r}", filt[i]),
+            _ => filt[i].clone(),
+        };
+        [
+            scen[i].clone(),
+            g(noise[i]),
+            label,
+            runs[i].map_or("—".into(), |n| n.to_string()),
+            g(alpha[i]),
+        ]
+    };
+    // Keys with a verdict: their ANEES and ANIS are shown in the α/2 bands it judges by.
+    let judged: Vec<[String; 5]> = (0..df.height())
+        .filter(|&i| test[i] == "verdict")
+        .map(key_of)
+        .collect();
     // Row key (in table order) → [ANEES, ANIS, x0 NEES, verdict] texts.
     let mut keys: Vec<[String; 5]> = Vec::new();
     let mut cols: Vec<[String; 4]> = Vec::new();
@@ -280,17 +300,8 @@ fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, 
             "verdict" => 3,
             _ => continue,
         };
-        let label = match (q[i], r[i]) {
-            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{} q×{q} r×{r}", filt[i]),
-            _ => filt[i].clone(),
-        };
-        let key = [
-            scen[i].clone(),
-            g(noise[i]),
-            label,
-            runs[i].map_or("—".into(), |n| n.to_string()),
-            g(alpha[i]),
-        ];
+        let key = key_of(i);
+        let in_verdict = slot < 2 && judged.contains(&key);
         let idx = match keys.iter().position(|k| *k == key) {
             Some(p) => p,
             None => {
@@ -306,7 +317,33 @@ fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, 
                 _ => format!("FAIL ({})", dirn[i]),
             }
         } else {
-            format!("{} [{}, {}]", num(stat[i]), num(lo[i]), num(hi[i]))
+            let band = in_verdict
+                .then(|| verdict_band(&test[i], lo[i], hi[i], dof[i], alpha[i]?))
+                .flatten();
+            match band {
+                // The verdict's decision (p > α/2), with the band it is equivalent to.
+                Some(b) => {
+                    let out = p_value[i].is_none_or(|p| p <= alpha[i].unwrap_or(0.0) / 2.0);
+                    format!(
+                        "{} [{}, {}]{}",
+                        num(stat[i]),
+                        num(Some(b.lo)),
+                        num(Some(b.hi)),
+                        if out { " outside" } else { "" }
+                    )
+                }
+                None => format!(
+                    "{} [{}, {}]{}",
+                    num(stat[i]),
+                    num(lo[i]),
+                    num(hi[i]),
+                    if pass[i] == Some(false) {
+                        " outside"
+                    } else {
+                        ""
+                    }
+                ),
+            }
         };
     }
     let mut out = String::new();
@@ -336,7 +373,7 @@ fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, 
         })
         .collect();
     out.push_str(
-        "\nConsistency (run-and-time averages with their χ² bands at α; verdict: NEES and NIS both at α/2)\n",
+        "\nConsistency (run-and-time averages; ANEES and ANIS in the χ² bands at α/2 the verdict judges by (at α in a cell without a verdict): it passes when both lie inside, i.e. its Bonferroni p = 2·min(p_NEES, p_NIS) exceeds α; x0 NEES at α)\n",
     );
     let mut line = String::new();
     for j in 0..5 {

@@ -15,8 +15,11 @@
 //!     A_k = (I − K_k H_k)F_k. The run-and-time average Ā is therefore tested as
 //!     Ā·ν/n ~ χ²(ν) with ν = N·K·n/ρ (moment matching).
 //!   - *Combined.* The verdict is "consistent" when both two-sided tests pass at α/2 each
-//!     (Bonferroni), so its false-alarm rate is at most α. The README reports the rate measured
-//!     by `examples/calibration.rs`.
+//!     (Bonferroni), so its false-alarm rate is at most α: its row holds the combined p-value
+//!     min(1, 2·min(p_NEES, p_NIS)) as `statistic` and `p_value`, and α as `lower` (it passes
+//!     when the p-value exceeds α). [`verdict_band`] gives the α/2 bands it judges by. The
+//!     README reports the rate measured by `examples/calibration.rs`.
+//! * **Whiteness**, scale-free: see [`whiteness_test`].
 //!
 //! # Reference
 //! Bar-Shalom, Li & Kirubarajan, *Estimation with Applications to Tracking and Navigation*
@@ -236,6 +239,111 @@ fn t_test_of(
             }
         }),
     })
+}
+
+/// The innovation-whiteness test (`innovation_whiteness`) from the sums of whitened
+/// innovations w_k = L_k⁻¹ν_k (S_k = L_k L_kᵀ, the filter's innovation covariance):
+/// `lag_prod[l−1]` = Σ w_kᵀw_{k+l} over `lag_pairs[l−1]` = m_l pairs of components that both
+/// reported, `w_sq` = Σ ‖w_k‖² over `components` = M reported components.
+///
+/// Per lag l = 1..L the statistic is the normalised autocorrelation
+///
+/// ```text
+/// ρ̂_l = (Σ w_kᵀw_{k+l} / m_l) / (Σ ‖w_k‖² / M)
+/// ```
+///
+/// the lag-l sample autocovariance divided by the sample variance of the same components,
+/// as Bar-Shalom, Li & Kirubarajan (2001, §5.4) normalise the innovations' sample
+/// autocorrelation. For white innovations √m_l·ρ̂_l is asymptotically N(0, 1), so the band is
+/// ±z/√m_l with z = z_{1−α/(2L)}: it depends on the number of pairs only.
+///
+/// **Scale-free.** A filter whose S is off by a common factor c² (true innovation covariance
+/// c²·S, gain still optimal) gives w_k with N(0, c²) components: numerator and denominator
+/// both scale by c², so ρ̂_l and its band do not change. Only correlation in time moves the
+/// statistic; the scale is the NIS test's business. (A normaliser by the nominal variance 1
+/// instead of the sample's own would call a 10× noise error "correlated".)
+///
+/// **Lags combined** by Bonferroni: the test passes when every lag's |ρ̂_l| ≤ z/√m_l, so its
+/// false-alarm rate is at most α. The row reports the lag with the largest |ρ̂_l|·√m_l, its
+/// band, `dof` = L and p = min(1, L·p_l). `None` without lags, pairs or components.
+pub fn whiteness_test(
+    lag_prod: &[f64],
+    lag_pairs: &[u64],
+    w_sq: f64,
+    components: u64,
+    alpha: f64,
+) -> Option<TestResult> {
+    let lags = lag_prod.len();
+    if lags == 0 || components == 0 || w_sq.is_nan() || w_sq <= 0.0 {
+        return None;
+    }
+    let variance = w_sq / components as f64;
+    let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
+    let mut worst: Option<(f64, f64, f64)> = None; // (|z|, ρ̂, band half-width)
+    for (&prod, &pairs) in lag_prod.iter().zip(lag_pairs) {
+        if pairs == 0 {
+            continue;
+        }
+        let m = pairs as f64;
+        let rho = prod / m / variance;
+        let z = rho * m.sqrt();
+        if worst.is_none_or(|(wz, _, _)| z.abs() > wz) {
+            worst = Some((z.abs(), rho, crit / m.sqrt()));
+        }
+    }
+    let (z, rho, half) = worst?;
+    Some(TestResult {
+        test: "innovation_whiteness".into(),
+        statistic: rho,
+        lower: Some(-half),
+        upper: Some(half),
+        dof: Some(lags as f64),
+        p_value: Some((normal_two_sided_p(z) * lags as f64).min(1.0)),
+        pass: z <= crit,
+        direction: None,
+    })
+}
+
+/// The verdict's p-value from the NEES and NIS tests' two-sided p-values (Bonferroni):
+/// min(1, 2·min(p_NEES, p_NIS)). It exceeds α exactly when both exceed α/2.
+pub fn bonferroni_p(p_nees: f64, p_nis: f64) -> f64 {
+    (2.0 * p_nees.min(p_nis)).min(1.0)
+}
+
+/// The band the verdict judges a component test's statistic against: the band at α/2 where
+/// the row (`test`, `lower`, `upper`, `dof`) holds it at the study's α. The verdict's
+/// components are `nees_time_average` (or `nees_run_average_t` standing in for it) and
+/// `nis_time_average`; `None` for other tests or a row without its band or dof.
+///
+/// A χ² band [d·χ²⁻¹(α/2, ν)/ν, d·χ²⁻¹(1−α/2, ν)/ν] becomes [d·χ²⁻¹(α/4, ν)/ν,
+/// d·χ²⁻¹(1−α/4, ν)/ν] (each end rescaled by the ratio of quantiles, so d need not be known);
+/// a t band becomes ±t_{1−α/4}(dof).
+pub fn verdict_band(
+    test: &str,
+    lower: Option<f64>,
+    upper: Option<f64>,
+    dof: Option<f64>,
+    alpha: f64,
+) -> Option<Band> {
+    let dof = dof?;
+    match test {
+        "nees_time_average" | "nis_time_average" => {
+            let chi = ChiSquared::new(dof).ok()?;
+            let q = |p: f64| chi.inverse_cdf(p);
+            Some(Band {
+                lo: lower? * q(alpha / 4.0) / q(alpha / 2.0),
+                hi: upper? * q(1.0 - alpha / 4.0) / q(1.0 - alpha / 2.0),
+            })
+        }
+        "nees_run_average_t" => {
+            let crit = t_quantile(1.0 - alpha / 4.0, dof)?;
+            Some(Band {
+                lo: -crit,
+                hi: crit,
+            })
+        }
+        _ => None,
+    }
 }
 
 /// The name of the combined test row.
@@ -539,37 +647,13 @@ impl CellSums {
             }
         }
 
-        // Whiteness: z_l = Σ wᵀw_{+l}/√pairs ~ N(0, 1) per lag; Bonferroni over the lags.
-        let lag_prod = self.lag_prod.as_deref().unwrap_or(&[]);
-        let lags = lag_prod.len();
-        let w_sq = self.w_sq;
-        if lags > 0 && w_sq > 0.0 {
-            let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
-            let mut worst: Option<(f64, f64, f64)> = None; // (|z|, ρ, ρ bound)
-            for (&prod, &pairs) in lag_prod.iter().zip(&self.lag_pairs) {
-                if pairs == 0 {
-                    continue;
-                }
-                let z = prod / (pairs as f64).sqrt();
-                let rho_l = prod / w_sq;
-                let bound = crit * (pairs as f64).sqrt() / w_sq;
-                if worst.is_none_or(|(wz, _, _)| z.abs() > wz) {
-                    worst = Some((z.abs(), rho_l, bound));
-                }
-            }
-            if let Some((z, rho_l, bound)) = worst {
-                out.push(TestResult {
-                    test: "innovation_whiteness".into(),
-                    statistic: rho_l,
-                    lower: Some(-bound),
-                    upper: Some(bound),
-                    dof: Some(lags as f64),
-                    p_value: Some((normal_two_sided_p(z) * lags as f64).min(1.0)),
-                    pass: z <= crit,
-                    direction: None,
-                });
-            }
-        }
+        out.extend(whiteness_test(
+            self.lag_prod.as_deref().unwrap_or(&[]),
+            &self.lag_pairs,
+            self.w_sq,
+            self.nis_dof,
+            alpha,
+        ));
 
         // Bias: per state, the per-run mean normalised error e/√P_ii is N(0, ·) across runs.
         for (i, state) in state_names.iter().enumerate().take(self.row_width() - 1) {
@@ -610,15 +694,18 @@ impl CellSums {
                     Direction::Pessimistic
                 }
             };
-            let p = pa.min(pb);
             let direction = (!pass).then(|| if pa <= pb { side(a) } else { side(b) });
+            // Bonferroni: the combined p-value is 2·min(p_NEES, p_NIS) (capped at 1), and the
+            // verdict passes when it exceeds α, i.e. when both tests pass at α/2. `statistic`
+            // and `p_value` both hold it, `lower` holds α, so the row reads like any other.
+            let p = bonferroni_p(pa, pb);
             out.push(TestResult {
                 test: VERDICT.into(),
                 statistic: p,
-                lower: Some(alpha / 2.0),
+                lower: Some(alpha),
                 upper: None,
                 dof: None,
-                p_value: Some((2.0 * pa.min(pb)).min(1.0)),
+                p_value: Some(p),
                 pass,
                 direction,
             });
@@ -844,5 +931,154 @@ mod tests {
         let r = t_test("t", &v, 0.0, 0.05, true).unwrap();
         assert!((r.statistic - 1.0 / (sd / 2.0)).abs() < 1e-12);
         assert!((r.upper.unwrap() - 3.182446305284263).abs() < 1e-6);
+    }
+
+    /// A cell of 30 runs with two lags, fixed values standing in for white innovations.
+    fn white_cell() -> Vec<RunConsistency> {
+        (0..30)
+            .map(|i| {
+                let x = i as f64;
+                RunConsistency {
+                    first_step: Some(1),
+                    nees_sum: 40.0 + (x * 0.9).sin(),
+                    nees_n: 20,
+                    rho_sum: Some(1.0),
+                    nis_sum: 40.0 + (x * 0.7).sin(),
+                    nis_dof: 40,
+                    nis_n: 20,
+                    nme_sum: vec![0.1 * (x * 0.3).sin(), -0.1 * (x * 0.5).cos()],
+                    lag_prod: vec![3.0 * (x * 1.3).sin(), 2.0 * (x * 0.4).cos()],
+                    lag_pairs: vec![38, 36],
+                    w_sq: 40.0 + (x * 0.7).sin(),
+                    initial_nees: None,
+                }
+            })
+            .collect()
+    }
+
+    fn find(tests: &[TestResult], name: &str) -> TestResult {
+        tests.iter().find(|t| t.test == name).cloned().unwrap()
+    }
+
+    #[test]
+    fn whiteness_band_does_not_change_when_the_innovations_are_scaled() {
+        // The same innovations multiplied by c: every product and square scales by c², as it
+        // does when the truth's noise is c² times what the filter assumes (gain unchanged).
+        let base = white_cell();
+        let scaled = |c: f64| -> Vec<RunConsistency> {
+            base.iter()
+                .map(|r| RunConsistency {
+                    nis_sum: r.nis_sum * c * c,
+                    lag_prod: r.lag_prod.iter().map(|p| p * c * c).collect(),
+                    w_sq: r.w_sq * c * c,
+                    ..r.clone()
+                })
+                .collect()
+        };
+        let white = |runs: &[RunConsistency]| {
+            find(
+                &cell_tests(runs, 2, &["a", "b"], 0.05, (None, None)),
+                "innovation_whiteness",
+            )
+        };
+        let w1 = white(&base);
+        // By hand: ρ̂_l = (Σ prod_l / Σ pairs_l) / (Σ ‖w‖² / Σ p), the lag with the larger
+        // |ρ̂_l|·√pairs_l reported, band ±z_{1−α/4}/√pairs_l (Bonferroni over 2 lags).
+        let w_sq: f64 = base.iter().map(|r| r.w_sq).sum();
+        let var = w_sq / (30.0 * 40.0);
+        let (rho, half) = (0..2)
+            .map(|l| {
+                let prod: f64 = base.iter().map(|r| r.lag_prod[l]).sum();
+                let m = 30.0 * base[0].lag_pairs[l] as f64;
+                (prod / m / var, normal_quantile(1.0 - 0.05 / 4.0) / m.sqrt())
+            })
+            .max_by(|a, b| (a.0.abs() / a.1).total_cmp(&(b.0.abs() / b.1)))
+            .unwrap();
+        assert!(
+            (w1.statistic - rho).abs() <= 1e-12 * rho.abs(),
+            "{w1:?} vs {rho}"
+        );
+        assert!(
+            (w1.upper.unwrap() - half).abs() <= 1e-12 * half,
+            "{w1:?} vs {half}"
+        );
+        assert_eq!(w1.lower, w1.upper.map(|h| -h));
+        for c in [0.5, 10.0, 1e-3, 3.7] {
+            let w = white(&scaled(c));
+            assert_eq!((w.lower, w.upper), (w1.lower, w1.upper), "band at c = {c}");
+            assert!(
+                (w.statistic - w1.statistic).abs() <= 1e-12 * w1.statistic.abs(),
+                "statistic at c = {c}: {} vs {}",
+                w.statistic,
+                w1.statistic
+            );
+            assert_eq!(w.pass, w1.pass, "c = {c}");
+            let (p, p1) = (w.p_value.unwrap(), w1.p_value.unwrap());
+            assert!((p - p1).abs() <= 1e-9 * p1.max(1e-300), "p at c = {c}");
+        }
+    }
+
+    #[test]
+    fn verdict_row_holds_the_bonferroni_p_value_against_alpha() {
+        let alpha = 0.05;
+        let mut cell = white_cell();
+        for (i, r) in cell.iter_mut().enumerate() {
+            // NEES a little high in some runs, so the two p-values differ.
+            r.nees_sum += 2.0 * (i % 3) as f64;
+        }
+        let tests = cell_tests(&cell, 2, &["a", "b"], alpha, (None, None));
+        let (a, b, v) = (
+            find(&tests, "nees_time_average"),
+            find(&tests, "nis_time_average"),
+            find(&tests, VERDICT),
+        );
+        let (pa, pb) = (a.p_value.unwrap(), b.p_value.unwrap());
+        let p = (2.0 * pa.min(pb)).min(1.0);
+        assert_eq!(v.statistic, p);
+        assert_eq!(v.p_value, Some(p));
+        assert_eq!((v.lower, v.upper, v.dof), (Some(alpha), None, None));
+        assert_eq!(v.pass, p > alpha);
+        assert_eq!(v.pass, pa > alpha / 2.0 && pb > alpha / 2.0);
+        // Two p-values that straddle α/2 and 1.
+        assert_eq!(bonferroni_p(0.02, 0.9), 0.04);
+        assert_eq!(bonferroni_p(0.7, 0.6), 1.0);
+    }
+
+    #[test]
+    fn verdict_bands_are_the_component_bands_at_half_alpha() {
+        let alpha = 0.05;
+        for (mean, d, nu) in [(6.2, 6.0, 3000.0), (2.9, 3.0, 40.0), (1.0, 1.0, 1.2e6)] {
+            let at_alpha = scaled_chi2_test("nees_time_average", mean, d, nu, alpha).unwrap();
+            let at_half = scaled_chi2_test("nees_time_average", mean, d, nu, alpha / 2.0).unwrap();
+            for name in ["nees_time_average", "nis_time_average"] {
+                let b = verdict_band(name, at_alpha.lower, at_alpha.upper, at_alpha.dof, alpha)
+                    .unwrap();
+                let (lo, hi) = (at_half.lower.unwrap(), at_half.upper.unwrap());
+                assert!((b.lo - lo).abs() <= 1e-12 * lo, "{b:?} vs {lo}");
+                assert!((b.hi - hi).abs() <= 1e-12 * hi, "{b:?} vs {hi}");
+            }
+        }
+        let v = [5.0, 6.5, 7.0, 5.5, 6.0, 8.0];
+        let at_alpha = t_test("nees_run_average_t", &v, 6.0, alpha, true).unwrap();
+        let at_half = t_test("nees_run_average_t", &v, 6.0, alpha / 2.0, true).unwrap();
+        let b = verdict_band(
+            "nees_run_average_t",
+            at_alpha.lower,
+            at_alpha.upper,
+            at_alpha.dof,
+            alpha,
+        )
+        .unwrap();
+        assert_eq!((Some(b.lo), Some(b.hi)), (at_half.lower, at_half.upper));
+        assert_eq!(
+            verdict_band(
+                "innovation_whiteness",
+                Some(-1.0),
+                Some(1.0),
+                Some(3.0),
+                alpha
+            ),
+            None
+        );
     }
 }

@@ -10,6 +10,7 @@ use polars::prelude::DataType;
 
 use super::{Table, Tables, plotted_scales, render, short};
 use crate::error::PlotError;
+use crate::metrics::consistency::verdict_band;
 
 /// Escapes text for HTML element content and attribute values.
 pub fn escape(s: &str) -> String {
@@ -263,6 +264,7 @@ fn verdict_table(c: &Table) -> Result<String, PlotError> {
         c.f64s("upper")?,
         c.f64s("p_value")?,
     );
+    let (dof, alpha) = (c.f64s("dof")?, c.f64s("alpha")?);
     let pass: Vec<Option<bool>> =
         c.df.column("pass")
             .ok()
@@ -338,25 +340,47 @@ fn verdict_table(c: &Table) -> Result<String, PlotError> {
             }
             None => h.push_str("<td class=\"na\">—</td>"),
         }
+        // The verdict's components (the NEES time average, or the run-average t-test standing
+        // in for it, and the NIS time average) are drawn with the α/2 band and the α/2
+        // decision the verdict uses; the other columns are their own tests at α.
+        let has_verdict = find(k, "verdict").is_some();
+        let calibrated_nees = find(k, "nees_time_average").is_some();
         for (name, _) in columns {
             match find(k, name) {
                 Some(i) => {
-                    let inside = match pass[i] {
+                    let component = has_verdict
+                        && match name {
+                            "nees_time_average" | "nis_time_average" => true,
+                            "nees_run_average_t" => !calibrated_nees,
+                            _ => false,
+                        };
+                    let half = component
+                        .then(|| {
+                            let a = alpha[i]?;
+                            let band = verdict_band(name, lo[i], hi[i], dof[i], a)?;
+                            Some((band, p[i].map(|p| p > a / 2.0)))
+                        })
+                        .flatten();
+                    let (l, u, ok) = match half {
+                        Some((band, ok)) => (Some(band.lo), Some(band.hi), ok),
+                        None => (lo[i], hi[i], pass[i]),
+                    };
+                    let inside = match ok {
                         Some(true) => "∈",
                         _ => "∉",
                     };
                     // Statistic and band with one number of decimals: 4 significant
                     // digits of the band's larger end.
-                    let scale = hi[i].or(lo[i]).or(stat[i]).unwrap_or(1.0).abs();
+                    let scale = u.or(l).or(stat[i]).unwrap_or(1.0).abs();
                     let d = (decimals_for(scale) + 1).min(6);
                     let _ = write!(
                         h,
                         "<td class=\"{}\">{}<small>{} [{}, {}]</small></td>",
-                        class(pass[i]),
+                        class(ok),
                         escape(&fixed(stat[i], d)),
                         inside,
-                        escape(&fixed(lo[i], d)),
-                        escape(&fixed(hi[i], d))
+                        escape(&fixed(l, d)),
+                        escape(&fixed(u, d))
                     );
                 }
                 None => h.push_str("<td class=\"na\">—</td>"),
@@ -569,7 +593,7 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
 
     // The answer.
     if let Some(c) = &t.consistency {
-        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (the calibrated tests; see the README, “Consistency: what the verdict means”). Each cell gives the statistic and its acceptance band; green passes, red fails.</p>\n");
+        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (Bonferroni: the verdict’s p = 2·min(p<sub>NEES</sub>, p<sub>NIS</sub>) exceeds α; see “Consistency: what the verdict means”). The NEES and NIS cells (and the NEES run-average t-test where it stands in for a NEES test) show the statistic in those α/2 bands; the whiteness cell and a t-test that is not part of the verdict show their own test at α. Green passes, red fails.</p>\n");
         h.push_str(&verdict_table(c)?);
         let _ = writeln!(
             h,
