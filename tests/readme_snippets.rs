@@ -12,8 +12,9 @@
 //!   `<!-- test -->` (or `<!-- test: ARGS -->`) has each of its `kfmc …` and
 //!   `cargo run --release -- …` lines (in a console block, the lines after `$ `) run in a
 //!   scratch folder that sees the repository's `experiments/` and `examples/`, in order, and
-//!   each must exit 0. ARGS (e.g. `--runs 5`) are appended to the commands that run a study
-//!   (`run`, `check`, `simulate`, `power`, `tune`), so the test stays small. The comment is
+//!   each must exit 0. ARGS (e.g. `--runs 5`) are added to the commands that run a study
+//!   (`run`, `check`, `simulate`, `power`, `tune`), replacing the command's own value of the
+//!   same flag, so the test stays small. The comment is
 //!   invisible in the rendered book.
 //! * Every relative link and image resolves to a file of the repository, and every `#anchor`
 //!   into a page to one of its headings (as mdBook writes their ids); every page of
@@ -352,7 +353,10 @@ fn every_relative_link_of_the_docs_resolves() {
         }
     }
     assert!(broken.is_empty(), "broken links:\n{}", broken.join("\n"));
-    assert!(checked > 50, "only {checked} links found: is the parser broken?");
+    assert!(
+        checked > 50,
+        "only {checked} links found: is the parser broken?"
+    );
 }
 
 #[test]
@@ -372,7 +376,10 @@ fn every_page_is_in_the_summary_and_the_readme_is_a_front_page() {
     );
     let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
     let lines = readme.lines().count();
-    assert!(lines <= 300, "README.md has {lines} lines; the detail belongs in docs/");
+    assert!(
+        lines <= 300,
+        "README.md has {lines} lines; the detail belongs in docs/"
+    );
     // The README's two set-up commands, exactly.
     for cmd in [
         "cargo run --release -- run experiments/planar_seed_study.toml",
@@ -483,11 +490,14 @@ fn marked_command_blocks_run() {
                 let runs_a_study = ["run", "check", "simulate", "power", "tune"]
                     .contains(&args.first().map_or("", String::as_str));
                 if runs_a_study {
-                    // ARGS are `--flag value` pairs; a flag the command already sets keeps
-                    // the command's value.
+                    // ARGS are `--flag value` pairs; one the command sets itself replaces
+                    // the command's value (a documented `--runs 20` runs with ARGS' count).
                     for pair in extra.chunks(2) {
-                        if !args.contains(&pair[0]) {
-                            args.extend(pair.iter().cloned());
+                        match args.iter().position(|a| *a == pair[0]) {
+                            Some(i) if pair.len() == 2 && i + 1 < args.len() => {
+                                args[i + 1] = pair[1].clone()
+                            }
+                            _ => args.extend(pair.iter().cloned()),
                         }
                     }
                     args.push("--quiet".into());
