@@ -5,9 +5,9 @@
 //! * **Per-step bands.** N·ANEES_k ~ χ²(N·n) for a consistent filter, so the two-sided band
 //!   is [χ²⁻¹(α/2, N·n)/N, χ²⁻¹(1−α/2, N·n)/N]; likewise ANIS with the reported components.
 //! * **Why a per-step band is not a verdict.** Steps are correlated in time, so "≥ 1−α of
-//!   the steps inside" has no known false-alarm rate (DESIGN §5). kfmc reports it as a
+//!   the steps inside" has no known false-alarm rate. kfmc reports it as a
 //!   description only.
-//! * **Calibrated verdict** (DESIGN §5):
+//! * **Calibrated verdict**:
 //!   - *NIS, exact.* A consistent filter's innovations are white, so Σ NIS over runs and steps
 //!     ~ χ²(Σ p).
 //!   - *NEES, effective dof.* The time-summed NEES has variance 2nK·ρ with
@@ -15,8 +15,9 @@
 //!     A_k = (I − K_k H_k)F_k. The run-and-time average Ā is therefore tested as
 //!     Ā·ν/n ~ χ²(ν) with ν = N·K·n/ρ (moment matching).
 //!   - *Combined.* The verdict is "consistent" when both two-sided tests pass at α/2 each
-//!     (Bonferroni), so its false-alarm rate is at most α. The README reports the rate measured
-//!     by `examples/calibration.rs`.
+//!     (Bonferroni), so its false-alarm rate is at most α. The book
+//!     (`docs/src/statistics/consistency.md`) reports the rate measured by
+//!     `examples/calibration.rs`.
 //!
 //! # Reference
 //! Bar-Shalom, Li & Kirubarajan, *Estimation with Applications to Tracking and Navigation*
@@ -696,7 +697,7 @@ mod tests {
 
     #[test]
     fn bands_match_the_reference_values() {
-        // DESIGN §5 / issue 3 reference values, 4 decimals.
+        // Published χ² quantiles, to their 4 decimals.
         let b = average_chi2_band(6.0, 50.0, 0.05).unwrap();
         assert!(close(b.lo, 5.0782) && close(b.hi, 6.9975), "{b:?}");
         let b = average_chi2_band(6.0, 200.0, 0.003).unwrap();

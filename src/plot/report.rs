@@ -569,7 +569,7 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
 
     // The answer.
     if let Some(c) = &t.consistency {
-        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (the calibrated tests; see the README, “Consistency: what the verdict means”). Each cell gives the statistic and its acceptance band; green passes, red fails.</p>\n");
+        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (the calibrated tests; see kfmc’s book, “What the verdict means”). Each cell gives the statistic and its acceptance band; green passes, red fails.</p>\n");
         h.push_str(&verdict_table(c)?);
         let _ = writeln!(
             h,
