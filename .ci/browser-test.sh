@@ -9,7 +9,7 @@
 #   * a 1280 px screenshot that is not blank (PNG decoded with zlib, no PIL needed);
 #   * the print stylesheet produces a PDF.
 # Usage: .ci/browser-test.sh [KFMC_BINARY] [--update-reference]
-# --update-reference copies the screenshot to results/examples/planar_seed_study/report.png.
+# --update-reference copies the screenshot to docs/src/figures/report.png.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 KFMC=${1:-target/release/kfmc}
@@ -131,7 +131,7 @@ echo "print: $(stat -c %s "$work/report.pdf") bytes, $pages pages"
 [ "$pages" -gt 0 ] || { echo "the printed report has no pages"; exit 1; }
 
 if [ "$UPDATE" = "--update-reference" ]; then
-    cp "$work/report.png" results/examples/planar_seed_study/report.png
+    cp "$work/report.png" docs/src/figures/report.png
 fi
 t2=$(date +%s)
 echo "browser test: $((t2 - t0)) s ($((t1 - t0)) s installing Chromium, $((t2 - t1)) s checking)"

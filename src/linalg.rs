@@ -1,7 +1,7 @@
 //! Fixed-size linear algebra for the per-step hot loop (nalgebra `SMatrix`), and the one place
 //! that converts to faer for larger, dynamically sized problems.
 //!
-//! DESIGN §8: filter algebra is small (n ≤ 9) and fixed-size, where nalgebra's stack-allocated
+//! Filter algebra is small (n ≤ 9) and fixed-size, where nalgebra's stack-allocated
 //! matrices beat faer by about 2× per step; faer serves stacked whole-trajectory problems.
 
 use nalgebra::{SMatrix, SVector};

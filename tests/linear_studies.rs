@@ -350,7 +350,7 @@ fn the_seeds_three_nees_tests_are_prefixes_of_one_study() {
 #[test]
 fn q_scaling_the_time_average_tests_catch_2x_while_per_step_nis_needs_thousands() {
     // linear_q_scaling.toml: 50 runs, α = 0.003, the truth unchanged. Fixed seed; the margins
-    // below are many standard errors wide (numbers in README.md).
+    // below are many standard errors wide (numbers in docs/src/systems/linear-quadrotor.md).
     let (_d, out) = tmp();
     let plan = shipped("linear_q_scaling", &out, Overrides::default());
     run(

@@ -1,4 +1,4 @@
-//! Determinism and seeding (DESIGN §3): identical tables for any thread count; adding a
+//! Determinism and seeding: identical tables for any thread count; adding a
 //! filter, a noise scale or a scenario leaves existing runs' numbers unchanged; all filters of
 //! a run see the same truth and measurements; common random numbers across noise scales.
 

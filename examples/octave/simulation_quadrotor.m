@@ -1,5 +1,5 @@
 % seed 000's simulation_quadrotor.m as printed, with the transposes the PDF lost restored
-% (README, "How kfmc relates to the seeds"): C x for a row x reads (C x')'.
+% (docs/src/systems/planar.md, "How kfmc relates to the seeds"): C x for a row x reads (C x')'.
 function [state, output, errors] = simulation_quadrotor(rotor_data, control_input, noise_data, time, x0)
 
 % Three functions combined into one

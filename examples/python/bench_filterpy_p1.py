@@ -1,4 +1,4 @@
-"""Throughput of FilterPy's EKF on kfmc's P1 planar quadrotor, for the README's comparison.
+"""Throughput of FilterPy's EKF on kfmc's P1 planar quadrotor, for the comparison on the book's performance page (docs/src/performance.md).
 
     pip install filterpy numpy
     python3 examples/python/bench_filterpy_p1.py [RUNS]

@@ -125,7 +125,7 @@ impl SigmaPoints {
     /// EKF's Jacobian does, with a centre weight of −10⁶ whose cancellation costs six digits
     /// and can make P⁻ indefinite; κ = 3 − n = −3 (Julier's fourth-moment match) gives a
     /// centre mean weight of −1 (its covariance weight is 1 with β = 2). The price of the wide spread, measured on the
-    /// planar IMU set (README, "Sigma-point filters"): at high noise S comes out too large, and
+    /// planar IMU set (`docs/src/systems/sigma-point.md`): at high noise S comes out too large, and
     /// α = 0.1 stays consistent longer until its −99 centre weight forces repairs.
     pub const DEFAULT_UNSCENTED: SigmaPoints = SigmaPoints::Unscented {
         alpha: 1.0,

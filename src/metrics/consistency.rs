@@ -5,9 +5,9 @@
 //! * **Per-step bands.** N·ANEES_k ~ χ²(N·n) for a consistent filter, so the two-sided band
 //!   is [χ²⁻¹(α/2, N·n)/N, χ²⁻¹(1−α/2, N·n)/N]; likewise ANIS with the reported components.
 //! * **Why a per-step band is not a verdict.** Steps are correlated in time, so "≥ 1−α of
-//!   the steps inside" has no known false-alarm rate (DESIGN §5). kfmc reports it as a
+//!   the steps inside" has no known false-alarm rate. kfmc reports it as a
 //!   description only.
-//! * **Calibrated verdict** (DESIGN §5):
+//! * **Calibrated verdict**:
 //!   - *NIS, exact.* A consistent filter's innovations are white, so Σ NIS over runs and steps
 //!     ~ χ²(Σ p).
 //!   - *NEES, effective dof.* The time-summed NEES has variance 2nK·ρ with
@@ -18,7 +18,8 @@
 //!     (Bonferroni), so its false-alarm rate is at most α: its row holds the combined p-value
 //!     min(1, 2·min(p_NEES, p_NIS)) as `statistic` and `p_value`, and α as `lower` (it passes
 //!     when the p-value exceeds α). [`verdict_band`] gives the α/2 bands it judges by. The
-//!     README reports the rate measured by `examples/calibration.rs`.
+//!     book (`docs/src/statistics/consistency.md`) reports the rate measured by
+//!     `examples/calibration.rs`.
 //! * **Whiteness**, scale-free: see [`whiteness_test`].
 //!
 //! # Reference
@@ -798,7 +799,7 @@ mod tests {
 
     #[test]
     fn bands_match_the_reference_values() {
-        // DESIGN §5 / issue 3 reference values, 4 decimals.
+        // Published χ² quantiles, to their 4 decimals.
         let b = average_chi2_band(6.0, 50.0, 0.05).unwrap();
         assert!(close(b.lo, 5.0782) && close(b.hi, 6.9975), "{b:?}");
         let b = average_chi2_band(6.0, 200.0, 0.003).unwrap();

@@ -593,7 +593,7 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
 
     // The answer.
     if let Some(c) = &t.consistency {
-        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (Bonferroni: the verdict’s p = 2·min(p<sub>NEES</sub>, p<sub>NIS</sub>) exceeds α; see “Consistency: what the verdict means”). The NEES and NIS cells (and the NEES run-average t-test where it stands in for a NEES test) show the statistic in those α/2 bands; the whiteness cell and a t-test that is not part of the verdict show their own test at α. Green passes, red fails.</p>\n");
+        h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (Bonferroni: the verdict’s p = 2·min(p<sub>NEES</sub>, p<sub>NIS</sub>) exceeds α; see kfmc’s book, “What the verdict means”). The NEES and NIS cells (and the NEES run-average t-test where it stands in for a NEES test) show the statistic in those α/2 bands; the whiteness cell and a t-test that is not part of the verdict show their own test at α. Green passes, red fails.</p>\n");
         h.push_str(&verdict_table(c)?);
         let _ = writeln!(
             h,

@@ -1,4 +1,4 @@
-//! Seeding (DESIGN §3): every random stream is a function of
+//! Seeding: every random stream is a function of
 //! (master seed, scenario name, run index, stream kind) and of nothing else.
 //!
 //! Consequences, each tested: results do not depend on the thread count or the order runs are

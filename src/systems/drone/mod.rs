@@ -1,5 +1,5 @@
 //! The 9-state drone of seed 004 (`model.kind = "drone"`): GPS, IMU and barometer, multi-rate
-//! and delayed (DESIGN §4, D1; issue 11).
+//! and delayed (kfmc's D1; the readings of the seed are in `docs/src/systems/drone.md`).
 //!
 //! The world ([`world::DroneWorld`]) is the seed's rigid body on a closed-form route with an
 //! IMU (white noise, turn-on bias, bias random walk), a GPS (white noise, Gauss–Markov drift,

@@ -72,7 +72,7 @@ macro_rules! sizes {
 // The common linear models: a random walk (1 state); 1-D constant velocity (2) and acceleration
 // (3); 2-D constant velocity (4); 3-D constant velocity, L1 and 2-D constant acceleration (6);
 // 3-D constant acceleration (9), each with its positions and with more sensors. Every pair adds
-// a whole filter family to the library build (README: "A linear-Gaussian system from TOML").
+// a whole filter family to the library build (`docs/src/systems/linear-toml.md`).
 #[cfg(not(test))]
 sizes! {
     1 => [1],

@@ -8,7 +8,7 @@
 //! by Van Loan's method. The seed's printed eq. 7 is only a 4-decimal check (its Q is even
 //! indefinite as printed), never a source.
 //!
-//! Readings of the seed's typos (DESIGN §4 L1):
+//! Readings of seed 002's typos:
 //! * Γ is printed 7×3; the intended matrix is 6×3 with the noise entering ẋ, ẏ, ż;
 //! * Q̃ is printed non-symmetric (entries (1,3) = 0.005, (3,1) = 0.002); both are taken as 0.002,
 //!   the reading that reproduces the seed's Q (its Q(ẋ, ż) = 0.0002 = 0.002·Δt).

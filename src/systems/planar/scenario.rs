@@ -3,7 +3,8 @@
 //!
 //! u_k = thrust_stage(k) ⊙ (1 + a·[cos(ω t_k), sin(ω t_k)]), t_k = k·Δt, a = 0.001, ω = 2 rad/s.
 //!
-//! Where the seed's prose and code disagree the code wins (DESIGN §4):
+//! Where the seed's prose and code disagree the code wins, because the code is what
+//! produced the seed's figures:
 //! * `fall`: the prose says 3.2 N per rotor, the code uses `u · 0.54` = 2.7 N;
 //! * `roll`, stage 3 (`t = 300:500`) lasts 201 samples (2.01 s), not 2 s; stage 4 starts at
 //!   k = 501;
