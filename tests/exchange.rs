@@ -715,6 +715,10 @@ fn check_spec_rmse(s: &Study) -> PathBuf {
     let path = s.dir.join("check.toml");
     let text = fs::read_to_string(&s.ext_spec).unwrap()
         + "[check]\n[[check.assert]]\nkind = \"rmse_below\"\nfilter = \"kf\"\nstate = \"x\"\nmax = 1000.0\n";
+    fs::write(&path, text).unwrap();
+    path
+}
+
 /// The external spec at noise scale 1 alone (at 3 the nominal KF is rightly optimistic),
 /// with a `consistent` assertion on `kf` (and `extra` in `[check]`).
 fn check_spec(s: &Study, extra: &str) -> PathBuf {
@@ -886,6 +890,9 @@ fn partial_runs_and_non_finite_values_are_refused_naming_run_and_step() {
             !s.dir.join(format!("score_{name}")).exists(),
             "{name}: refused after scoring had begun"
         );
+    }
+}
+
 /// `kfmc check` of `spec` on estimates `file`: (exit code, report, stderr, JUnit XML).
 fn check_with(
     s: &Study,
@@ -1118,6 +1125,9 @@ fn the_pyarrow_stamping_example_stamps_a_file_that_check_then_accepts() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(0), "{err}");
     assert!(!err.contains("warning"), "{err}");
+}
+
+#[test]
 fn check_never_passes_a_cell_whose_runs_are_missing() {
     // Only runs 0 and 1 of (hover, noise 1): the verdict would be computed on 2 of 12 runs.
     // Either the estimates are refused before scoring (exit 1, naming the run) or the case is
