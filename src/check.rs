@@ -242,11 +242,13 @@ fn count_runs(path: &Path, bounds: &[usize]) -> Result<HashMap<CellKey, RunCount
 }
 
 /// Why a case of `cell` on its first `runs` runs cannot be judged on the runs the spec
-/// declares (`bound` indexes the evaluation's counts), or `None` when it can.
+/// declares (`bound` indexes the evaluation's counts; the study ran `ran` runs per cell), or
+/// `None` when it can.
 fn runs_problem(
     counts: Option<&RunCounts>,
     bound: usize,
     runs: usize,
+    ran: usize,
     max_failed: f64,
     cell: &str,
 ) -> Option<String> {
@@ -256,6 +258,11 @@ fn runs_problem(
         ));
     };
     let (present, failed) = (c.present[bound], c.failed[bound]);
+    if runs > ran {
+        return Some(format!(
+            "the study ran {ran} runs per cell (a --runs override?), fewer than the {runs} of {cell}"
+        ));
+    }
     if present < runs as u64 {
         return Some(format!(
             "{} of the {runs} runs of {cell} the spec declares are missing",
@@ -292,6 +299,9 @@ struct Evaluation {
     alpha: f64,
 }
 
+/// Per evaluation of a cell: its rows of consistency.parquet, `None` when it has none.
+type EvaluationRows = Vec<Option<Vec<usize>>>;
+
 /// The rows of consistency.parquet of each cell, split into its evaluations: the study
 /// writes a cell's evaluations one after the other, each with its tests in the fixed order
 /// of [`test_names`], so a test that does not come after the previous one starts the next
@@ -302,11 +312,12 @@ fn consistency_blocks(
     t: &Table,
     order: &[String],
     evaluations: &[Evaluation],
-) -> Result<HashMap<CellKey, Vec<Option<Vec<usize>>>>, OutputError> {
+) -> Result<HashMap<CellKey, EvaluationRows>, OutputError> {
     let keys = t.keys()?;
     let (test, alpha, runs) = (t.str("test")?, t.f64("alpha")?, t.i64("runs")?);
-    // Per cell: blocks of (α, largest runs value, rows).
-    let mut blocks: HashMap<CellKey, Vec<(Option<f64>, i64, Vec<usize>, usize)>> = HashMap::new();
+    // Per cell: blocks of (α, largest runs value, rows, the last row's test position).
+    type Block = (Option<f64>, i64, Vec<usize>, usize);
+    let mut blocks: HashMap<CellKey, Vec<Block>> = HashMap::new();
     for (i, key) in keys.into_iter().enumerate() {
         let at = order
             .iter()
@@ -445,9 +456,14 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                             } else {
                                 format!("{kind}[{cell}]")
                             };
-                            if let Some(why) =
-                                runs_problem(counts.get(&c.key), e, ev.runs, max_failed, &cell)
-                            {
+                            if let Some(why) = runs_problem(
+                                counts.get(&c.key),
+                                e,
+                                ev.runs,
+                                plan.runs,
+                                max_failed,
+                                &cell,
+                            ) {
                                 out.push(CaseResult::incomplete(kind, label, why));
                                 continue;
                             }
@@ -516,19 +532,30 @@ pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError>
                 }
             }
             Assertion::RmseBelow { state, max, .. } => {
-                let keys = summary.keys()?;
                 let st = summary.str("state")?;
                 let mean = summary.f64("rmse_mean")?;
+                // The state's row of each cell.
+                let rows: HashMap<CellKey, usize> = summary
+                    .keys()?
+                    .into_iter()
+                    .enumerate()
+                    .filter(|(i, _)| st[*i] == *state)
+                    .map(|(i, k)| (k, i))
+                    .collect();
                 for c in cells.iter().filter(|c| matches(c)) {
                     let label = format!("rmse_below[{} {state}]", c.name);
-                    if let Some(why) =
-                        runs_problem(counts.get(&c.key), 0, plan.runs, max_failed, &c.name)
-                    {
+                    if let Some(why) = runs_problem(
+                        counts.get(&c.key),
+                        0,
+                        plan.runs,
+                        plan.runs,
+                        max_failed,
+                        &c.name,
+                    ) {
                         out.push(CaseResult::incomplete(kind, label, why));
                         continue;
                     }
-                    let row = (0..keys.len()).find(|&i| keys[i] == c.key && st[i] == *state);
-                    match row.map(|i| mean[i]) {
+                    match rows.get(&c.key).map(|&i| mean[i]) {
                         Some(Some(m)) if m.is_finite() => out.push(CaseResult::judged(
                             kind,
                             label,
@@ -812,23 +839,32 @@ mod tests {
     #[test]
     fn a_case_is_judged_only_on_the_declared_runs() {
         let cell = "basic noise=1 ekf q=1 r=1";
-        assert_eq!(runs_problem(Some(&counts(10, 0)), 0, 10, 0.0, cell), None);
+        assert_eq!(
+            runs_problem(Some(&counts(10, 0)), 0, 10, 10, 0.0, cell),
+            None
+        );
         // Missing runs: named with their count, whatever the tolerance for failures.
-        let why = runs_problem(Some(&counts(2, 0)), 0, 10, 1.0, cell).unwrap();
+        let why = runs_problem(Some(&counts(2, 0)), 0, 10, 10, 1.0, cell).unwrap();
         assert_eq!(
             why,
             "8 of the 10 runs of basic noise=1 ekf q=1 r=1 the spec declares are missing"
         );
-        assert!(runs_problem(None, 0, 10, 1.0, cell).is_some());
+        assert!(runs_problem(None, 0, 10, 10, 1.0, cell).is_some());
         // Failures: beyond the fraction of the declared runs, not within it (1/10 ≤ 0.1).
-        let why = runs_problem(Some(&counts(10, 1)), 0, 10, 0.0, cell).unwrap();
+        let why = runs_problem(Some(&counts(10, 1)), 0, 10, 10, 0.0, cell).unwrap();
         assert!(
             why.starts_with("1 of the 10 runs of basic noise=1 ekf q=1 r=1 failed numerically")
                 && why.ends_with("first: run 4: non-finite estimate"),
             "{why}"
         );
-        assert_eq!(runs_problem(Some(&counts(10, 1)), 0, 10, 0.1, cell), None);
-        assert!(runs_problem(Some(&counts(10, 2)), 0, 10, 0.1, cell).is_some());
+        assert_eq!(
+            runs_problem(Some(&counts(10, 1)), 0, 10, 10, 0.1, cell),
+            None
+        );
+        assert!(runs_problem(Some(&counts(10, 2)), 0, 10, 10, 0.1, cell).is_some());
+        // A subset of more runs than the study ran (a --runs override) is not judged on fewer.
+        let why = runs_problem(Some(&counts(10, 0)), 0, 50, 10, 0.0, cell).unwrap();
+        assert!(why.starts_with("the study ran 10 runs per cell"), "{why}");
     }
 
     #[test]

@@ -153,8 +153,9 @@ pub fn power(
             Value::Str(&k.0),
             Value::F64(Some(f64::from_bits(k.1))),
             Value::Str(&k.2),
-            Value::F64(Some(f64::from_bits(k.3))),
-            Value::F64(Some(f64::from_bits(k.4))),
+            // An external filter's null multipliers were keyed as NaN: null again.
+            Value::F64(Some(f64::from_bits(k.3)).filter(|v| !v.is_nan())),
+            Value::F64(Some(f64::from_bits(k.4)).filter(|v| !v.is_nan())),
             Value::Str(&k.5),
             Value::I64(Some(k.6)),
             Value::F64(Some(f64::from_bits(k.7))),
