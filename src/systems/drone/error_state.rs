@@ -9,9 +9,10 @@
 //! it, and the GPS velocity is a measurement of the oldest copy. The copy's error keeps its
 //! correlation with the rest of the state, so the accelerometer noise of the last L seconds,
 //! which is in the current velocity error but not in the reported one, is accounted for. (A
-//! window compensation v(t − L) ≈ v(t) − Σ Δv̂ with the first-order window terms in H treats
-//! that noise as if it were in the measurement of v(t): with the default IMU it is about a
-//! third of the filter's velocity variance, and the filter was overconfident by that much.)
+//! window compensation v(t − L) ≈ v(t) − Σ Δv̂ with first-order window terms in H would leave
+//! that noise out; with the default IMU it is about a third of the filter's velocity
+//! variance, so such a filter is overconfident in velocity, and through the tilt coupling in
+//! attitude.)
 //!
 //! The barometer delay D is compensated with the filter's own motion over the last D seconds,
 //! z(t − D) = z(t) − Σ Δz over the nominal increments of that window, with δz(t − D) ≈
