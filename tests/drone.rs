@@ -390,3 +390,66 @@ mode = "sampled"
         assert!(naive > 18.0, "{route}: {naive}");
     }
 }
+
+#[test]
+fn the_error_state_filter_is_consistent_on_the_full_world() {
+    // The full world of drone_principled (biases, GPS drift and velocity latency, barometer
+    // drift and delay), whose noise models the error-state filter carries: over 40 runs the
+    // per-step ANEES lies inside its two-sided 95 % χ² band (9·40 dof) on at least 85 % of
+    // the 2000 steps, and the t-test of the runs' average NEES against 9 (runs are
+    // independent, so it is calibrated whatever the correlation over steps) accepts. A
+    // consistent filter has each step inside with probability 0.95; the steps are correlated
+    // (the GPS drift is nearly constant over a 20 s run), so one study's fraction varies, and
+    // 85 % leaves room for that. The fixed filter has 98.9 % here. A filter that treats the
+    // latent GPS velocity as a measurement of the current velocity is overconfident in
+    // velocity by about a third: 42.7 % of steps inside with this seed, t = 3.8.
+    let spec = r#"
+master_seed = 36
+runs = 40
+[model]
+kind = "drone"
+imu_output = "specific_force"
+[[scenarios]]
+name = "sinusoidal"
+[[filters]]
+label = "error_state"
+kind = "error_state"
+[initial_estimate]
+mode = "sampled"
+[consistency]
+alpha = 0.05
+"#;
+    let dir = study(spec, 2);
+    let steps = read(&dir.path().join("steps.parquet")).unwrap();
+    let step = steps.column("step").unwrap().i64().unwrap().clone();
+    let inside = steps
+        .column("anees_inside")
+        .unwrap()
+        .bool()
+        .unwrap()
+        .clone();
+    let anees = steps.column("anees").unwrap().f64().unwrap().clone();
+    let (mut n, mut k, mut sum) = (0usize, 0usize, 0.0);
+    for i in 0..steps.height() {
+        if step.get(i).unwrap() >= 1 {
+            n += 1;
+            k += inside.get(i).unwrap() as usize;
+            sum += anees.get(i).unwrap();
+        }
+    }
+    let frac = k as f64 / n as f64;
+    eprintln!(
+        "error_state: {k}/{n} steps inside the band ({:.1} %), time-averaged ANEES {:.2}",
+        100.0 * frac,
+        sum / n as f64
+    );
+    assert_eq!(n, 2000);
+    assert!(frac >= 0.85, "{:.1} % of steps in band", 100.0 * frac);
+    let cons = read(&dir.path().join("consistency.parquet")).unwrap();
+    let t = cons.column("test").unwrap().str().unwrap().clone();
+    let p = cons.column("pass").unwrap().bool().unwrap().clone();
+    let row = (0..cons.height())
+        .find(|&i| t.get(i) == Some("nees_run_average_t"))
+        .expect("nees_run_average_t row");
+    assert!(p.get(row).unwrap(), "the runs' average NEES is rejected");
+}

@@ -4,14 +4,24 @@
 //! biases as random walks with their turn-on spread as prior, the GPS drift as the world's
 //! first-order Gauss–Markov process, the barometer drift as a random walk.
 //!
-//! The GPS velocity latency L and the barometer delay D are compensated with the filter's own
-//! motion over the last L (resp. D) seconds: v(t − L) = v(t) − Σ Δv and z(t − D) = z(t) − Σ Δz
-//! over the nominal increments of that window; the window's share of the error enters the
-//! measurement Jacobian to first order (δv(t − L) ≈ δv + L [Ĉ f̂]× δφ + L Ĉ δb_a,
-//! δz(t − D) ≈ δz − D δv_z).
+//! The GPS velocity latency L is handled by stochastic cloning: the state carries
+//! n = ⌈L / T_gps⌉ copies of the velocity, each taken L before the GPS epoch that will report
+//! it, and the GPS velocity is a measurement of the oldest copy. The copy's error keeps its
+//! correlation with the rest of the state, so the accelerometer noise of the last L seconds,
+//! which is in the current velocity error but not in the reported one, is accounted for. (A
+//! window compensation v(t − L) ≈ v(t) − Σ Δv̂ with first-order window terms in H would leave
+//! that noise out; with the default IMU it is about a third of the filter's velocity
+//! variance, so such a filter is overconfident in velocity, and through the tilt coupling in
+//! attitude.)
 //!
-//! It reports its belief as the total state [p, v, Θ, b_a, b_g, d, d_b] with the covariance
-//! mapped through δΘ = E(Θ) δφ, and is scored on the nine quantities through its marginal.
+//! The barometer delay D is compensated with the filter's own motion over the last D seconds,
+//! z(t − D) = z(t) − Σ Δz over the nominal increments of that window, with δz(t − D) ≈
+//! δz − D δv_z: the accelerometer noise of that window moves z by a variance of about
+//! σ_a² Δt D³ / 3, three orders below the barometer's.
+//!
+//! It reports its belief as the total state [p, v, Θ, b_a, b_g, d, d_b, clones] with the
+//! covariance mapped through δΘ = E(Θ) δφ, and is scored on the nine quantities through its
+//! marginal.
 
 use std::collections::VecDeque;
 
@@ -26,12 +36,17 @@ use crate::system::FilterInfo;
 use crate::system::world::{NoiseSettings, Realisation, WorldFilter, WorldFilterEntry};
 use crate::trial::{FilterOutput, Prior, RunContext, run_filter};
 
-/// State size.
+/// State size without velocity clones.
 pub const NX: usize = 19;
+/// The most velocity clones the filter carries (a GPS velocity latency of up to this many GPS
+/// periods).
+pub const MAX_CLONES: usize = 3;
 const BA: usize = 9;
 const BG: usize = 12;
 const D: usize = 15;
 const DB: usize = 18;
+/// First velocity clone (the oldest).
+const CLONE: usize = NX;
 
 /// The error-state filter's settings (every variance already scaled for the cell).
 #[derive(Clone, Debug, PartialEq)]
@@ -62,28 +77,65 @@ pub struct ErrorState {
     pub r_gps_v: Vector<3>,
     /// Barometer white variance.
     pub r_baro: f64,
-    /// Latency window (steps) and delay window (steps).
+    /// GPS velocity latency (steps).
     pub latency_steps: usize,
     /// Barometer delay window (steps).
     pub delay_steps: usize,
+    /// Steps between GPS epochs.
+    pub gps_period: usize,
 }
 
-/// The belief: nominal state, rotation, error covariance, and the motion windows.
+/// Velocity clones the filter needs for a latency of `latency_steps` with GPS epochs every
+/// `gps_period` steps: one per epoch whose velocity instant has passed but whose report has
+/// not arrived, ⌈L / T⌉.
+pub fn clones_needed(latency_steps: usize, gps_period: usize) -> usize {
+    latency_steps.div_ceil(gps_period.max(1))
+}
+
+/// The belief: nominal state (with the clones' nominal velocities), rotation, error
+/// covariance, the barometer's motion window, and the step count (clones are taken on a
+/// schedule of steps).
 #[derive(Clone, Debug, PartialEq)]
-pub struct EsBelief {
-    x: Vector<NX>,
+pub struct EsBelief<const N: usize> {
+    x: Vector<N>,
     c: Matrix<3, 3>,
-    p: Matrix<NX, NX>,
-    dv: VecDeque<Vector<3>>,
+    p: Matrix<N, N>,
     dz: VecDeque<f64>,
+    step: usize,
 }
 
-fn v3(x: &Vector<NX>, at: usize) -> Vector<3> {
+fn v3<const N: usize>(x: &Vector<N>, at: usize) -> Vector<3> {
     Vector::<3>::new(x[at], x[at + 1], x[at + 2])
 }
 
+/// The velocity the GPS reports on: the oldest clone, or v itself without latency.
+fn reported_velocity<const N: usize>() -> usize {
+    if N > NX { CLONE } else { 3 }
+}
+
+/// The re-arrangement that drops the oldest clone, moves every other one up and copies the
+/// velocity into the newest (x ← J x, P ← J P Jᵀ; exact, as a copy is linear).
+fn clone_shift<const N: usize>() -> Matrix<N, N> {
+    let mut j = Matrix::<N, N>::identity();
+    let mut at = CLONE;
+    while at < N {
+        let src = if at + 3 < N { at + 3 } else { 3 };
+        for i in 0..3 {
+            j[(at + i, at + i)] = 0.0;
+            j[(at + i, src + i)] = 1.0;
+        }
+        at += 3;
+    }
+    j
+}
+
 impl ErrorState {
-    fn accel(&self, c: &Matrix<3, 3>, x: &Vector<NX>, u: &Vector<NU>) -> (Vector<3>, Vector<3>) {
+    fn accel<const N: usize>(
+        &self,
+        c: &Matrix<3, 3>,
+        x: &Vector<N>,
+        u: &Vector<NU>,
+    ) -> (Vector<3>, Vector<3>) {
         let f = u.fixed_rows::<3>(0).into_owned() - v3(x, BA);
         let mut a = c * f;
         if self.imu == ImuOutput::SpecificForce {
@@ -92,17 +144,18 @@ impl ErrorState {
         (a, f)
     }
 
-    /// The error-state transition F over one step at the nominal state.
-    pub fn error_transition(
+    /// The error-state transition F over one step at the nominal state (the clones are
+    /// constant).
+    pub fn error_transition<const N: usize>(
         &self,
         c: &Matrix<3, 3>,
-        x: &Vector<NX>,
+        x: &Vector<N>,
         u: &Vector<NU>,
-    ) -> Matrix<NX, NX> {
+    ) -> Matrix<N, N> {
         let dt = self.dt;
         let (_, f) = self.accel(c, x, u);
         let da_dphi = -skew(&(c * f));
-        let mut m = Matrix::<NX, NX>::identity();
+        let mut m = Matrix::<N, N>::identity();
         for i in 0..3 {
             m[(i, 3 + i)] = dt;
         }
@@ -119,11 +172,11 @@ impl ErrorState {
         m
     }
 
-    fn process_noise(&self, c: &Matrix<3, 3>) -> Matrix<NX, NX> {
+    fn process_noise<const N: usize>(&self, c: &Matrix<3, 3>) -> Matrix<N, N> {
         let dt = self.dt;
         let qa = c * Matrix::<3, 3>::from_diagonal(&self.accel_var) * c.transpose();
         let qg = c * Matrix::<3, 3>::from_diagonal(&self.gyro_var) * c.transpose();
-        let mut q = Matrix::<NX, NX>::zeros();
+        let mut q = Matrix::<N, N>::zeros();
         q.fixed_view_mut::<3, 3>(0, 0)
             .copy_from(&(qa * (dt.powi(4) / 4.0)));
         q.fixed_view_mut::<3, 3>(0, 3)
@@ -145,12 +198,12 @@ impl ErrorState {
 
 /// The total-state description of the same model (Euler attitude): what the error state
 /// linearises. The filter integrates the attitude on the rotation group instead and uses
-/// this model's instantaneous measurement function; its Jacobian is by central differences.
-impl Model<NX, NU, NZ> for ErrorState {
+/// this model's measurement function; its Jacobian is by central differences.
+impl<const N: usize> Model<N, NU, NZ> for ErrorState {
     fn dt_s(&self) -> f64 {
         self.dt
     }
-    fn propagate(&self, x: &Vector<NX>, u: &Vector<NU>) -> Vector<NX> {
+    fn propagate(&self, x: &Vector<N>, u: &Vector<NU>) -> Vector<N> {
         let e = v3(x, 6);
         let (a, _) = self.accel(&rotation(&e), x, u);
         let w = u.fixed_rows::<3>(3).into_owned() - v3(x, BG);
@@ -164,9 +217,9 @@ impl Model<NX, NU, NZ> for ErrorState {
         }
         y
     }
-    fn transition_jacobian(&self, x: &Vector<NX>, u: &Vector<NU>) -> Matrix<NX, NX> {
-        let mut m = Matrix::<NX, NX>::zeros();
-        for j in 0..NX {
+    fn transition_jacobian(&self, x: &Vector<N>, u: &Vector<NU>) -> Matrix<N, N> {
+        let mut m = Matrix::<N, N>::zeros();
+        for j in 0..N {
             let h = 1e-6 * x[j].abs().max(1.0);
             let (mut a, mut b) = (*x, *x);
             a[j] += h;
@@ -178,21 +231,23 @@ impl Model<NX, NU, NZ> for ErrorState {
         }
         m
     }
-    fn measure(&self, x: &Vector<NX>, _u: &Vector<NU>) -> Vector<NZ> {
+    fn measure(&self, x: &Vector<N>, _u: &Vector<NU>) -> Vector<NZ> {
         let mut h = Vector::<NZ>::zeros();
+        let v = reported_velocity::<N>();
         for i in 0..3 {
             h[z::GPS_P + i] = x[i] + x[D + i];
-            h[z::GPS_V + i] = x[3 + i];
+            h[z::GPS_V + i] = x[v + i];
         }
         h[z::BARO] = -x[2] + x[DB];
         h
     }
-    fn measurement_jacobian(&self, _x: &Vector<NX>, _u: &Vector<NU>) -> Matrix<NZ, NX> {
-        let mut h = Matrix::<NZ, NX>::zeros();
+    fn measurement_jacobian(&self, _x: &Vector<N>, _u: &Vector<NU>) -> Matrix<NZ, N> {
+        let mut h = Matrix::<NZ, N>::zeros();
+        let v = reported_velocity::<N>();
         for i in 0..3 {
             h[(z::GPS_P + i, i)] = 1.0;
             h[(z::GPS_P + i, D + i)] = 1.0;
-            h[(z::GPS_V + i, 3 + i)] = 1.0;
+            h[(z::GPS_V + i, v + i)] = 1.0;
         }
         h[(z::BARO, 2)] = -1.0;
         h[(z::BARO, DB)] = 1.0;
@@ -204,26 +259,26 @@ impl Model<NX, NU, NZ> for ErrorState {
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ErrorStateEkf;
 
-fn sync_euler(b: &mut EsBelief) {
+fn sync_euler<const N: usize>(b: &mut EsBelief<N>) {
     let e = euler_of(&b.c);
     for i in 0..3 {
         b.x[6 + i] = e[i];
     }
 }
 
-impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
-    type Belief = EsBelief;
+impl<const N: usize> Filter<N, NU, NZ, ErrorState> for ErrorStateEkf {
+    type Belief = EsBelief<N>;
 
     fn init(
         &self,
         m: &ErrorState,
-        x0_hat: &Vector<NX>,
-        p0: &Matrix<NX, NX>,
+        x0_hat: &Vector<N>,
+        p0: &Matrix<N, N>,
         _z0: &Measurement<NZ>,
-    ) -> EsBelief {
+    ) -> EsBelief<N> {
         // P0 arrives in total-state (Euler) coordinates; the error state's is δφ = E⁻¹ δΘ.
         let e = v3(x0_hat, 6);
-        let mut j = Matrix::<NX, NX>::identity();
+        let mut j = Matrix::<N, N>::identity();
         let inv = euler_of_nav_rotation(&e)
             .try_inverse()
             .unwrap_or_else(Matrix::<3, 3>::identity);
@@ -232,13 +287,18 @@ impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
             x: *x0_hat,
             c: rotation(&e),
             p: j * p0 * j.transpose(),
-            // The drone hovers before t = 0: the windows start with no motion.
-            dv: std::iter::repeat_n(Vector::<3>::zeros(), m.latency_steps).collect(),
+            // The drone hovers before t = 0: the window starts with no motion.
             dz: std::iter::repeat_n(0.0, m.delay_steps).collect(),
+            step: 0,
         }
     }
 
-    fn predict(&self, m: &ErrorState, b: &mut EsBelief, u: &Vector<NU>) -> Result<(), FilterError> {
+    fn predict(
+        &self,
+        m: &ErrorState,
+        b: &mut EsBelief<N>,
+        u: &Vector<NU>,
+    ) -> Result<(), FilterError> {
         let dt = m.dt;
         let f = m.error_transition(&b.c, &b.x, u);
         let q = m.process_noise(&b.c);
@@ -252,10 +312,7 @@ impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
         }
         b.c *= exp_so3(&(w * dt));
         sync_euler(b);
-        if m.latency_steps > 0 {
-            b.dv.pop_front();
-            b.dv.push_back(a * dt);
-        }
+        b.step += 1;
         if m.delay_steps > 0 {
             b.dz.pop_front();
             b.dz.push_back(b.x[2] - z_before);
@@ -267,7 +324,39 @@ impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
     fn update(
         &self,
         m: &ErrorState,
-        b: &mut EsBelief,
+        b: &mut EsBelief<N>,
+        u: &Vector<NU>,
+        zm: &Measurement<NZ>,
+    ) -> Result<Option<Innovation<NZ>>, FilterError> {
+        let innovation = self.update_sensors(m, b, u, zm)?;
+        // After the update of the step whose velocity a later epoch reports (t = s + L), the
+        // oldest clone has been used and the current velocity becomes the newest.
+        if N > NX && (b.step + m.latency_steps).is_multiple_of(m.gps_period.max(1)) {
+            let j = clone_shift::<N>();
+            b.x = j * b.x;
+            b.p = j * b.p * j.transpose();
+        }
+        Ok(innovation)
+    }
+
+    fn mean(&self, b: &EsBelief<N>) -> Vector<N> {
+        b.x
+    }
+
+    fn covariance(&self, b: &EsBelief<N>) -> Option<Matrix<N, N>> {
+        let mut j = Matrix::<N, N>::identity();
+        j.fixed_view_mut::<3, 3>(6, 6)
+            .copy_from(&euler_of_nav_rotation(&v3(&b.x, 6)));
+        Some(j * b.p * j.transpose())
+    }
+}
+
+impl ErrorStateEkf {
+    /// The sequential scalar updates with the GPS and the barometer, and the injection.
+    fn update_sensors<const N: usize>(
+        &self,
+        m: &ErrorState,
+        b: &mut EsBelief<N>,
         u: &Vector<NU>,
         zm: &Measurement<NZ>,
     ) -> Result<Option<Innovation<NZ>>, FilterError> {
@@ -281,20 +370,8 @@ impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
         if used.count() == 0 {
             return Ok(None);
         }
-        let mut h_pred = m.measure(&b.x, u);
-        let mut hm = m.measurement_jacobian(&b.x, u);
-        let lat = m.latency_steps as f64 * m.dt;
-        let dv: Vector<3> = b.dv.iter().sum();
-        let (_, f) = m.accel(&b.c, &b.x, u);
-        let cf = skew(&(b.c * f)) * lat;
-        let cl = b.c * lat;
-        for i in 0..3 {
-            h_pred[z::GPS_V + i] -= dv[i];
-            for j in 0..3 {
-                hm[(z::GPS_V + i, 6 + j)] = cf[(i, j)];
-                hm[(z::GPS_V + i, BA + j)] = cl[(i, j)];
-            }
-        }
+        let mut h_pred = Model::<N, NU, NZ>::measure(m, &b.x, u);
+        let mut hm = Model::<N, NU, NZ>::measurement_jacobian(m, &b.x, u);
         h_pred[z::BARO] += b.dz.iter().sum::<f64>();
         hm[(z::BARO, 5)] = m.delay_steps as f64 * m.dt;
         let var = |i: usize| match i {
@@ -302,7 +379,7 @@ impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
             _ if i < z::IMU_P => m.r_gps_v[i - z::GPS_V],
             _ => m.r_baro,
         };
-        let mut dx = Vector::<NX>::zeros();
+        let mut dx = Vector::<N>::zeros();
         let mut residual = Vector::<NZ>::zeros();
         let mut whitened = Vector::<NZ>::zeros();
         for i in (0..NZ).filter(|&i| used.has(i)) {
@@ -318,30 +395,19 @@ impl Filter<NX, NU, NZ, ErrorState> for ErrorStateEkf {
             let k = ph / s;
             let inn = nu - (h * dx)[(0, 0)];
             dx += k * inn;
-            let i_kh = Matrix::<NX, NX>::identity() - k * h;
+            let i_kh = Matrix::<N, N>::identity() - k * h;
             b.p = i_kh * b.p * i_kh.transpose() + k * k.transpose() * var(i);
             residual[i] = inn;
             whitened[i] = inn / s.sqrt();
         }
         // Inject the error into the nominal state and reset it to zero.
-        for i in (0..NX).filter(|i| !(6..9).contains(i)) {
+        for i in (0..N).filter(|i| !(6..9).contains(i)) {
             b.x[i] += dx[i];
         }
         b.c = exp_so3(&v3(&dx, 6)) * b.c;
         sync_euler(b);
         check_finite(&b.x, &b.p)?;
         Ok(Some(Innovation::new(residual, whitened, used)))
-    }
-
-    fn mean(&self, b: &EsBelief) -> Vector<NX> {
-        b.x
-    }
-
-    fn covariance(&self, b: &EsBelief) -> Option<Matrix<NX, NX>> {
-        let mut j = Matrix::<NX, NX>::identity();
-        j.fixed_view_mut::<3, 3>(6, 6)
-            .copy_from(&euler_of_nav_rotation(&v3(&b.x, 6)));
-        Some(j * b.p * j.transpose())
     }
 }
 
@@ -352,14 +418,40 @@ pub struct ErrorStateEntry {
     pub params: DroneParams,
 }
 
-struct EsRun {
+impl ErrorStateEntry {
+    /// The GPS velocity latency in steps.
+    pub fn latency_steps(&self) -> usize {
+        (self.params.gps_velocity_latency_s / self.params.dt_s).round() as usize
+    }
+
+    /// Velocity clones the world's latency needs.
+    pub fn clones(&self) -> usize {
+        clones_needed(self.latency_steps(), self.params.gps_period())
+    }
+
+    fn build<const N: usize>(
+        &self,
+        model: ErrorState,
+        s: &NoiseSettings,
+    ) -> Box<dyn WorldFilter<NQ, NU, NZ>> {
+        Box::new(EsRun::<N> {
+            model,
+            params: self.params.clone(),
+            noise_scale: s.noise_scale,
+            fs2: s.filter_scale * s.filter_scale,
+        })
+    }
+}
+
+/// The filter with `N − 19` state entries of velocity clones (three per clone).
+struct EsRun<const N: usize> {
     model: ErrorState,
     params: DroneParams,
     noise_scale: f64,
     fs2: f64,
 }
 
-impl WorldFilter<NQ, NU, NZ> for EsRun {
+impl<const N: usize> WorldFilter<NQ, NU, NZ> for EsRun<N> {
     fn run(
         &self,
         real: &Realisation<NQ, NU, NZ>,
@@ -367,8 +459,8 @@ impl WorldFilter<NQ, NU, NZ> for EsRun {
     ) -> FilterOutput {
         let p = &self.params;
         let (x9, var9) = gps_fix_prior(real, p, self.noise_scale, self.fs2);
-        let mut x0 = Vector::<NX>::zeros();
-        let mut p0 = Matrix::<NX, NX>::zeros();
+        let mut x0 = Vector::<N>::zeros();
+        let mut p0 = Matrix::<N, N>::zeros();
         for i in 0..9 {
             x0[i] = x9[i];
             p0[(i, i)] = var9[i];
@@ -382,6 +474,17 @@ impl WorldFilter<NQ, NU, NZ> for EsRun {
             p0[(i, D + i)] = -dv;
             p0[(D + i, i)] = -dv;
         }
+        // The drone hovers before t = 0, so every clone is the initial velocity: the same
+        // estimate with the same error (x ← J x, P ← J P Jᵀ with the clone rows copying v).
+        let mut j = Matrix::<N, N>::identity();
+        for at in (CLONE..N).step_by(3) {
+            for i in 0..3 {
+                j[(at + i, at + i)] = 0.0;
+                j[(at + i, 3 + i)] = 1.0;
+            }
+        }
+        x0 = j * x0;
+        p0 = j * p0 * j.transpose();
         let prior = Prior {
             x0_hat: &x0,
             p0: &p0,
@@ -418,15 +521,17 @@ impl WorldFilterEntry<NQ, NU, NZ> for ErrorStateEntry {
             r_gps_p: sq(p.gps_position_std, fs2 * rs),
             r_gps_v: sq(p.gps_velocity_std, fs2 * rs),
             r_baro: p.baro_std.powi(2) * fs2 * rs,
-            latency_steps: (p.gps_velocity_latency_s / p.dt_s).round() as usize,
+            latency_steps: self.latency_steps(),
             delay_steps: (p.baro_delay_s / p.dt_s).round() as usize,
+            gps_period: p.gps_period(),
         };
-        Box::new(EsRun {
-            model,
-            params: p.clone(),
-            noise_scale: s.noise_scale,
-            fs2,
-        })
+        match self.clones() {
+            0 => self.build::<NX>(model, s),
+            1 => self.build::<{ NX + 3 }>(model, s),
+            2 => self.build::<{ NX + 6 }>(model, s),
+            // Validation refuses more than MAX_CLONES.
+            _ => self.build::<{ NX + 3 * MAX_CLONES }>(model, s),
+        }
     }
 }
 
@@ -455,6 +560,7 @@ mod tests {
             r_baro: 1.0,
             latency_steps: 20,
             delay_steps: 100,
+            gps_period: 10,
         };
         let mut x = Vector::<NX>::zeros();
         x[3] = 2.0;
@@ -467,5 +573,78 @@ mod tests {
         assert!(diff < 1e-8, "{diff}");
         // Some entries are non-trivial (tilt couples g into velocity).
         assert!((fe[(3, 7)] + 9.7 * es.dt).abs() < 1e-3 * es.dt);
+    }
+
+    /// Runs the filter without measurements under a constant acceleration and checks, at every
+    /// GPS epoch t before its update, that the oldest clone holds the velocity of t − L (the
+    /// initial velocity for t − L ≤ 0, as the drone hovers before t = 0).
+    fn clone_schedule<const N: usize>(latency_steps: usize, gps_period: usize) {
+        assert_eq!(N, NX + 3 * clones_needed(latency_steps, gps_period));
+        let p = DroneParams::default();
+        let m = ErrorState {
+            dt: p.dt_s,
+            imu: ImuOutput::SpecificForce,
+            g: p.gravity(),
+            accel_var: Vector::<3>::repeat(0.5),
+            gyro_var: Vector::<3>::repeat(0.005),
+            accel_rw_var: Vector::<3>::zeros(),
+            gyro_rw_var: Vector::<3>::zeros(),
+            drift_phi: 0.99,
+            drift_var: Vector::<3>::repeat(0.04),
+            baro_rw_var: 0.0,
+            r_gps_p: Vector::<3>::repeat(1.0),
+            r_gps_v: Vector::<3>::repeat(0.02),
+            r_baro: 1.0,
+            latency_steps,
+            delay_steps: 0,
+            gps_period,
+        };
+        let mut x0 = Vector::<N>::zeros();
+        for at in std::iter::once(3).chain((CLONE..N).step_by(3)) {
+            x0[at] = 1.0;
+        }
+        let p0 = Matrix::<N, N>::identity() * 1e-4;
+        let none = Measurement {
+            z: Vector::<NZ>::zeros(),
+            available: Availability(0),
+        };
+        let f = ErrorStateEkf;
+        let mut b: EsBelief<N> = f.init(&m, &x0, &p0, &none);
+        // Specific force cancelling gravity plus 0.5 m/s² north: v_x(k) = 1 + 0.005 k.
+        let u = Vector::<6>::new(0.5, 0.0, -p.gravity_m_s2, 0.0, 0.0, 0.0);
+        let mut v = vec![1.0];
+        for k in 1..=70 {
+            f.predict(&m, &mut b, &u).unwrap();
+            if k % gps_period == 0 {
+                let want = if latency_steps == 0 {
+                    b.x[3]
+                } else {
+                    v[k.saturating_sub(latency_steps)]
+                };
+                let got = Model::<N, NU, NZ>::measure(&m, &b.x, &u)[z::GPS_V];
+                assert!(
+                    (got - want).abs() < 1e-12,
+                    "L = {latency_steps}, T = {gps_period}, epoch {k}: {got} against {want}"
+                );
+            }
+            assert!(f.update(&m, &mut b, &u, &none).unwrap().is_none());
+            v.push(b.x[3]);
+        }
+        assert!((v[70] - 1.35).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_gps_velocity_reads_the_clone_taken_one_latency_before_its_epoch() {
+        assert_eq!(clones_needed(0, 10), 0);
+        assert_eq!(clones_needed(5, 10), 1);
+        assert_eq!(clones_needed(10, 10), 1);
+        assert_eq!(clones_needed(20, 10), 2);
+        assert_eq!(clones_needed(25, 10), 3);
+        clone_schedule::<NX>(0, 10);
+        clone_schedule::<{ NX + 3 }>(5, 10);
+        clone_schedule::<{ NX + 3 }>(10, 10);
+        clone_schedule::<{ NX + 6 }>(20, 10);
+        clone_schedule::<{ NX + 9 }>(25, 10);
+        clone_schedule::<{ NX + 6 }>(7, 5);
     }
 }

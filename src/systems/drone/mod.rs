@@ -211,7 +211,7 @@ impl System for DroneSystem {
                     vec![
                         ("paper".into(), "the seed's EKF as written; protocol = \"grid\" (every sensor interpolated to 100 Hz, reading the next epoch) or \"native\"; r_std (13) overrides the seed table's R".into()),
                         ("ekf9".into(), "principled 9-state EKF, IMU as input, Joseph update; baro_drift = true adds a drift state, latency = true clones past velocities for the GPS latency and compensates the barometer delay".into()),
-                        ("error_state".into(), "19-state error-state EKF: p, v, attitude error, accelerometer and gyro biases, GPS drift (Gauss–Markov), barometer drift; latency and delay compensated".into()),
+                        ("error_state".into(), "19-state error-state EKF: p, v, attitude error, accelerometer and gyro biases, GPS drift (Gauss–Markov), barometer drift; velocity clones for the GPS latency (up to 3 GPS periods), barometer delay compensated".into()),
                     ],
                 ),
                 (
@@ -317,9 +317,23 @@ impl System for DroneSystem {
                 }
                 "error_state" => {
                     if c.parse::<ErrorStateKeys>(&key, &f.keys).is_some() {
-                        entries.push(Arc::new(error_state::ErrorStateEntry {
+                        let entry = error_state::ErrorStateEntry {
                             params: params.clone(),
-                        }));
+                        };
+                        if entry.clones() > error_state::MAX_CLONES {
+                            c.err(
+                                key,
+                                format!(
+                                    "error_state carries one velocity clone per GPS epoch within the latency, at most {}: model.gps_velocity_latency_s = {} s needs {} with a GPS period of {} s",
+                                    error_state::MAX_CLONES,
+                                    params.gps_velocity_latency_s,
+                                    entry.clones(),
+                                    params.gps_period() as f64 * params.dt_s
+                                ),
+                            );
+                        } else {
+                            entries.push(Arc::new(entry));
+                        }
                     }
                 }
                 other => c.err(
