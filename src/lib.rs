@@ -40,6 +40,7 @@ pub mod cli;
 pub mod error;
 pub mod experiment;
 pub mod filter;
+pub mod hash;
 pub mod linalg;
 pub mod merge;
 pub mod metrics;

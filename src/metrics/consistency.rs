@@ -911,7 +911,8 @@ mod tests {
             .into_iter()
             .find(|t| t.test == "nees_run_average_t")
             .unwrap();
-        assert!(v.statistic <= t.p_value.unwrap());
+        // The verdict's Bonferroni p-value is at most twice the stand-in test's.
+        assert!(v.statistic <= (2.0 * t.p_value.unwrap()).min(1.0));
     }
 
     #[test]

@@ -383,7 +383,7 @@ impl Journal {
 
     /// Appends the record in `scratch` with its checksum to the frame in progress.
     fn append(&mut self) -> Result<(), OutputError> {
-        let sum = crate::sim::seed::hash_bytes(&self.scratch);
+        let sum = crate::hash::fnv1a64(&self.scratch);
         self.scratch.extend_from_slice(&sum.to_le_bytes());
         let b = &self.scratch;
         let frame = match self.frame.as_mut() {
@@ -605,7 +605,7 @@ fn verify_checksum<R: Read>(
     let mut sum = Vec::with_capacity(8);
     read_exact(r, &mut sum, 8)?;
     let stored = u64::from_le_bytes(sum[..8].try_into().unwrap());
-    if stored != crate::sim::seed::hash_bytes(raw) {
+    if stored != crate::hash::fnv1a64(raw) {
         return Err(damaged(
             path,
             format!("has a record {record} that fails its checksum"),

@@ -376,7 +376,7 @@ impl Drop for FinishedTable {
 pub fn checksum_file(path: &Path) -> Result<(u64, String), OutputError> {
     let mut f = std::fs::File::open(path).map_err(io("cannot open", path))?;
     let mut buf = vec![0u8; 1 << 16];
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut h = crate::hash::Fnv1a::new();
     let mut n = 0u64;
     loop {
         let k = f.read(&mut buf).map_err(io("cannot read", path))?;
@@ -384,12 +384,9 @@ pub fn checksum_file(path: &Path) -> Result<(u64, String), OutputError> {
             break;
         }
         n += k as u64;
-        for b in &buf[..k] {
-            h ^= *b as u64;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        }
+        h.write(&buf[..k]);
     }
-    Ok((n, format!("{h:016x}")))
+    Ok((n, format!("{:016x}", h.finish())))
 }
 
 /// Reads the manifest of a result folder and checks that every table it lists is there with

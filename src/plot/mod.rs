@@ -299,13 +299,6 @@ pub fn file_part(s: &str) -> String {
         .collect()
 }
 
-/// FNV-1a 64 of some text (the spec hash uses the same function).
-fn fnv1a(s: &str) -> u64 {
-    s.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
-    })
-}
-
 /// Makes figure names unique, also ignoring case (macOS and Windows folders do): readable
 /// names stay as they are, and every figure of a clash gets a suffix from its title, which
 /// holds the raw scenario and filter text (`x/y` and `x_y` differ there), so a name does not
@@ -318,7 +311,11 @@ pub fn unique_names(figs: &mut [Figure]) {
     }
     for f in figs.iter_mut() {
         if count[&f.name.to_lowercase()] > 1 {
-            f.name = format!("{}_{:08x}", f.name, fnv1a(&f.title) as u32);
+            f.name = format!(
+                "{}_{:08x}",
+                f.name,
+                crate::hash::fnv1a64(f.title.as_bytes()) as u32
+            );
         }
     }
     let mut seen: BTreeMap<String, usize> = BTreeMap::new();

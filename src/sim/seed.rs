@@ -29,14 +29,7 @@ pub fn mix64(mut z: u64) -> u64 {
 
 /// FNV-1a of a string, so a scenario's streams depend on its name, not its position in a spec.
 pub fn hash_str(s: &str) -> u64 {
-    hash_bytes(s.as_bytes())
-}
-
-/// FNV-1a 64 of some bytes (also the checksum of a checkpoint journal's records).
-pub fn hash_bytes(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
-        (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
-    })
+    crate::hash::fnv1a64(s.as_bytes())
 }
 
 /// The seed of one run, recorded in the `seed` column of `runs.parquet`.

@@ -577,15 +577,11 @@ pub(super) fn scenarios(
             );
             continue;
         };
-        if !positive(duration_s) || duration_s < dt_s {
-            c.err(
-                format!("{key}.duration_s"),
-                format!("{duration_s} is shorter than one sample"),
-            );
+        // K = round(duration / Δt), bounded by the per-run and per-spec limits before
+        // anything is expanded (the shared check every system uses).
+        let Some(steps) = c.scenario_steps(&key, duration_s, dt_s) else {
             continue;
-        }
-        // The same rounding as the other systems: K = round(duration / Δt).
-        let steps = (duration_s / dt_s).round() as usize;
+        };
         let mut stages: Vec<(usize, Vec<f64>)> = Vec::new();
         if let Some(list) = &s.stages {
             if nu == 0 {
