@@ -165,10 +165,12 @@ struct Outcome {
     stderr: String,
 }
 
-/// Exit codes seen by this test's process (nextest runs each test in its own), for the
-/// summary line that `report` prints.
-static CODES: std::sync::Mutex<std::collections::BTreeMap<String, usize>> =
-    std::sync::Mutex::new(std::collections::BTreeMap::new());
+thread_local! {
+    /// Exit codes seen by this test (each test runs on a thread of its own), for the summary
+    /// line that `report` prints.
+    static CODES: std::cell::RefCell<std::collections::BTreeMap<String, usize>> =
+        const { std::cell::RefCell::new(std::collections::BTreeMap::new()) };
+}
 
 /// Runs kfmc in `cwd`, killing it after [`LIMIT`].
 fn run_limited(cwd: &Path, args: &[OsString]) -> Outcome {
@@ -202,7 +204,7 @@ fn run_limited(cwd: &Path, args: &[OsString]) -> Outcome {
         (false, Some(c)) => format!("exit {c}"),
         (false, None) => "signal".to_string(),
     };
-    *CODES.lock().unwrap().entry(key).or_default() += 1;
+    CODES.with(|c| *c.borrow_mut().entry(key).or_default() += 1);
     Outcome {
         code: status.code(),
         timed_out,
@@ -773,12 +775,12 @@ fn estimates_mutation(rng: &mut Pcg64, fixture: &Fixture) -> Mutation {
 // Targets.
 
 fn report(target: &str, failures: &[(String, String)], tried: usize) {
-    let codes: Vec<String> = CODES
-        .lock()
-        .unwrap()
-        .iter()
-        .map(|(k, n)| format!("{k}: {n}"))
-        .collect();
+    let codes: Vec<String> = CODES.with(|c| {
+        c.borrow()
+            .iter()
+            .map(|(k, n)| format!("{k}: {n}"))
+            .collect()
+    });
     eprintln!(
         "{target}: {tried} inputs; commands ended {}",
         codes.join(", ")
