@@ -2,7 +2,7 @@
 //! that converts to faer for larger, dynamically sized problems.
 //!
 //! Filter algebra is small (n ≤ 9) and fixed-size, where nalgebra's stack-allocated
-//! matrices beat faer by about 2× per step; faer serves stacked whole-trajectory problems.
+//! matrices beat faer per step (the docs' performance page); faer serves stacked whole-trajectory problems.
 
 use nalgebra::{SMatrix, SVector};
 
@@ -25,9 +25,8 @@ pub fn symmetrize<const N: usize>(a: &Matrix<N, N>) -> Matrix<N, N> {
 ///
 /// Why L̃ D L̃ᵀ rather than L itself: the factorisation is a chain, each pivot waiting for the
 /// previous one, and a Cholesky pivot costs a square root *and* a division on that chain.
-/// Without the root a pivot waits for one division, and a profile of an EKF study showed the
-/// CPU stalled on that chain (a fifth of the step loop's samples on the 6×6 NEES factor
-/// alone). The quadratic form, the solves and the PD test need no root at all; L⁻¹ v takes
+/// Without the root a pivot waits for one division, and the 6×6 NEES factor is a hot spot of
+/// an EKF study's step loop. The quadratic form, the solves and the PD test need no root at all; L⁻¹ v takes
 /// one per component, off the chain. The factor keeps 1/dᵢ, so a substitution multiplies
 /// where it would divide: an N×C solve costs N divisions (at the factoring), not N·C.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -183,7 +182,7 @@ impl<const N: usize> SmallCholesky<N> {
 // loops over it unroll into straight-line code on registers. They are indexed loops over
 // columns on purpose: with `pattern.iter().filter(..)`, or with F P formed row by row (rows
 // are strided in column-major storage), LLVM kept them as loops over the pattern, with P and
-// F P in memory, and a P1 EKF study ran 1.12× faster once both unrolled.
+// F P in memory, and the step ran measurably slower (bench_step shows the difference).
 #[inline(always)]
 #[allow(
     clippy::needless_range_loop,

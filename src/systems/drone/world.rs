@@ -25,7 +25,7 @@ pub enum ImuOutput {
     GravitySubtracted,
 }
 
-/// Every parameter of the world (defaults: issue 11's calibration of seed 004).
+/// Every parameter of the world (defaults: the calibration of seed 004's drone, as the systems chapter of the docs lists it).
 #[derive(Clone, Debug, PartialEq)]
 pub struct DroneParams {
     /// Step Δt (the IMU's sample time).
@@ -148,7 +148,7 @@ pub struct State {
 }
 
 impl Route {
-    /// The built-in routes: issue 11's R1–R3 and a route with attitude motion.
+    /// The built-in routes: the seed's R1–R3 and a route with attitude motion.
     pub fn builtin(name: &str) -> Option<Route> {
         let base = Route {
             start_m: [0.0, 0.0, -100.0],
