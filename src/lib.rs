@@ -51,6 +51,7 @@ pub mod power;
 pub mod runner;
 pub mod scenario;
 pub mod score;
+pub mod sequential;
 pub mod sim;
 pub mod simulate;
 pub mod spill;

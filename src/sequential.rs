@@ -1,0 +1,701 @@
+//! Group-sequential boundaries: a test looked at after each of several looks (here, batches of
+//! Monte Carlo runs) with an overall false-alarm rate α, by Lan and DeMets' α-spending.
+//!
+//! The test statistic at look k is a Z statistic built from the runs so far,
+//! Z_k = S_k / √I_k, where S_k is a sum of independent per-run contributions and I_k (the
+//! *information*) is proportional to the number of runs. Under the null hypothesis and with a
+//! drift θ under an alternative, Z_k ~ N(θ√I_k, 1) and Cov(Z_j, Z_k) = √(I_j/I_k): the
+//! canonical joint distribution (Jennison & Turnbull, *Group Sequential Methods*, ch. 3). Only
+//! the information *fractions* t_k = I_k/I_max matter for the boundaries.
+//!
+//! A spending function f(t) says how much of α may have been spent by fraction t (f(0) = 0,
+//! f(1) = α). The boundary c_k at look k is the value with
+//! P₀(no crossing before k, crossing at k) = f(t_k) − f(t_{k−1}), so that uneven or unplanned
+//! looks keep the overall level. The probabilities are computed by the recursive numerical
+//! integration of Armitage, McPherson and Rowe on a Simpson grid, the method gsDesign, rpact
+//! and ldbounds use; the tests compare with rpact's published values.
+//!
+//! Two-sided tests are symmetric, each side spending α/2 with the one-sided function (as
+//! gsDesign's symmetric designs do): the continuation region is |Z_k| < c_k.
+//!
+//! Futility (optional, non-binding): β-spending bounds b_k below which a look stops and
+//! accepts the null. They need a drift, and the drift is the one at which the design has power
+//! 1 − β at the last look with the futility bounds in place; the efficacy bounds are computed
+//! ignoring futility (non-binding), so stopping for futility never raises the false-alarm rate.
+
+use statrs::distribution::{ContinuousCDF, Normal};
+
+/// Errors of a design that has no boundaries.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SequentialError {
+    /// The looks' information fractions must increase strictly within (0, 1].
+    #[error("look fractions must increase strictly within (0, 1]; got {0:?}")]
+    Fractions(Vec<f64>),
+    /// α (or β) outside (0, 1).
+    #[error("{name} must lie in (0, 1); got {value}")]
+    Level {
+        /// "alpha" or "beta".
+        name: &'static str,
+        /// The value given.
+        value: f64,
+    },
+    /// A user spending sequence that does not increase or overspends.
+    #[error(
+        "cumulative spending must be non-decreasing, start above 0 and end at most at the level; got {0:?}"
+    )]
+    Spending(Vec<f64>),
+    /// The drift at which the design has the requested power could not be bracketed.
+    #[error("no drift gives power 1 − β = {0} at the last look")]
+    Drift(f64),
+}
+
+/// The shape of α (or β) spending over the information fraction t ∈ [0, 1].
+#[derive(Debug, Clone, PartialEq)]
+pub enum Spending {
+    /// Lan–DeMets' O'Brien–Fleming type, f(t) = 2 − 2Φ(Φ⁻¹(1 − a/2)/√t): spends almost nothing
+    /// early, so early looks stop only on overwhelming evidence.
+    OBrienFleming,
+    /// Lan–DeMets' Pocock type, f(t) = a·ln(1 + (e − 1)t): nearly constant boundaries.
+    Pocock,
+    /// Kim–DeMets power family, f(t) = a·t^ρ (ρ = 1 spends uniformly).
+    Power(f64),
+    /// Cumulative spending given look by look (as fractions of the level: the last is 1 when
+    /// the last look is the planned end).
+    User(Vec<f64>),
+}
+
+fn normal() -> Normal {
+    Normal::new(0.0, 1.0).expect("the standard normal is valid")
+}
+
+impl Spending {
+    /// Cumulative one-sided spending at fraction `t` (look `look`, for `User`) of level `a`.
+    pub fn spent(&self, a: f64, t: f64, look: usize) -> f64 {
+        let n = normal();
+        match self {
+            Spending::OBrienFleming => {
+                if t <= 0.0 {
+                    0.0
+                } else {
+                    2.0 * n.sf(n.inverse_cdf(1.0 - a / 2.0) / t.sqrt())
+                }
+            }
+            Spending::Pocock => a * (1.0 + (std::f64::consts::E - 1.0) * t).ln(),
+            Spending::Power(rho) => a * t.powf(*rho),
+            Spending::User(fractions) => a * fractions[look],
+        }
+    }
+}
+
+/// One or two sides of the efficacy test.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sides {
+    /// Reject when Z_k ≥ c_k.
+    One,
+    /// Reject when |Z_k| ≥ c_k; each side spends half of α.
+    Two,
+}
+
+/// A group-sequential design: its looks and boundaries on the Z scale.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Boundaries {
+    /// Information fractions of the looks, increasing, the last ≤ 1.
+    pub fractions: Vec<f64>,
+    /// Efficacy boundary c_k (reject when Z_k ≥ c_k, or |Z_k| ≥ c_k two-sided).
+    pub efficacy: Vec<f64>,
+    /// Cumulative α spent by each look (both sides together for a two-sided test).
+    pub alpha_spent: Vec<f64>,
+    /// Futility boundary b_k (stop, accepting the null, when Z_k < b_k; |Z_k| < b_k
+    /// two-sided), when the design has one; the last equals the last efficacy boundary.
+    pub futility: Option<Vec<f64>>,
+    /// The drift θ (Z_k ~ N(θ√t_k, 1)) at which the design has power 1 − β, with futility.
+    pub drift: Option<f64>,
+}
+
+/// The Simpson step is at most this on the Z scale, and at most a tenth of the transition
+/// kernel's standard deviation √(Δt/t) to the next look (looks 1 % of a study apart still get
+/// ten points per standard deviation), which keeps the quadrature error below 1e-9.
+const MAX_STEP: f64 = 0.02;
+/// The density of Z below θ√t − 9 (or above θ√t + 9) is below 1e-18: truncated there.
+const TAIL: f64 = 9.0;
+
+/// The sub-density of Z at a look on the region where the test continued, on a Simpson grid
+/// over each interval of the region, weighted so that an integral is a dot product.
+struct Density {
+    z: Vec<f64>,
+    weighted: Vec<f64>,
+}
+
+/// Simpson nodes and weights over [lo, hi] with step at most `step` (an even number of
+/// intervals).
+fn simpson(lo: f64, hi: f64, step: f64) -> impl Iterator<Item = (f64, f64)> {
+    let intervals = (((hi - lo) / step).ceil() as usize).max(2);
+    let intervals = intervals + intervals % 2;
+    let h = (hi - lo) / intervals as f64;
+    (0..=intervals).map(move |i| {
+        let m = if i == 0 || i == intervals {
+            1.0
+        } else if i % 2 == 1 {
+            4.0
+        } else {
+            2.0
+        };
+        (lo + h * i as f64, m * h / 3.0)
+    })
+}
+
+/// The recursion's state between looks.
+struct Recursion {
+    theta: f64,
+    /// Fraction of the last look (0 before the first).
+    t: f64,
+    density: Option<Density>,
+}
+
+impl Recursion {
+    fn new(theta: f64) -> Recursion {
+        Recursion {
+            theta,
+            t: 0.0,
+            density: None,
+        }
+    }
+
+    /// P(continued so far and Z at fraction `t` ≥ `c`) — or ≤ `c` with `lower`.
+    fn tail(&self, t: f64, c: f64, lower: bool) -> f64 {
+        let n = normal();
+        match &self.density {
+            None => {
+                let x = c - self.theta * t.sqrt();
+                if lower { n.cdf(x) } else { n.sf(x) }
+            }
+            Some(d) => {
+                let dt = t - self.t;
+                let (st, sp, sd) = (t.sqrt(), self.t.sqrt(), dt.sqrt());
+                d.z.iter()
+                    .zip(&d.weighted)
+                    .map(|(&u, &w)| {
+                        let x = (c * st - u * sp - self.theta * dt) / sd;
+                        w * if lower { n.cdf(x) } else { n.sf(x) }
+                    })
+                    .sum()
+            }
+        }
+    }
+
+    /// Moves to the look at fraction `t`, continuing on the union of `region`'s intervals;
+    /// `next` is the fraction of the following look (none after the last).
+    fn advance(&mut self, t: f64, region: &[(f64, f64)], next: Option<f64>) {
+        let Some(next) = next else {
+            self.t = t;
+            self.density = None;
+            return;
+        };
+        let step = MAX_STEP.min(((next - t) / t).sqrt() / 10.0);
+        let mean = self.theta * t.sqrt();
+        let nodes: Vec<(f64, f64)> = region
+            .iter()
+            .map(|&(lo, hi)| (lo.max(mean - TAIL), hi.min(mean + TAIL)))
+            .filter(|(lo, hi)| lo < hi)
+            .flat_map(|(lo, hi)| simpson(lo, hi, step))
+            .collect();
+        let weighted = match &self.density {
+            None => nodes.iter().map(|&(x, w)| w * phi(x - mean)).collect(),
+            Some(d) => {
+                let dt = t - self.t;
+                let (st, sp, sd) = (t.sqrt(), self.t.sqrt(), dt.sqrt());
+                // Density of Z_k at x: ∫ g(u) (√t/√Δt) φ((x√t − u√t' − θΔt)/√Δt) du.
+                nodes
+                    .iter()
+                    .map(|&(x, w)| {
+                        let g: f64 =
+                            d.z.iter()
+                                .zip(&d.weighted)
+                                .map(|(&u, &wu)| wu * phi((x * st - u * sp - self.theta * dt) / sd))
+                                .sum();
+                        w * g * st / sd
+                    })
+                    .collect()
+            }
+        };
+        self.density = Some(Density {
+            z: nodes.iter().map(|&(x, _)| x).collect(),
+            weighted,
+        });
+        self.t = t;
+    }
+}
+
+/// The continuation region at a look: below the efficacy bound `c` (above −c two-sided) and,
+/// with a futility bound `b`, at or above it (|Z| ≥ b two-sided).
+fn region(c: f64, b: Option<f64>, sides: Sides) -> Vec<(f64, f64)> {
+    match (sides, b) {
+        (Sides::One, None) => vec![(f64::NEG_INFINITY, c)],
+        (Sides::One, Some(b)) => vec![(b, c)],
+        (Sides::Two, Some(b)) if b > 0.0 => vec![(-c, -b), (b, c)],
+        (Sides::Two, _) => vec![(-c, c)],
+    }
+}
+
+fn phi(x: f64) -> f64 {
+    (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt()
+}
+
+/// The c with `f(c)` = `target` for `f` decreasing in c, by bisection to 1e-12 (each
+/// evaluation is one O(grid) integral, so 60 of them cost nothing).
+fn solve_decreasing(target: f64, f: impl Fn(f64) -> f64) -> f64 {
+    let (mut lo, mut hi) = (-TAIL - 10.0, TAIL + 10.0);
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if f(mid) > target {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo < 1e-12 {
+            break;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+fn check_fractions(fractions: &[f64]) -> Result<(), SequentialError> {
+    let ok = !fractions.is_empty()
+        && fractions
+            .iter()
+            .all(|t| t.is_finite() && *t > 0.0 && *t <= 1.0)
+        && fractions.windows(2).all(|w| w[0] < w[1]);
+    if ok {
+        Ok(())
+    } else {
+        Err(SequentialError::Fractions(fractions.to_vec()))
+    }
+}
+
+fn check_level(name: &'static str, value: f64) -> Result<(), SequentialError> {
+    if value > 0.0 && value < 1.0 {
+        Ok(())
+    } else {
+        Err(SequentialError::Level { name, value })
+    }
+}
+
+/// Cumulative spending of a whole test (both sides together) at each look.
+fn cumulative(
+    spending: &Spending,
+    level: f64,
+    sides: Sides,
+    fractions: &[f64],
+) -> Result<Vec<f64>, SequentialError> {
+    let per_side = match sides {
+        Sides::One => level,
+        Sides::Two => level / 2.0,
+    };
+    let factor = match sides {
+        Sides::One => 1.0,
+        Sides::Two => 2.0,
+    };
+    if let Spending::User(f) = spending {
+        let ok = f.len() == fractions.len()
+            && f.first().is_some_and(|&x| x > 0.0)
+            && f.windows(2).all(|w| w[0] <= w[1])
+            && f.last().is_some_and(|&x| x <= 1.0 + 1e-12);
+        if !ok {
+            return Err(SequentialError::Spending(f.clone()));
+        }
+    }
+    Ok(fractions
+        .iter()
+        .enumerate()
+        .map(|(k, &t)| factor * spending.spent(per_side, t, k))
+        .collect())
+}
+
+/// Efficacy boundaries for a test of level `alpha` looked at at `fractions`.
+pub fn efficacy(
+    fractions: &[f64],
+    alpha: f64,
+    spending: &Spending,
+    sides: Sides,
+) -> Result<Boundaries, SequentialError> {
+    check_fractions(fractions)?;
+    check_level("alpha", alpha)?;
+    let spent = cumulative(spending, alpha, sides, fractions)?;
+    let bounds = efficacy_from_spent(fractions, &spent, sides);
+    Ok(Boundaries {
+        fractions: fractions.to_vec(),
+        efficacy: bounds,
+        alpha_spent: spent,
+        futility: None,
+        drift: None,
+    })
+}
+
+/// The boundaries that spend exactly `spent` (cumulative, both sides) under the null.
+fn efficacy_from_spent(fractions: &[f64], spent: &[f64], sides: Sides) -> Vec<f64> {
+    let mut rec = Recursion::new(0.0);
+    let mut bounds = Vec::with_capacity(fractions.len());
+    let mut before = 0.0;
+    for (k, (&t, &cum)) in fractions.iter().zip(spent).enumerate() {
+        let increment = (cum - before).max(0.0);
+        before = cum;
+        let c = if increment <= 0.0 {
+            // Nothing to spend at this look: it cannot reject.
+            f64::INFINITY
+        } else {
+            // Two-sided, the two tails are equal under the null: each takes half.
+            let per_tail = match sides {
+                Sides::One => increment,
+                Sides::Two => increment / 2.0,
+            };
+            solve_decreasing(per_tail, |c| rec.tail(t, c, false))
+        };
+        rec.advance(t, &region(c, None, sides), fractions.get(k + 1).copied());
+        bounds.push(c);
+    }
+    bounds
+}
+
+/// P(continued so far, and |Z| < b two-sided or Z < b one-sided) at fraction `t`.
+fn below(rec: &Recursion, t: f64, b: f64, sides: Sides) -> f64 {
+    match sides {
+        Sides::One => rec.tail(t, b, true),
+        Sides::Two if b > 0.0 => rec.tail(t, b, true) - rec.tail(t, -b, true),
+        Sides::Two => 0.0,
+    }
+}
+
+/// Futility bounds by β-spending at drift `theta`, with the efficacy bounds fixed
+/// (non-binding); returns the bounds and how far the last one found lies below the last
+/// efficacy bound (zero at the drift of the design, where the last futility bound meets it).
+fn futility_at(
+    fractions: &[f64],
+    efficacy: &[f64],
+    beta_spent: &[f64],
+    sides: Sides,
+    theta: f64,
+) -> (Vec<f64>, f64) {
+    let mut rec = Recursion::new(theta);
+    let mut bounds = Vec::with_capacity(fractions.len());
+    let mut before = 0.0;
+    let mut gap = 0.0;
+    for (k, (&t, &cum)) in fractions.iter().zip(beta_spent).enumerate() {
+        let increment = (cum - before).max(0.0);
+        before = cum;
+        let c = efficacy[k];
+        let found = solve_increasing(increment, |b| below(&rec, t, b, sides));
+        let next = fractions.get(k + 1).copied();
+        let b = if next.is_none() {
+            gap = c - found;
+            c
+        } else {
+            found.min(c)
+        };
+        rec.advance(t, &region(c, Some(b), sides), next);
+        bounds.push(b);
+    }
+    (bounds, gap)
+}
+
+/// The b with `f(b)` = `target` for `f` increasing in b.
+fn solve_increasing(target: f64, f: impl Fn(f64) -> f64) -> f64 {
+    solve_decreasing(-target, |b| -f(b))
+}
+
+/// Efficacy boundaries as [`efficacy`], with non-binding futility bounds spending `beta` by
+/// `beta_spending` at the drift for which the design's power is 1 − β.
+pub fn with_futility(
+    fractions: &[f64],
+    alpha: f64,
+    spending: &Spending,
+    sides: Sides,
+    beta: f64,
+    beta_spending: &Spending,
+) -> Result<Boundaries, SequentialError> {
+    let mut design = efficacy(fractions, alpha, spending, sides)?;
+    check_level("beta", beta)?;
+    let beta_spent = cumulative(beta_spending, beta, Sides::One, fractions)?;
+    // The gap at the last look decreases with the drift: bracket and bisect.
+    let gap = |theta: f64| futility_at(fractions, &design.efficacy, &beta_spent, sides, theta).1;
+    let (mut lo, mut hi) = (0.0, 1.0);
+    while gap(hi) > 0.0 {
+        hi *= 2.0;
+        if hi > 64.0 {
+            return Err(SequentialError::Drift(1.0 - beta));
+        }
+    }
+    if gap(lo) < 0.0 {
+        return Err(SequentialError::Drift(1.0 - beta));
+    }
+    for _ in 0..50 {
+        let mid = 0.5 * (lo + hi);
+        if gap(mid) > 0.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let theta = 0.5 * (lo + hi);
+    design.futility = Some(futility_at(fractions, &design.efficacy, &beta_spent, sides, theta).0);
+    design.drift = Some(theta);
+    Ok(design)
+}
+
+/// A look's decision.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Decision {
+    /// The statistic crossed the efficacy boundary: the null is rejected, stop.
+    Reject,
+    /// The statistic fell below the futility boundary: stop, the null stands.
+    Accept,
+    /// Neither: take the next look (at the last look, the null stands).
+    Continue,
+}
+
+impl Boundaries {
+    /// The decision at look `k` (0-based) for statistic `z`.
+    pub fn decide(&self, k: usize, z: f64, sides: Sides) -> Decision {
+        let c = self.efficacy[k];
+        let x = match sides {
+            Sides::One => z,
+            Sides::Two => z.abs(),
+        };
+        if x >= c {
+            return Decision::Reject;
+        }
+        if let Some(b) = &self.futility
+            && x < b[k]
+        {
+            return Decision::Accept;
+        }
+        if k + 1 == self.efficacy.len() {
+            Decision::Accept
+        } else {
+            Decision::Continue
+        }
+    }
+
+    /// The probability of rejecting at each look at drift `theta` (with the futility bounds
+    /// in place when the design has them): the power curve of the design, look by look.
+    pub fn rejection_probabilities(&self, theta: f64, sides: Sides) -> Vec<f64> {
+        let mut rec = Recursion::new(theta);
+        let mut out = Vec::with_capacity(self.fractions.len());
+        for (k, (&t, &c)) in self.fractions.iter().zip(&self.efficacy).enumerate() {
+            let mut p = rec.tail(t, c, false);
+            if sides == Sides::Two {
+                p += rec.tail(t, -c, true);
+            }
+            out.push(p);
+            let b = self.futility.as_ref().map(|b| b[k]);
+            rec.advance(t, &region(c, b, sides), self.fractions.get(k + 1).copied());
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// rpact's own unit tests (tests/testthat/test-f_design_group_sequential.R of the rpact
+    /// package, which asserts them to 1e-7): an independent implementation of the same
+    /// definitions. Ours must agree to 1e-5.
+    fn close(got: &[f64], want: &[f64], tol: f64) {
+        assert_eq!(got.len(), want.len());
+        for (g, w) in got.iter().zip(want) {
+            assert!((g - w).abs() < tol, "got {got:?}, want {want:?}");
+        }
+    }
+
+    #[test]
+    fn obrien_fleming_spending_matches_rpact() {
+        // getDesignGroupSequential(kMax = 4, alpha = 0.13, typeOfDesign = "asOF",
+        //   informationRates = c(0.4, 0.75, 0.85, 1))
+        let d = efficacy(
+            &[0.4, 0.75, 0.85, 1.0],
+            0.13,
+            &Spending::OBrienFleming,
+            Sides::One,
+        )
+        .unwrap();
+        close(
+            &d.alpha_spent,
+            &[0.016665509, 0.080406163, 0.10053322, 0.13],
+            1e-8,
+        );
+        close(
+            &d.efficacy,
+            &[2.1280732, 1.4368565, 1.422873, 1.2970881],
+            1e-5,
+        );
+        // The classic three equally spaced looks at one-sided 0.025 (gsDesign's sfLDOF
+        // example and rpact agree): 3.7103, 2.5114, 1.9930.
+        let d = efficacy(
+            &[1.0 / 3.0, 2.0 / 3.0, 1.0],
+            0.025,
+            &Spending::OBrienFleming,
+            Sides::One,
+        )
+        .unwrap();
+        close(&d.efficacy, &[3.7103, 2.5114, 1.9930], 1e-4);
+    }
+
+    #[test]
+    fn pocock_spending_matches_rpact_including_a_study_stopped_early() {
+        // getDesignGroupSequential(kMax = 3, alpha = 0.13, typeOfDesign = "asP",
+        //   informationRates = c(0.35, 0.7, 1)) (its critical values ignore the non-binding
+        //   futility bounds)
+        let d = efficacy(&[0.35, 0.7, 1.0], 0.13, &Spending::Pocock, Sides::One).unwrap();
+        close(&d.alpha_spent, &[0.061214062, 0.10266465, 0.13], 1e-8);
+        close(&d.efficacy, &[1.5446617, 1.4828682, 1.4620058], 1e-5);
+        // getDesignGroupSequential(informationRates = c(0.4, 0.7), typeOfDesign = "asP"): the
+        // last look before the planned end spends only f(0.7).
+        let d = efficacy(&[0.4, 0.7], 0.025, &Spending::Pocock, Sides::One).unwrap();
+        close(&d.alpha_spent, &[0.013078429, 0.0197432], 1e-8);
+        close(&d.efficacy, &[2.223875, 2.3050796], 1e-5);
+    }
+
+    #[test]
+    fn power_family_and_user_spending_match_rpact() {
+        // asHSD with gamma = 0 is uniform spending, the power family with ρ = 1:
+        // getDesignInverseNormal(kMax = 3, informationRates = c(0.2, 0.4, 1), alpha = 0.03,
+        //   typeOfDesign = "asHSD", gammaA = 0)
+        let d = efficacy(&[0.2, 0.4, 1.0], 0.03, &Spending::Power(1.0), Sides::One).unwrap();
+        close(&d.efficacy, &[2.5121443, 2.4228747, 2.0280392], 1e-5);
+        // getDesignGroupSequential(typeOfDesign = "asUser",
+        //   userAlphaSpending = c(0.01, 0.02, 0.03, 0.05)), α = 0.05, four equal looks.
+        let user = Spending::User(vec![0.2, 0.4, 0.6, 1.0]);
+        let d = efficacy(&[0.25, 0.5, 0.75, 1.0], 0.05, &user, Sides::One).unwrap();
+        close(
+            &d.efficacy,
+            &[2.3263479, 2.2192994, 2.1201347, 1.8189562],
+            1e-5,
+        );
+    }
+
+    #[test]
+    fn two_sided_boundaries_match_rpact_for_the_same_spending() {
+        // getDesignGroupSequential(kMax = 4, alpha = 0.025, sided = 2,
+        //   informationRates = c(0.3, 0.6, 0.8, 1), typeOfDesign = "WToptimum", ...) spends
+        // 0.00054745752, 0.0059439465, 0.014151805, 0.025 (both sides) with these |Z| bounds;
+        // given the same spending, ours must find the same bounds.
+        let spent = [0.00054745752, 0.0059439465, 0.014151805, 0.02499999];
+        let user = Spending::User(spent.iter().map(|s| s / 0.025).collect());
+        let d = efficacy(&[0.3, 0.6, 0.8, 1.0], 0.025, &user, Sides::Two).unwrap();
+        close(
+            &d.efficacy,
+            &[3.4563925, 2.7688119, 2.5253005, 2.3512665],
+            1e-5,
+        );
+        // x8b: sided = 2, informationRates = c(0.3, 0.8, 1).
+        let spent = [0.0013603353, 0.013978861, 0.02499999];
+        let user = Spending::User(spent.iter().map(|s| s / 0.025).collect());
+        let d = efficacy(&[0.3, 0.8, 1.0], 0.025, &user, Sides::Two).unwrap();
+        close(&d.efficacy, &[3.2029374, 2.4819703, 2.3420706], 1e-5);
+    }
+
+    #[test]
+    fn non_binding_futility_matches_rpact() {
+        // getDesignGroupSequential(kMax = 3, alpha = 0.13, beta = 0.41, typeOfDesign = "asOF",
+        //   typeBetaSpending = "bsKD", informationRates = c(0.4, 0.75, 1), gammaB = 2.5,
+        //   bindingFutility = FALSE)
+        let d = with_futility(
+            &[0.4, 0.75, 1.0],
+            0.13,
+            &Spending::OBrienFleming,
+            Sides::One,
+            0.41,
+            &Spending::Power(2.5),
+        )
+        .unwrap();
+        close(&d.efficacy, &[2.1280732, 1.4368565, 1.2468994], 1e-5);
+        let b = d.futility.as_ref().unwrap();
+        close(&b[..2], &[-0.83725762, 0.35992547], 1e-5);
+        // Its power look by look, cumulative: 0.10903632, 0.42541278, 0.59.
+        let p = d.rejection_probabilities(d.drift.unwrap(), Sides::One);
+        let cum: Vec<f64> = p
+            .iter()
+            .scan(0.0, |s, x| {
+                *s += x;
+                Some(*s)
+            })
+            .collect();
+        close(&cum, &[0.10903632, 0.42541278, 0.59], 1e-5);
+    }
+
+    #[test]
+    fn the_design_spends_exactly_alpha_under_the_null() {
+        // A second route to the level: the rejection probabilities under θ = 0 sum to α, and
+        // look by look equal the spending increments (two-sided, ten uneven looks).
+        let t: Vec<f64> = [1, 2, 3, 5, 8, 13, 21, 34, 55, 89]
+            .iter()
+            .map(|&k| k as f64 / 89.0)
+            .collect();
+        for spending in [Spending::OBrienFleming, Spending::Pocock] {
+            let d = efficacy(&t, 0.05, &spending, Sides::Two).unwrap();
+            let p = d.rejection_probabilities(0.0, Sides::Two);
+            let mut before = 0.0;
+            for (pk, cum) in p.iter().zip(&d.alpha_spent) {
+                assert!(
+                    (pk - (cum - before)).abs() < 1e-9,
+                    "{pk} vs {}",
+                    cum - before
+                );
+                before = *cum;
+            }
+            assert!((p.iter().sum::<f64>() - 0.05).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn one_look_is_the_fixed_sample_test() {
+        let d = efficacy(&[1.0], 0.05, &Spending::OBrienFleming, Sides::Two).unwrap();
+        // z_{0.975} = 1.959963984540054
+        assert!((d.efficacy[0] - 1.959963984540054).abs() < 1e-9);
+        let d = efficacy(&[1.0], 0.05, &Spending::Pocock, Sides::One).unwrap();
+        assert!((d.efficacy[0] - 1.6448536269514722).abs() < 1e-9);
+    }
+
+    #[test]
+    fn decisions_follow_the_boundaries() {
+        let d = with_futility(
+            &[0.4, 0.75, 1.0],
+            0.13,
+            &Spending::OBrienFleming,
+            Sides::One,
+            0.41,
+            &Spending::Power(2.5),
+        )
+        .unwrap();
+        assert_eq!(d.decide(0, 2.2, Sides::One), Decision::Reject);
+        assert_eq!(d.decide(0, -1.0, Sides::One), Decision::Accept);
+        assert_eq!(d.decide(0, 0.0, Sides::One), Decision::Continue);
+        assert_eq!(d.decide(2, 1.2, Sides::One), Decision::Accept);
+        assert_eq!(d.decide(2, 1.25, Sides::One), Decision::Reject);
+    }
+
+    #[test]
+    fn bad_designs_are_refused() {
+        assert!(matches!(
+            efficacy(&[0.5, 0.5], 0.05, &Spending::Pocock, Sides::One),
+            Err(SequentialError::Fractions(_))
+        ));
+        assert!(matches!(
+            efficacy(&[0.0, 1.0], 0.05, &Spending::Pocock, Sides::One),
+            Err(SequentialError::Fractions(_))
+        ));
+        assert!(matches!(
+            efficacy(&[1.0], 1.5, &Spending::Pocock, Sides::One),
+            Err(SequentialError::Level { .. })
+        ));
+        assert!(matches!(
+            efficacy(
+                &[0.5, 1.0],
+                0.05,
+                &Spending::User(vec![0.6, 0.5]),
+                Sides::One
+            ),
+            Err(SequentialError::Spending(_))
+        ));
+    }
+}
