@@ -493,6 +493,97 @@ impl Boundaries {
     }
 }
 
+/// A sequential consistency gate: the fixed-N verdict's two tests (the calibrated NEES test
+/// and the NIS test, each two-sided at α/2 by Bonferroni), each now a symmetric two-sided
+/// group-sequential test at α/2 looked at after the first `looks[k]` runs of a cell.
+///
+/// A look reads the verdict's Bonferroni p-value p = min(1, 2·min(p_NEES, p_NIS)) at that
+/// look's runs: it rejects ("inconsistent", stop) when min(p_NEES, p_NIS) is at most the
+/// design's nominal two-sided level 2(1 − Φ(c_k)) — |Z| ≥ c_k for one of the tests — and, with
+/// futility, accepts ("consistent", stop) when both p-values exceed 2(1 − Φ(b_k)). The last
+/// look decides either way. A capped p = 1 (both p-values ≥ 0.5) accepts only when that
+/// bound is below 0.5: when it cannot tell, the gate takes the next look, which can only make
+/// it more conservative.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Gate {
+    /// Run counts of the looks, increasing; the last is the study's runs per cell.
+    pub looks: Vec<usize>,
+    /// The two-sided design at α/2 on the looks' fractions `looks[k] / looks.last()`.
+    pub design: Boundaries,
+}
+
+/// The default looks: `count` looks of N/count runs (rounded, distinct, at least 2 runs each).
+pub fn default_looks(runs: usize, count: usize) -> Vec<usize> {
+    let mut looks: Vec<usize> = (1..=count)
+        .map(|k| ((k * runs) as f64 / count as f64).round() as usize)
+        .filter(|&n| n >= 2)
+        .collect();
+    looks.dedup();
+    if looks.last() != Some(&runs) {
+        looks.push(runs);
+    }
+    looks
+}
+
+impl Gate {
+    /// The gate of level `alpha` on `looks` (run counts, increasing), spending by `spending`,
+    /// with non-binding futility spending `futility = (β, spending)` when given.
+    pub fn new(
+        looks: Vec<usize>,
+        alpha: f64,
+        spending: &Spending,
+        futility: Option<(f64, &Spending)>,
+    ) -> Result<Gate, SequentialError> {
+        let last = *looks.last().ok_or(SequentialError::Fractions(Vec::new()))? as f64;
+        let fractions: Vec<f64> = looks.iter().map(|&n| n as f64 / last).collect();
+        let design = match futility {
+            None => efficacy(&fractions, alpha / 2.0, spending, Sides::Two)?,
+            Some((beta, beta_spending)) => with_futility(
+                &fractions,
+                alpha / 2.0,
+                spending,
+                Sides::Two,
+                beta,
+                beta_spending,
+            )?,
+        };
+        Ok(Gate { looks, design })
+    }
+
+    /// Each test's nominal two-sided level at look `k`: it rejects at or below it.
+    pub fn nominal_level(&self, k: usize) -> f64 {
+        2.0 * normal().sf(self.design.efficacy[k])
+    }
+
+    /// The decision at look `k` from the verdict's Bonferroni p-value at that look.
+    pub fn decide(&self, k: usize, verdict_p: f64) -> Decision {
+        // min(p_NEES, p_NIS); at the cap only a lower bound of it is known.
+        let (smallest, capped) = if verdict_p >= 1.0 {
+            (0.5, true)
+        } else {
+            (verdict_p / 2.0, false)
+        };
+        if !capped && smallest <= self.nominal_level(k) {
+            return Decision::Reject;
+        }
+        let last = k + 1 == self.looks.len();
+        if last {
+            return Decision::Accept;
+        }
+        if let Some(b) = &self.design.futility {
+            let keep_level = if b[k] > 0.0 {
+                2.0 * normal().sf(b[k])
+            } else {
+                1.0
+            };
+            if smallest > keep_level || (capped && keep_level < 0.5) {
+                return Decision::Accept;
+            }
+        }
+        Decision::Continue
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -697,5 +788,57 @@ mod tests {
             ),
             Err(SequentialError::Spending(_))
         ));
+    }
+
+    #[test]
+    fn default_looks_are_even_and_end_at_the_runs() {
+        assert_eq!(
+            default_looks(100, 10),
+            vec![10, 20, 30, 40, 50, 60, 70, 80, 90, 100]
+        );
+        assert_eq!(
+            default_looks(15, 10),
+            vec![2, 3, 5, 6, 8, 9, 11, 12, 14, 15]
+        );
+        assert_eq!(default_looks(3, 10), vec![2, 3]);
+    }
+
+    #[test]
+    fn the_gate_reads_the_bonferroni_p_value_against_each_tests_nominal_level() {
+        let gate = Gate::new(default_looks(100, 4), 0.05, &Spending::OBrienFleming, None).unwrap();
+        // One look at N: the fixed verdict (reject when p ≤ α).
+        let one = Gate::new(vec![100], 0.05, &Spending::OBrienFleming, None).unwrap();
+        assert!((one.nominal_level(0) - 0.025).abs() < 1e-9);
+        assert_eq!(one.decide(0, 0.0499), Decision::Reject);
+        assert_eq!(one.decide(0, 0.0501), Decision::Accept);
+        // Early looks demand far more: the first O'Brien–Fleming look of four at α/2.
+        let nu0 = gate.nominal_level(0);
+        assert!(nu0 < 1e-4, "{nu0}");
+        assert_eq!(gate.decide(0, 2.0 * nu0 * 0.99), Decision::Reject);
+        assert_eq!(gate.decide(0, 2.0 * nu0 * 1.01), Decision::Continue);
+        assert_eq!(gate.decide(0, 1.0), Decision::Continue);
+        // The last look's level is a little below α/2 (what the early looks spent).
+        let nu_last = gate.nominal_level(3);
+        assert!(nu_last < 0.025 && nu_last > 0.02, "{nu_last}");
+    }
+
+    #[test]
+    fn a_gate_with_futility_stops_consistent_filters_early() {
+        let gate = Gate::new(
+            default_looks(100, 10),
+            0.05,
+            &Spending::OBrienFleming,
+            Some((0.1, &Spending::Power(2.0))),
+        )
+        .unwrap();
+        let b = gate.design.futility.as_ref().unwrap();
+        // The futility bounds rise to meet the efficacy bound at the last look.
+        assert!(b.windows(2).all(|w| w[0] <= w[1]), "{b:?}");
+        assert!((b[9] - gate.design.efficacy[9]).abs() < 1e-12);
+        // A verdict p of 1 (both tests' p ≥ 0.5) stops a look whose futility bound is above
+        // 0.674 (|Z| < b then holds for both tests).
+        let k = b.iter().position(|&x| x > 0.6745).unwrap();
+        assert_eq!(gate.decide(k, 1.0), Decision::Accept);
+        assert_eq!(gate.decide(0, 1.0), Decision::Continue);
     }
 }

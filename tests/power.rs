@@ -185,3 +185,116 @@ expect = "fail"
     assert!(err.contains("check.assert[0].max"), "{err}");
     assert!(err.contains("check.assert[1].min"), "{err}");
 }
+
+fn power_with(spec: &Path, out: &Path, args: &[&str]) {
+    let o = kfmc()
+        .args(["power", "-q", "--out"])
+        .arg(out)
+        .args(args)
+        .arg(spec)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// A verdict row of power.parquet: (q_scale, sequential) → (replications, rejections,
+/// runs_used_mean).
+type VerdictRow = ((f64, bool), (i64, i64, f64));
+
+fn verdicts(path: &Path) -> Vec<VerdictRow> {
+    let df = read(path);
+    let m = df.column("test").unwrap().str().unwrap().equal("verdict")
+        & df.column("runs").unwrap().i64().unwrap().equal(30);
+    let r = df.filter(&m).unwrap();
+    let q = r.column("q_scale").unwrap().f64().unwrap().clone();
+    let s = r.column("sequential").unwrap().bool().unwrap().clone();
+    let n = r.column("replications").unwrap().i64().unwrap().clone();
+    let k = r.column("rejections").unwrap().i64().unwrap().clone();
+    let u = r.column("runs_used_mean").unwrap().f64().unwrap().clone();
+    (0..r.height())
+        .map(|i| {
+            (
+                (q.get(i).unwrap(), s.get(i).unwrap()),
+                (n.get(i).unwrap(), k.get(i).unwrap(), u.get(i).unwrap()),
+            )
+        })
+        .collect()
+}
+
+/// `kfmc power --sequential`: a gate of one look is the fixed-N verdict, replication by
+/// replication (the same rejections); with ten looks the table is byte-identical on 1 and 2
+/// threads, Q × 2 is still caught and the gate stops early on it, and the false alarms at the
+/// true Q stay within the binomial range of α.
+#[test]
+fn a_sequential_gate_of_one_look_is_the_fixed_verdict_and_ten_looks_stop_early() {
+    let (dir, spec) = spec_in_tempdir(SPEC);
+    let one = dir.path().join("one");
+    power_with(&spec, &one, &["-R", "30", "--sequential", "--looks", "1"]);
+    let rows = verdicts(&one.join("power.parquet"));
+    for q in [1.0, 2.0] {
+        let get = |s: bool| rows.iter().find(|(k, _)| *k == (q, s)).unwrap().1;
+        let (fixed, seq) = (get(false), get(true));
+        assert_eq!(
+            (fixed.0, fixed.1),
+            (seq.0, seq.1),
+            "Q × {q}: {fixed:?} vs {seq:?}"
+        );
+        assert_eq!(seq.2, 30.0);
+    }
+
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    let ten = ["-R", "30", "--sequential", "--looks", "10"];
+    power_with(&spec, &a, &[&ten[..], &["--threads", "1"]].concat());
+    power_with(&spec, &b, &[&ten[..], &["--threads", "2"]].concat());
+    assert!(
+        std::fs::read(a.join("power.parquet")).unwrap()
+            == std::fs::read(b.join("power.parquet")).unwrap(),
+        "the sequential power table depends on the thread count"
+    );
+    let rows = verdicts(&a.join("power.parquet"));
+    let get = |q: f64| rows.iter().find(|(k, _)| *k == (q, true)).unwrap().1;
+    let (n, detected, runs_used) = get(2.0);
+    assert_eq!(n, 30);
+    // The fixed verdict catches Q × 2 in about 28 of 30 (test above); O'Brien–Fleming
+    // spending loses little power, and stops on average well before the 30th run.
+    assert!(detected >= 24, "Q × 2 caught in only {detected} of 30");
+    assert!(runs_used < 25.0, "Q × 2: {runs_used} runs used on average");
+    let (n, false_alarms, runs_used) = get(1.0);
+    assert_eq!(n, 30);
+    assert!(false_alarms <= 6, "{false_alarms} false alarms in 30");
+    // A correct filter rarely stops early without futility bounds.
+    assert!(runs_used > 25.0, "{runs_used}");
+}
+
+#[test]
+fn bad_sequential_settings_are_usage_errors() {
+    let (dir, spec) = spec_in_tempdir(SPEC);
+    for args in [
+        &["--looks", "10,20"][..],
+        &["--looks", "20,10,30"],
+        &["--looks", "0"],
+        &["--looks", "1,30"],
+        &["--futility", "1.5"],
+    ] {
+        let o = kfmc()
+            .args(["power", "-q", "-R", "2", "--sequential", "--out"])
+            .arg(dir.path().join("x"))
+            .args(args)
+            .arg(&spec)
+            .output()
+            .unwrap();
+        assert_eq!(
+            o.status.code(),
+            Some(2),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+    // The gate's settings need --sequential (clap refuses them alone).
+    let o = kfmc()
+        .args(["power", "-q", "-R", "2", "--looks", "5"])
+        .arg(&spec)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+}

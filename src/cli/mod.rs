@@ -149,6 +149,105 @@ fn at_least_one(text: &str) -> Result<usize, String> {
     }
 }
 
+/// The group-sequential gate's settings (`kfmc power --sequential`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct SequentialArgs {
+    /// Measure the sequential gate beside the fixed-N verdict.
+    #[arg(long)]
+    pub sequential: bool,
+    /// The looks: a count of even looks (default 10), or the run counts of the looks
+    /// (`10,25,50,100`; the last must be the study's runs per cell).
+    #[arg(long, requires = "sequential", value_name = "COUNT|N1,N2,...")]
+    pub looks: Option<String>,
+    /// How α is spent over the looks.
+    #[arg(long, requires = "sequential", value_enum, default_value_t = SpendingArg::ObrienFleming)]
+    pub spending: SpendingArg,
+    /// Stop a consistent filter early: non-binding futility bounds spending β (power 1 − β
+    /// at the design's drift), by a quadratic β-spending function.
+    #[arg(long, requires = "sequential", value_name = "BETA")]
+    pub futility: Option<f64>,
+}
+
+/// An α-spending function.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SpendingArg {
+    /// Lan–DeMets O'Brien–Fleming type: early looks stop only on overwhelming evidence.
+    ObrienFleming,
+    /// Lan–DeMets Pocock type: nearly constant boundaries.
+    Pocock,
+}
+
+fn usage(flag: &str, message: impl Into<String>) -> UsageError {
+    UsageError {
+        flag: flag.into(),
+        message: message.into(),
+    }
+}
+
+impl SequentialArgs {
+    /// The gate for a study of `runs` runs per cell at level `alpha`, or `None` without
+    /// `--sequential`.
+    pub fn gate(
+        &self,
+        runs: usize,
+        alpha: f64,
+    ) -> Result<Option<crate::sequential::Gate>, UsageError> {
+        use crate::sequential::{Gate, Spending, default_looks};
+        if !self.sequential {
+            return Ok(None);
+        }
+        let looks = match self.looks.as_deref().map(str::trim) {
+            None => default_looks(runs, 10),
+            Some(text) if !text.contains(',') => {
+                let count = at_least_one(text).map_err(|e| usage("--looks", e))?;
+                default_looks(runs, count)
+            }
+            Some(text) => {
+                let looks = text
+                    .split(',')
+                    .map(|v| {
+                        v.trim()
+                            .parse::<usize>()
+                            .ok()
+                            .filter(|&n| n >= 2)
+                            .ok_or_else(|| {
+                                usage("--looks", format!("`{v}` is not a run count ≥ 2"))
+                            })
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
+                if !looks.windows(2).all(|w| w[0] < w[1]) || looks.last() != Some(&runs) {
+                    return Err(usage(
+                        "--looks",
+                        format!(
+                            "the run counts must increase and end at the study's {runs} runs per \
+                             cell; got {text}"
+                        ),
+                    ));
+                }
+                looks
+            }
+        };
+        let spending = match self.spending {
+            SpendingArg::ObrienFleming => Spending::OBrienFleming,
+            SpendingArg::Pocock => Spending::Pocock,
+        };
+        let quadratic = Spending::Power(2.0);
+        let futility = match self.futility {
+            Some(beta) if !(beta > 0.0 && beta < 1.0) => {
+                return Err(usage(
+                    "--futility",
+                    format!("β must lie in (0, 1); got {beta}"),
+                ));
+            }
+            Some(beta) => Some((beta, &quadratic)),
+            None => None,
+        };
+        Gate::new(looks, alpha, &spending, futility)
+            .map(Some)
+            .map_err(|e| usage("--sequential", e.to_string()))
+    }
+}
+
 /// A number of parts, 1 to [`crate::study::MAX_SHARDS`] (`kfmc slurm --shards`).
 fn shard_count(text: &str) -> Result<usize, String> {
     match text.trim().parse::<usize>() {
@@ -254,6 +353,11 @@ pub enum Command {
         /// Independent replications of the whole study.
         #[arg(long, short = 'R')]
         replications: usize,
+        /// Also measure a group-sequential gate: per cell and filter variant, the verdict's
+        /// tests looked at after each look's runs, stopping when settled (rows with
+        /// `sequential` true, with the runs each replication used).
+        #[command(flatten)]
+        sequential: SequentialArgs,
     },
     /// Print the columns of an exchange table for a spec.
     Schema {
@@ -870,6 +974,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
         Command::Power {
             study,
             replications,
+            sequential,
         } => {
             if replications == 0 {
                 return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
@@ -885,11 +990,12 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             let mut plan = study.plan(registry, Some(0))?;
             plan.check_replications(replications, study.allow_large)
                 .map_err(KfmcError::from)?;
+            let gate = sequential.gate(plan.runs, plan.alpha)?;
             let out = out_given.unwrap_or_else(|| plan.output.join("power"));
             plan.output = out.clone();
             let threads = study.threads(study.quiet);
             let observer = ProgressObserver::new(!study.quiet);
-            let report = crate::power::power(
+            let report = crate::power::power_with(
                 &plan,
                 replications,
                 plan.master_seed,
@@ -901,6 +1007,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     checkpoints: None,
                 },
                 &observer,
+                gate.as_ref(),
             )
             .map_err(anyhow::Error::from)
             .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
