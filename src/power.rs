@@ -112,13 +112,31 @@ pub fn power(
     opts: &ExecOptions,
     observer: &dyn RunObserver,
 ) -> Result<StudyReport, KfmcError> {
-    power_with(plan, replications, base_seed, out, opts, observer, None)
+    power_with(
+        plan,
+        replications,
+        base_seed,
+        out,
+        opts,
+        observer,
+        &PowerExtras::default(),
+    )
 }
 
-/// As [`power`]; with a sequential `gate`, each replication also applies it to every cell and
-/// filter variant (its looks are evaluated as subsets of the same runs, so the gate sees
-/// exactly the first runs of the fixed study), adding a `verdict` row with `sequential` true:
-/// the gate's rejection rate and the runs it used.
+/// What a power study measures beyond the spec's own tests.
+#[derive(Debug, Clone, Default)]
+pub struct PowerExtras<'a> {
+    /// A sequential gate applied to every cell and filter variant of each replication (its
+    /// looks are evaluated as subsets of the same runs, so the gate sees exactly the first
+    /// runs of the fixed study): a `verdict` row with `sequential` true, the gate's rejection
+    /// rate and the runs it used.
+    pub gate: Option<&'a Gate>,
+    /// Run counts at which every test is also evaluated (on the first N runs of each cell),
+    /// as the spec's `[[consistency.subsets]]` would: the power curve over N.
+    pub curve: Vec<usize>,
+}
+
+/// As [`power`], measuring `extras` too.
 pub fn power_with(
     plan: &Plan,
     replications: usize,
@@ -126,8 +144,9 @@ pub fn power_with(
     out: &Path,
     opts: &ExecOptions,
     observer: &dyn RunObserver,
-    gate: Option<&Gate>,
+    extras: &PowerExtras<'_>,
 ) -> Result<StudyReport, KfmcError> {
+    let gate = extras.gate;
     let started = Instant::now();
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -143,9 +162,15 @@ pub fn power_with(
         whiteness_lags: 5,
         subsets: Vec::new(),
     });
+    let consistency = one.consistency.as_mut().expect("set above");
+    for &n in &extras.curve {
+        let subset = (n, plan.alpha);
+        if n < plan.runs && !consistency.subsets.contains(&subset) {
+            consistency.subsets.push(subset);
+        }
+    }
     let mut look_subsets = Vec::new();
     if let Some(gate) = gate {
-        let consistency = one.consistency.as_mut().expect("set above");
         for &n in &gate.looks[..gate.looks.len() - 1] {
             let subset = (n, plan.alpha);
             if !consistency.subsets.contains(&subset) {
@@ -415,6 +440,129 @@ fn fold_sequential(
         }
     }
     Ok(())
+}
+
+/// The fixed verdict's rejection rate at one run count, from `power.parquet`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CurvePoint {
+    /// Runs per cell.
+    pub runs: usize,
+    /// Replications judged.
+    pub replications: u64,
+    /// Rejection rate of the verdict.
+    pub rate: f64,
+    /// Its Clopper–Pearson 95 % interval.
+    pub interval: (f64, f64),
+}
+
+/// One filter variant's power curve over the run counts of a power table.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PowerCurve {
+    /// Scenario.
+    pub scenario: String,
+    /// Noise scale.
+    pub noise_scale: f64,
+    /// Filter label.
+    pub filter: String,
+    /// The variant's Q multiplier (null for an outside filter).
+    pub q_scale: Option<f64>,
+    /// The variant's R multiplier.
+    pub r_scale: Option<f64>,
+    /// The verdict's rejection rate at each run count, increasing.
+    pub points: Vec<CurvePoint>,
+}
+
+impl PowerCurve {
+    /// The smallest run count whose rate reaches `target`, and the smallest whose interval's
+    /// lower end does (the conservative answer).
+    pub fn smallest_runs(&self, target: f64) -> (Option<&CurvePoint>, Option<&CurvePoint>) {
+        (
+            self.points.iter().find(|p| p.rate >= target),
+            self.points.iter().find(|p| p.interval.0 >= target),
+        )
+    }
+}
+
+/// The fixed verdict's power curves in `power.parquet` of the variants whose `q_scale` and
+/// `r_scale` equal `against` (a `None` matches any).
+pub fn power_curves(
+    path: &Path,
+    against: (Option<f64>, Option<f64>),
+) -> Result<Vec<PowerCurve>, OutputError> {
+    let df = read(path)?;
+    let bad = |e| OutputError::Polars {
+        action: "unexpected columns in",
+        path: path.to_path_buf(),
+        source: e,
+    };
+    let s = |c: &str| df.column(c).and_then(|c| c.str().cloned()).map_err(bad);
+    let f = |c: &str| df.column(c).and_then(|c| c.f64().cloned()).map_err(bad);
+    let i = |c: &str| df.column(c).and_then(|c| c.i64().cloned()).map_err(bad);
+    let (scen, filt, test) = (s("scenario")?, s("filter")?, s("test")?);
+    let (noise, q, r, rate, lo, hi) = (
+        f("noise_scale")?,
+        f("q_scale")?,
+        f("r_scale")?,
+        f("rejection_rate")?,
+        f("rejection_ci_lo")?,
+        f("rejection_ci_hi")?,
+    );
+    let (runs, reps) = (i("runs")?, i("replications")?);
+    let sequential = df
+        .column("sequential")
+        .and_then(|c| c.bool().cloned())
+        .map_err(bad)?;
+    let matches = |want: Option<f64>, got: Option<f64>| want.is_none_or(|w| got == Some(w));
+    let mut curves: Vec<PowerCurve> = Vec::new();
+    for k in 0..df.height() {
+        if test.get(k) != Some(crate::metrics::consistency::VERDICT)
+            || sequential.get(k) != Some(false)
+            || !matches(against.0, q.get(k))
+            || !matches(against.1, r.get(k))
+        {
+            continue;
+        }
+        let (Some(rate), Some(lo), Some(hi)) = (rate.get(k), lo.get(k), hi.get(k)) else {
+            continue;
+        };
+        let key = (
+            scen.get(k).unwrap_or("").to_string(),
+            noise.get(k).unwrap_or(f64::NAN),
+            filt.get(k).unwrap_or("").to_string(),
+            q.get(k),
+            r.get(k),
+        );
+        let point = CurvePoint {
+            runs: runs.get(k).unwrap_or(0) as usize,
+            replications: reps.get(k).unwrap_or(0) as u64,
+            rate,
+            interval: (lo, hi),
+        };
+        match curves.iter_mut().find(|c| {
+            (
+                &c.scenario,
+                c.noise_scale.to_bits(),
+                &c.filter,
+                c.q_scale,
+                c.r_scale,
+            ) == (&key.0, key.1.to_bits(), &key.2, key.3, key.4)
+        }) {
+            Some(c) => c.points.push(point),
+            None => curves.push(PowerCurve {
+                scenario: key.0,
+                noise_scale: key.1,
+                filter: key.2,
+                q_scale: key.3,
+                r_scale: key.4,
+                points: vec![point],
+            }),
+        }
+    }
+    for c in &mut curves {
+        c.points.sort_by_key(|p| p.runs);
+        c.points.dedup_by_key(|p| p.runs);
+    }
+    Ok(curves)
 }
 
 #[cfg(test)]

@@ -298,3 +298,61 @@ fn bad_sequential_settings_are_usage_errors() {
         .unwrap();
     assert_eq!(o.status.code(), Some(2));
 }
+
+/// `kfmc power --target-power P --against q_scale=X`: the power curve's point at N runs is the
+/// power study of an N-run spec (the same first N runs of every replication), and the answer
+/// printed is the first run count whose rate reaches P.
+#[test]
+fn target_power_reads_a_curve_of_prefix_studies() {
+    let (dir, spec) = spec_in_tempdir(SPEC);
+    let out = dir.path().join("curve");
+    let o = kfmc()
+        .args(["power", "-q", "-R", "30", "--target-power", "0.8"])
+        .args(["--against", "q_scale=2", "--out"])
+        .arg(&out)
+        .arg(&spec)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout).to_string();
+
+    let curve = read(&out.join("power.parquet"));
+    let verdict_at = |df: &DataFrame, q: f64, n: i64| {
+        let m = df.column("test").unwrap().str().unwrap().equal("verdict")
+            & df.column("q_scale").unwrap().f64().unwrap().equal(q)
+            & df.column("runs").unwrap().i64().unwrap().equal(n);
+        let r = df.filter(&m).unwrap();
+        assert_eq!(r.height(), 1, "q {q}, N {n}");
+        (
+            r.column("rejections")
+                .unwrap()
+                .i64()
+                .unwrap()
+                .get(0)
+                .unwrap(),
+            r.column("statistic_mean").unwrap().f64().unwrap().get(0),
+        )
+    };
+    // The 12-run point equals a 12-run study's power, bit for bit.
+    let short = dir.path().join("spec12.toml");
+    std::fs::write(&short, SPEC.replace("runs = 30", "runs = 12")).unwrap();
+    let out12 = dir.path().join("p12");
+    power(&short, &out12, "30", "0");
+    let direct = read(&out12.join("power.parquet"));
+    for q in [1.0, 2.0] {
+        assert_eq!(
+            verdict_at(&curve, q, 12),
+            verdict_at(&direct, q, 12),
+            "Q × {q}"
+        );
+    }
+    // The printed answer is the first point of the curve at or above 0.8.
+    let first = (3..=30)
+        .step_by(3)
+        .find(|&n| verdict_at(&curve, 2.0, n).0 as f64 / 30.0 >= 0.8)
+        .expect("Q × 2 reaches power 0.8 by 30 runs");
+    assert!(
+        text.contains(&format!("smallest N with power ≥ 0.8: {first} ")),
+        "{text}"
+    );
+}

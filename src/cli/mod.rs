@@ -177,6 +177,103 @@ pub enum SpendingArg {
     Pocock,
 }
 
+/// `--target-power`: a power in (0, 1).
+fn power_target(p: f64) -> Result<f64, UsageError> {
+    if p > 0.0 && p < 1.0 {
+        Ok(p)
+    } else {
+        Err(usage(
+            "--target-power",
+            format!("must lie in (0, 1); got {p}"),
+        ))
+    }
+}
+
+/// `--against q_scale=0.9[,r_scale=1]`: the variant's (q_scale, r_scale); an unnamed one
+/// matches any value.
+fn against_variant(text: &str) -> Result<(Option<f64>, Option<f64>), UsageError> {
+    let (mut q, mut r) = (None, None);
+    for pair in text.split(',') {
+        let (key, value) = pair.split_once('=').ok_or_else(|| {
+            usage(
+                "--against",
+                format!("`{pair}` is not KEY=VALUE (e.g. q_scale=0.9)"),
+            )
+        })?;
+        let value: f64 = value
+            .trim()
+            .parse()
+            .ok()
+            .filter(|v: &f64| v.is_finite() && *v > 0.0)
+            .ok_or_else(|| usage("--against", format!("`{value}` is not a positive number")))?;
+        match key.trim() {
+            "q_scale" => q = Some(value),
+            "r_scale" => r = Some(value),
+            other => {
+                return Err(usage(
+                    "--against",
+                    format!("unknown key `{other}` (expected q_scale or r_scale)"),
+                ));
+            }
+        }
+    }
+    Ok((q, r))
+}
+
+/// The answer to `--target-power`, from the power table.
+fn runs_needed(
+    table: &std::path::Path,
+    target: f64,
+    against: (Option<f64>, Option<f64>),
+    against_text: &str,
+) -> anyhow::Result<String> {
+    let curves = crate::power::power_curves(table, against).map_err(KfmcError::from)?;
+    if curves.is_empty() {
+        anyhow::bail!(
+            "no filter variant of the spec has {against_text}: add it to a filter's q_scale / \
+             r_scale list"
+        );
+    }
+    let mut s = String::new();
+    for c in &curves {
+        let noise = if c.noise_scale == 1.0 {
+            String::new()
+        } else {
+            format!(", noise ×{}", c.noise_scale)
+        };
+        s.push_str(&format!(
+            "{} ({against_text}), scenario {}{noise}: power of the verdict by runs per cell\n",
+            c.filter, c.scenario
+        ));
+        for p in &c.points {
+            s.push_str(&format!(
+                "  N = {:>6}: {:.3} [{:.3}, {:.3}] over {} replications\n",
+                p.runs, p.rate, p.interval.0, p.interval.1, p.replications
+            ));
+        }
+        let (point, sure) = c.smallest_runs(target);
+        match point {
+            Some(p) => s.push_str(&format!(
+                "  smallest N with power ≥ {target}: {} (rate {:.3} [{:.3}, {:.3}])",
+                p.runs, p.rate, p.interval.0, p.interval.1
+            )),
+            None => s.push_str(&format!(
+                "  power {target} is not reached at the spec's {} runs: raise `runs`",
+                c.points.last().map_or(0, |p| p.runs)
+            )),
+        }
+        match (point, sure) {
+            (Some(_), Some(q)) => s.push_str(&format!(
+                "; its interval's lower end reaches {target} at N = {}\n",
+                q.runs
+            )),
+            (Some(_), None) => s.push_str("; no N here has its interval above the target\n"),
+            _ => s.push('\n'),
+        }
+    }
+    Ok(s)
+}
+
 fn usage(flag: &str, message: impl Into<String>) -> UsageError {
     UsageError {
         flag: flag.into(),
@@ -358,6 +455,15 @@ pub enum Command {
         /// `sequential` true, with the runs each replication used).
         #[command(flatten)]
         sequential: SequentialArgs,
+        /// How many runs do I need: also evaluate the tests on the first N/10, 2N/10, … runs
+        /// of each cell and print the smallest run count whose verdict reaches this power
+        /// against the `--against` variant.
+        #[arg(long, requires = "against", value_name = "POWER")]
+        target_power: Option<f64>,
+        /// The mistuned variant the power is wanted against, e.g. `q_scale=0.9` or
+        /// `q_scale=1,r_scale=1.1`.
+        #[arg(long, requires = "target_power", value_name = "KEY=VALUE[,…]")]
+        against: Option<String>,
     },
     /// Print the columns of an exchange table for a spec.
     Schema {
@@ -975,7 +1081,13 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             study,
             replications,
             sequential,
+            target_power,
+            against,
         } => {
+            let target = match (target_power, against.as_deref()) {
+                (Some(p), Some(a)) => Some((power_target(p)?, against_variant(a)?)),
+                _ => None,
+            };
             if replications == 0 {
                 return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
                     crate::error::SpecError {
@@ -991,6 +1103,11 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             plan.check_replications(replications, study.allow_large)
                 .map_err(KfmcError::from)?;
             let gate = sequential.gate(plan.runs, plan.alpha)?;
+            let curve = if target.is_some() {
+                crate::sequential::default_looks(plan.runs, 10)
+            } else {
+                Vec::new()
+            };
             let out = out_given.unwrap_or_else(|| plan.output.join("power"));
             plan.output = out.clone();
             let threads = study.threads(study.quiet);
@@ -1007,7 +1124,10 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     checkpoints: None,
                 },
                 &observer,
-                gate.as_ref(),
+                &crate::power::PowerExtras {
+                    gate: gate.as_ref(),
+                    curve,
+                },
             )
             .map_err(anyhow::Error::from)
             .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
@@ -1019,6 +1139,14 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                     report.output.display()
                 );
                 print_tables(&report.tables);
+            }
+            if let (Some((target, variant)), Some(text)) = (target, against.as_deref()) {
+                emit(&runs_needed(
+                    &report.output.join("power.parquet"),
+                    target,
+                    variant,
+                    text,
+                )?);
             }
             Ok(())
         }
