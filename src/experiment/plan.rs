@@ -272,7 +272,7 @@ pub struct Resources {
     /// Uncompressed size of the tables, bytes (an upper estimate of the disk they take).
     pub disk_bytes: u128,
     /// Largest scratch file space alive at once, bytes: one cell's per-run values beyond what
-    /// is kept in memory (see [`crate::spill`]), freed when the cell is summarised, and the
+    /// is kept in memory (see [`crate::metrics::spill`]), freed when the cell is summarised, and the
     /// divergence trackers' per-run crossings, freed when the tables are written.
     pub scratch_bytes: u128,
 }
@@ -384,10 +384,10 @@ impl Plan {
         // Per cell being folded: per-step sums and the |e| sketches per filter; the per-run
         // RMSE and world metrics in spills (at most SPILL_ROWS rows in memory each, the rest
         // in scratch files) and the selection's counts and candidates while summarising.
-        let spill_rows = crate::spill::SPILL_ROWS as u128;
+        let spill_rows = crate::metrics::spill::SPILL_ROWS as u128;
         let spilled_cols = nf * nq + WORLD_METRICS_ESTIMATE;
-        let select = nq.max(WORLD_METRICS_ESTIMATE) * 6 * (8 << crate::spill::DIGIT_BITS as u128)
-            + 6 * nq.max(WORLD_METRICS_ESTIMATE) * 8 * crate::spill::COLLECT_CAP as u128;
+        let select = nq.max(WORLD_METRICS_ESTIMATE) * 6 * (8 << crate::metrics::spill::DIGIT_BITS as u128)
+            + 6 * nq.max(WORLD_METRICS_ESTIMATE) * 8 * crate::metrics::spill::COLLECT_CAP as u128;
         // The |e| values kept for exact quantiles: 8 bytes per (run, grid point, quantity,
         // filter), up to the budget.
         let grid = crate::metrics::abs_err_grid_points(max_k as usize) as u128;
@@ -412,7 +412,7 @@ impl Plan {
             .as_ref()
             .map_or(0, |_| self.scenarios.len() as u128 * nf);
         let tracker_rows = crate::metrics::divergence::TRACKER_ROWS as u128;
-        let io_buffer = crate::spill::IO_BUFFER as u128;
+        let io_buffer = crate::metrics::spill::IO_BUFFER as u128;
         // …and, while the divergence tables are written, one state's values for the quantiles.
         let divergence = trackers * 2 * (tracker_rows.min(runs) * 8 * nq + io_buffer)
             + (trackers > 0) as u128 * spill_rows.min(runs) * 8;

@@ -47,7 +47,7 @@ fn a_spilled_cell_summary_is_exactly_the_sorted_runs_table() {
     let out = tmp.path().join("out");
     let path = tmp.path().join("s.toml");
     // More runs than a spill keeps in memory (65,536), so the scratch path is taken.
-    let runs = kfmc::spill::SPILL_ROWS + 4_464;
+    let runs = kfmc::metrics::spill::SPILL_ROWS + 4_464;
     std::fs::write(&path, spec(&out, runs)).unwrap();
     let (code, _, err) = run(&["run", path.to_str().unwrap(), "--quiet"]);
     assert_eq!(code, 0, "{err}");
@@ -545,7 +545,7 @@ fn a_spilled_cell_gives_the_consistency_table_of_the_kept_sums() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("out");
     let path = tmp.path().join("s.toml");
-    let runs = kfmc::spill::SPILL_ROWS + 4_464;
+    let runs = kfmc::metrics::spill::SPILL_ROWS + 4_464;
     // x̂_0 = x_0 (the default), so the prior is forgotten over a burn-in; subsets below and
     // above the in-memory buffer.
     let text = spec(&out, runs).replace("duration_s = 0.3", "duration_s = 0.5")

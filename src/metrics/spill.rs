@@ -24,8 +24,8 @@ use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use super::{mean_std, quantile_sorted};
 use crate::error::OutputError;
-use crate::metrics::{mean_std, quantile_sorted};
 
 /// Rows a [`Spill`] keeps in memory before it writes to its scratch file.
 pub const SPILL_ROWS: usize = 65_536;
