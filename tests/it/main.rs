@@ -17,6 +17,7 @@ mod common;
 
 /// Specs: validation, the bad-spec catalogue, `describe`.
 mod spec {
+    mod all_problems;
     mod bad_specs;
     mod describe;
     mod linear_spec;
