@@ -7,12 +7,12 @@ use crate::error::{KfmcError, OutputError};
 use crate::experiment::{FilterPlan, Plan};
 use crate::metrics::consistency::{BandCache, ConsistencyFold};
 use crate::metrics::divergence::DivergenceTracker;
+use crate::metrics::spill::Spill;
 use crate::metrics::{RunStatus, StepAccumulator};
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::{Manifest, QuantityEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute_windowed, window_for};
-use crate::spill::Spill;
 use crate::trial::{Trial, Unit, UnitResult, build};
 
 /// Options of a study execution that do not change its results.

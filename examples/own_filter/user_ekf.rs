@@ -2,7 +2,7 @@
 //!
 //! It is the textbook EKF in the Joseph form, with S inverted through nalgebra's Cholesky:
 //! a different code path from kfmc's `ekf`, the same algebra, so on the same runs the two
-//! agree to round-off. That agreement is what `tests/own_filter.rs` checks.
+//! agree to round-off. That agreement is what `tests/it/systems/own_filter.rs` checks.
 
 use std::sync::Arc;
 

@@ -37,6 +37,11 @@ impl Checker {
         &self.file
     }
 
+    /// The spec text.
+    pub fn text(&self) -> &str {
+        &self.text
+    }
+
     /// Records a problem at `key` (a key path such as `filters[1].q_std`).
     pub fn err(&mut self, key: impl Into<String>, msg: impl Into<String>) {
         self.errors.push(SpecError {
@@ -63,26 +68,81 @@ impl Checker {
 
     /// Deserializes `table` (the table at key path `prefix`) into `T`. A type with
     /// `#[serde(deny_unknown_fields)]` rejects unknown keys; the error names the full key path
-    /// and the line in the spec.
+    /// and the line in the spec, and an unknown key gets the closest allowed one as a
+    /// suggestion.
+    ///
+    /// Every problem of the table is reported, not only the first: after a problem the
+    /// offending key is set aside and the table is read again, so a typo in one key does not
+    /// hide a bad value in another. When every problem was an unknown key the result is the
+    /// table without them (an unknown key changes nothing, and each was reported), so the
+    /// caller goes on to validate the values; otherwise `None`, since checks on a value that
+    /// stands in for an unusable one would report its consequences as new problems.
     pub fn parse<T: DeserializeOwned>(&mut self, prefix: &str, table: &toml::Table) -> Option<T> {
-        let value = toml::Value::Table(table.clone());
-        match serde_path_to_error::deserialize::<_, T>(value) {
-            Ok(v) => Some(v),
-            Err(e) => {
-                let inner = format_path(e.path());
-                let key = match (prefix.is_empty(), inner.as_str()) {
-                    (_, "") => prefix.to_string(),
-                    (true, p) => p.to_string(),
-                    (false, p) if p.starts_with('[') => format!("{prefix}{p}"),
-                    (false, p) => format!("{prefix}.{p}"),
-                };
-                let msg = e.into_inner().message().trim().to_string();
-                let msg = match line_of(&self.text, &key) {
-                    Some(line) => format!("{msg} (line {line})"),
-                    None => msg,
-                };
-                self.err(key, msg);
-                None
+        let parsed = self.parse_all(prefix, toml::Value::Table(table.clone()), None);
+        parsed.value.filter(|_| parsed.sound)
+    }
+
+    /// [`Checker::parse`] of `value` at `prefix`, with the first problem already found by
+    /// the caller (`first`: its key path inside `value` and its message, which then is
+    /// reported as given: the spec's top level reads the text itself, whose errors carry a
+    /// column too).
+    pub(crate) fn parse_all<T: DeserializeOwned>(
+        &mut self,
+        prefix: &str,
+        mut value: toml::Value,
+        mut first: Option<(String, String)>,
+    ) -> Parsed<T> {
+        // Key paths (inside `value`) set aside after their problem was reported.
+        let mut removed: Vec<String> = Vec::new();
+        let mut sound = true;
+        loop {
+            let (inner, msg) = match first.take() {
+                Some(found) => found,
+                None => match serde_path_to_error::deserialize::<_, T>(value.clone()) {
+                    Ok(v) => {
+                        return Parsed {
+                            value: Some(v),
+                            sound,
+                        };
+                    }
+                    Err(e) => {
+                        let inner = format_path(e.path());
+                        let msg = with_suggestion(e.into_inner().message().trim());
+                        let msg = match line_of(&self.text, &join_key(prefix, &inner)) {
+                            Some(line) => format!("{msg} (line {line})"),
+                            None => msg,
+                        };
+                        (inner, msg)
+                    }
+                },
+            };
+            // A key set aside because its value was unusable now reads as missing: that
+            // problem was reported already. The table holding it cannot be read without it,
+            // so it is set aside whole and the rest is read on.
+            if let Some(field) = missing_field(&msg)
+                && removed
+                    .iter()
+                    .any(|r| *r == join_key(&inner, &path_key(field)))
+            {
+                sound = false;
+                if remove_key(&mut value, &inner).is_none() {
+                    return Parsed { value: None, sound };
+                }
+                continue;
+            }
+            let unknown = msg.starts_with("unknown field");
+            self.err(join_key(prefix, &inner), msg);
+            match remove_key(&mut value, &inner) {
+                Some(()) => {
+                    sound &= unknown;
+                    removed.push(inner);
+                }
+                None => {
+                    return Parsed {
+                        value: None,
+                        sound: false,
+                    };
+                }
             }
         }
     }
@@ -272,6 +332,109 @@ impl Checker {
         }
         s
     }
+}
+
+/// What [`Checker::parse_all`] read.
+#[derive(Debug)]
+pub(crate) struct Parsed<T> {
+    /// The value, without the keys whose problems were reported; `None` when unreadable.
+    pub value: Option<T>,
+    /// Whether the value can be validated further without reporting consequences of the
+    /// problems already reported: true when every key set aside was an unknown one.
+    pub sound: bool,
+}
+
+/// `inner` below `prefix` as one key path.
+fn join_key(prefix: &str, inner: &str) -> String {
+    match (prefix.is_empty(), inner) {
+        (_, "") => prefix.to_string(),
+        (true, p) => p.to_string(),
+        (false, p) if p.starts_with('[') => format!("{prefix}{p}"),
+        (false, p) => format!("{prefix}.{p}"),
+    }
+}
+
+/// The field of serde's "missing field `x`".
+fn missing_field(msg: &str) -> Option<&str> {
+    msg.strip_prefix("missing field `")?.split('`').next()
+}
+
+/// Removes the key that `inner` ends in (for `scales[1]`, the whole `scales`) from the table
+/// holding it; `None` when `inner` names no key (the value itself).
+fn remove_key(value: &mut toml::Value, inner: &str) -> Option<()> {
+    if inner.is_empty() {
+        return None;
+    }
+    let parts = key_path_parts(inner)?;
+    let (last, up) = parts.split_last()?;
+    let mut v = value;
+    for (key, indices) in up {
+        v = v
+            .as_table_mut()?
+            .iter_mut()
+            .find(|(k, _)| path_key(k) == *key)?
+            .1;
+        for &i in indices {
+            v = v.as_array_mut()?.get_mut(i)?;
+        }
+    }
+    let table = v.as_table_mut()?;
+    let name = table.keys().find(|k| path_key(k) == last.0)?.clone();
+    table.remove(&name).map(|_| ())
+}
+
+/// Serde's "unknown field `runz`, expected one of `runs`, …" with the closest allowed key
+/// added ("did you mean `runs`?") when one is close enough to be a typo of it.
+pub fn with_suggestion(msg: &str) -> String {
+    let Some(rest) = msg.strip_prefix("unknown field `") else {
+        return msg.to_string();
+    };
+    let Some((unknown, allowed)) = rest.split_once('`') else {
+        return msg.to_string();
+    };
+    // The allowed keys are the back-quoted words after the unknown one.
+    let candidates = allowed.split('`').skip(1).step_by(2);
+    match did_you_mean(unknown, candidates) {
+        Some(best) => format!("{msg}; did you mean `{best}`?"),
+        None => msg.to_string(),
+    }
+}
+
+/// The candidate closest to `word` by edit distance, if within a third of its length (at
+/// least 1): `runz` → `runs`, `master_sead` → `master_seed`; nothing for an unrelated word.
+pub fn did_you_mean<'a>(word: &str, candidates: impl Iterator<Item = &'a str>) -> Option<&'a str> {
+    let limit = (word.chars().count() / 3).max(1);
+    candidates
+        .map(|c| (edit_distance(word, c), c))
+        .filter(|(d, _)| *d <= limit)
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, c)| c)
+}
+
+/// Edit distance over characters: insertions, deletions, substitutions and swaps of two
+/// neighbours (`q_sdt` is one step from `q_std`), each costing 1.
+fn edit_distance(a: &str, b: &str) -> usize {
+    let (a, b): (Vec<char>, Vec<char>) = (a.chars().collect(), b.chars().collect());
+    let mut d = vec![vec![0usize; b.len() + 1]; a.len() + 1];
+    for (i, row) in d.iter_mut().enumerate() {
+        row[0] = i;
+    }
+    for (j, cell) in d[0].iter_mut().enumerate() {
+        *cell = j;
+    }
+    for i in 1..=a.len() {
+        for j in 1..=b.len() {
+            let cost = usize::from(a[i - 1] != b[j - 1]);
+            let mut best = (d[i - 1][j] + 1)
+                .min(d[i][j - 1] + 1)
+                .min(d[i - 1][j - 1] + cost);
+            if i > 1 && j > 1 && a[i - 1] == b[j - 2] && a[i - 2] == b[j - 1] {
+                best = best.min(d[i - 2][j - 2] + 1);
+            }
+            d[i][j] = best;
+        }
+    }
+    d[a.len()][b.len()]
 }
 
 /// A key as it stands in a key path: bare when TOML would write it bare (`q_std`), quoted
@@ -473,6 +636,93 @@ mod tests {
         assert_eq!(
             e[3],
             "t.toml: filters[0].q_std: expected a number or a list of 3 numbers, got a list of 2 (line 7)"
+        );
+    }
+
+    #[derive(Debug, serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    #[allow(dead_code)]
+    struct Keys {
+        runs: Option<u64>,
+        alpha: Option<f64>,
+        scales: Option<Vec<f64>>,
+        label: String,
+    }
+
+    /// Three independent mistakes in one table are three problems, each at its own key; the
+    /// rest of the table is still read.
+    #[test]
+    fn parse_reports_every_problem_of_a_table() {
+        let text = "[t]\nlabel = \"a\"\nrunz = 3\nalpha = \"x\"\nscales = [1.0, \"y\"]\n";
+        let doc: toml::Table = text.parse().unwrap();
+        let mut c = Checker::new(Path::new("t.toml"), text);
+        // Values stood in for by defaults are not handed on to be validated.
+        assert!(c.parse::<Keys>("t", doc["t"].as_table().unwrap()).is_none());
+        let e: Vec<String> = c.into_errors().iter().map(|e| e.to_string()).collect();
+        assert_eq!(e.len(), 3, "{e:#?}");
+        assert!(
+            e.iter()
+                .any(|m| m.starts_with("t.toml: t.runz: unknown field `runz`")
+                    && m.contains("did you mean `runs`?")
+                    && m.ends_with("(line 3)")),
+            "{e:#?}"
+        );
+        assert!(
+            e.iter()
+                .any(|m| m.starts_with("t.toml: t.alpha: invalid type: string \"x\"")),
+            "{e:#?}"
+        );
+        assert!(
+            e.iter()
+                .any(|m| m.starts_with("t.toml: t.scales[1]: invalid type")),
+            "{e:#?}"
+        );
+
+        // Unknown keys alone change nothing: the rest of the table is handed on.
+        let text = "[t]\nlabel = \"a\"\nrunz = 3\nalhpa = 0.1\nalpha = 0.2\n";
+        let doc: toml::Table = text.parse().unwrap();
+        let mut c = Checker::new(Path::new("t.toml"), text);
+        let keys: Keys = c.parse("t", doc["t"].as_table().unwrap()).unwrap();
+        assert_eq!((keys.label.as_str(), keys.alpha), ("a", Some(0.2)));
+        let e: Vec<String> = c.into_errors().iter().map(|e| e.key_path.clone()).collect();
+        assert_eq!(e.len(), 2, "{e:#?}");
+        assert!(e.contains(&"t.runz".to_string()) && e.contains(&"t.alhpa".to_string()));
+    }
+
+    /// A required key whose value was unusable is one problem, not also a missing key.
+    #[test]
+    fn an_unusable_required_key_is_reported_once() {
+        let text = "[t]\nlabel = 5\n";
+        let doc: toml::Table = text.parse().unwrap();
+        let mut c = Checker::new(Path::new("t.toml"), text);
+        assert!(c.parse::<Keys>("t", doc["t"].as_table().unwrap()).is_none());
+        let e = c.into_errors();
+        assert_eq!(e.len(), 1, "{e:#?}");
+        assert_eq!(e[0].key_path, "t.label");
+    }
+
+    #[test]
+    fn suggestions_are_close_keys_only() {
+        let keys = ["name", "runs", "master_seed", "trace_runs"];
+        assert_eq!(did_you_mean("runz", keys.into_iter()), Some("runs"));
+        assert_eq!(
+            did_you_mean("master_sead", keys.into_iter()),
+            Some("master_seed")
+        );
+        assert_eq!(
+            did_you_mean("trace_run", keys.into_iter()),
+            Some("trace_runs")
+        );
+        assert_eq!(did_you_mean("colour", keys.into_iter()), None);
+        assert_eq!(edit_distance("kitten", "sitting"), 3);
+        assert_eq!(edit_distance("q_sdt", "q_std"), 1);
+        assert_eq!(
+            with_suggestion("unknown field `q_sdt`, expected `q_std` or `r_std`"),
+            "unknown field `q_sdt`, expected `q_std` or `r_std`; did you mean `q_std`?"
+        );
+        assert_eq!(
+            with_suggestion("invalid type: string"),
+            "invalid type: string"
         );
     }
 

@@ -53,27 +53,48 @@ pub fn load_with(path: &Path, registry: &Registry) -> Result<Plan, SpecErrors> {
 }
 
 /// Parses and validates spec text; `path` names it in errors, `registry` supplies the systems.
+///
+/// Every problem is reported in one pass. The spec's structure is read first: each key of
+/// the wrong type and each unknown key is reported and set aside, and reading goes on. When
+/// the only such problems were unknown keys (typos), which change nothing, the spec is then
+/// validated as usual and its problems are added; a value of the wrong type stops there,
+/// since validating what stands in for it would report its consequences as new problems. A
+/// TOML syntax error stops at once (nothing else can be read).
 pub fn parse_with(text: &str, path: &Path, registry: &Registry) -> Result<Plan, SpecErrors> {
-    let one = |key_path: String, message: String| {
+    let de = toml::de::Deserializer::parse(text).map_err(|e| {
         SpecErrors(vec![SpecError {
             file: path.to_path_buf(),
-            key_path,
-            message,
+            key_path: String::new(),
+            message: with_line(text, e),
         }])
-    };
-    let de =
-        toml::de::Deserializer::parse(text).map_err(|e| one(String::new(), with_line(text, e)))?;
-    let spec: spec::Spec = serde_path_to_error::deserialize(de).map_err(|e| {
-        let path = checker::format_path(e.path());
-        one(path, with_line(text, e.into_inner()))
     })?;
-    plan::validate(spec, path, text, registry)
+    let first = match serde_path_to_error::deserialize::<_, spec::Spec>(de) {
+        Ok(spec) => return plan::validate(spec, path, text, registry),
+        Err(e) => e,
+    };
+    // The first problem as the text's own parser saw it (with its column), then every other.
+    let inner = checker::format_path(first.path());
+    let message = with_line(text, first.into_inner());
+    let document: toml::Table = text.parse().map_err(|e: toml::de::Error| {
+        SpecErrors(vec![SpecError {
+            file: path.to_path_buf(),
+            key_path: String::new(),
+            message: with_line(text, e),
+        }])
+    })?;
+    let mut c = Checker::new(path, text);
+    let parsed =
+        c.parse_all::<spec::Spec>("", toml::Value::Table(document), Some((inner, message)));
+    match parsed.value {
+        Some(spec) if parsed.sound => plan::validate_into(c, spec, registry),
+        _ => Err(SpecErrors(c.into_errors())),
+    }
 }
 
 /// The TOML error's message with its line and column (1-based; the column counts characters).
 /// A syntax error stops everything else, so the position is all the help there is.
 fn with_line(text: &str, e: toml::de::Error) -> String {
-    let msg = e.message().trim().to_string();
+    let msg = checker::with_suggestion(e.message().trim());
     match e.span() {
         Some(span) => {
             let mut at = span.start.min(text.len());

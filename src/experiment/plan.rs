@@ -9,11 +9,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use super::checker::{Checker, non_negative, positive};
-use super::spec::{Scales, Spec};
+use super::spec::{AssertSpec, Scales, Spec};
 
 use crate::error::{SpecError, SpecErrors};
 use crate::sim::seed::hash_str;
-use crate::system::{FilterTable, InitialSpec, Layout, Registry, SystemPlan, SystemSpec};
+use crate::system::{FilterTable, InitialSpec, Layout, Registry, System, SystemPlan, SystemSpec};
 
 /// A validated scenario.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -272,7 +272,7 @@ pub struct Resources {
     /// Uncompressed size of the tables, bytes (an upper estimate of the disk they take).
     pub disk_bytes: u128,
     /// Largest scratch file space alive at once, bytes: one cell's per-run values beyond what
-    /// is kept in memory (see [`crate::spill`]), freed when the cell is summarised, and the
+    /// is kept in memory (see [`crate::metrics::spill`]), freed when the cell is summarised, and the
     /// divergence trackers' per-run crossings, freed when the tables are written.
     pub scratch_bytes: u128,
 }
@@ -384,10 +384,12 @@ impl Plan {
         // Per cell being folded: per-step sums and the |e| sketches per filter; the per-run
         // RMSE and world metrics in spills (at most SPILL_ROWS rows in memory each, the rest
         // in scratch files) and the selection's counts and candidates while summarising.
-        let spill_rows = crate::spill::SPILL_ROWS as u128;
+        let spill_rows = crate::metrics::spill::SPILL_ROWS as u128;
         let spilled_cols = nf * nq + WORLD_METRICS_ESTIMATE;
-        let select = nq.max(WORLD_METRICS_ESTIMATE) * 6 * (8 << crate::spill::DIGIT_BITS as u128)
-            + 6 * nq.max(WORLD_METRICS_ESTIMATE) * 8 * crate::spill::COLLECT_CAP as u128;
+        let select = nq.max(WORLD_METRICS_ESTIMATE)
+            * 6
+            * (8 << crate::metrics::spill::DIGIT_BITS as u128)
+            + 6 * nq.max(WORLD_METRICS_ESTIMATE) * 8 * crate::metrics::spill::COLLECT_CAP as u128;
         // The |e| values kept for exact quantiles: 8 bytes per (run, grid point, quantity,
         // filter), up to the budget.
         let grid = crate::metrics::abs_err_grid_points(max_k as usize) as u128;
@@ -412,7 +414,7 @@ impl Plan {
             .as_ref()
             .map_or(0, |_| self.scenarios.len() as u128 * nf);
         let tracker_rows = crate::metrics::divergence::TRACKER_ROWS as u128;
-        let io_buffer = crate::spill::IO_BUFFER as u128;
+        let io_buffer = crate::metrics::spill::IO_BUFFER as u128;
         // …and, while the divergence tables are written, one state's values for the quantiles.
         let divergence = trackers * 2 * (tracker_rows.min(runs) * 8 * nq + io_buffer)
             + (trackers > 0) as u128 * spill_rows.min(runs) * 8;
@@ -752,9 +754,139 @@ pub fn validate(
     text: &str,
     registry: &Registry,
 ) -> Result<Plan, SpecErrors> {
-    let mut c = Checker::new(path, text);
+    validate_into(Checker::new(path, text), spec, registry)
+}
 
-    // The system.
+/// [`validate`] into `c`, which may already hold problems found while reading the spec (they
+/// come first and make the result an error, as any problem found here does).
+///
+/// One function per table of the spec, in the order of the messages; each reports into `c`
+/// and returns what later tables need, so every independent problem is reported at once.
+pub(crate) fn validate_into(
+    mut c: Checker,
+    spec: Spec,
+    registry: &Registry,
+) -> Result<Plan, SpecErrors> {
+    let path = c.file().to_path_buf();
+    let (kind, model, system) = model_table(&mut c, &spec, registry);
+    let names = scenario_names(&mut c, &spec);
+    let labels = filter_labels(&mut c, &spec);
+    figure_name_clashes(&mut c, &spec, &names, &labels);
+    let (system_index, filter_tables) = filter_tables(&mut c, &spec);
+    let initial = initial_estimate_table(&mut c, &spec);
+    let configured = system.and_then(|s| {
+        let parts = SystemSpec {
+            file: &path,
+            model: &model,
+            scenarios: &spec.scenarios,
+            filters: &filter_tables,
+            initial: &initial,
+        };
+        s.configure(&parts, &mut c)
+    });
+    let filters = filter_variants(&mut c, &spec, &system_index, configured.as_deref());
+    let noise = noise_table(&mut c, &spec);
+    let never_crossed_largest = never_crossed(&mut c, &spec);
+    let states: Vec<String> = configured
+        .as_ref()
+        .map(|s| {
+            let quantities = &s.layout().quantities;
+            quantities.iter().map(|q| q.name.clone()).collect()
+        })
+        .unwrap_or_default();
+    let rmse_thresholds = rmse_thresholds(&mut c, &spec, configured.is_some(), states.len());
+    let runs = spec.runs.unwrap_or(100);
+    let consistency = consistency_table(&mut c, &spec, runs);
+    let targets = Targets {
+        spec: &spec,
+        names: &names,
+        labels: &labels,
+        states: &states,
+        system: configured.as_deref(),
+        system_index: &system_index,
+        whiteness_lags: consistency.whiteness_lags,
+    };
+    let assertions = check_asserts(&mut c, &targets);
+    let (check_replications, check_max_failed_runs) = check_table(&mut c, &spec);
+    check_sizes(&mut c, &spec, runs, filters.len(), configured.as_deref());
+    let name = experiment_name(&mut c, &spec, &path);
+
+    let system = match configured {
+        Some(s) if c.is_clean() => s,
+        _ => {
+            // A system that refuses a spec without saying why would otherwise make an error
+            // with no problem in it ("invalid spec (0 problems)").
+            if c.is_clean() {
+                c.err(
+                    "model.kind",
+                    format!("the {kind} system refused the spec without naming a problem (a bug in the system)"),
+                );
+            }
+            return Err(SpecErrors(c.into_errors()));
+        }
+    };
+    let text = c.text().to_string();
+    let world = world_canonical(
+        &kind,
+        &spec.model,
+        &spec.scenarios,
+        initial.mode,
+        initial.p0_std.as_ref(),
+        &noise.scales,
+        noise.draws,
+    );
+    let output = spec
+        .output
+        .as_ref()
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("results").join(&name));
+    Ok(Plan {
+        name,
+        description: spec.description,
+        spec_path: path,
+        spec_hash: format!("{:016x}", hash_str(&text)),
+        spec_text: text,
+        world,
+        kind,
+        scenarios: system
+            .scenarios()
+            .iter()
+            .enumerate()
+            .map(|(index, s)| ScenarioPlan {
+                name: s.name.clone(),
+                steps: s.steps,
+                index,
+            })
+            .collect(),
+        system,
+        filters,
+        noise_scales: noise.scales,
+        filter_noise: noise.filter_noise,
+        initial: initial.mode,
+        runs: runs as usize,
+        master_seed: spec.master_seed.unwrap_or(0),
+        trace_runs: spec.trace_runs.unwrap_or(0) as usize,
+        output,
+        rmse_thresholds,
+        alpha: consistency.alpha,
+        consistency: consistency.plan,
+        assertions,
+        check_replications,
+        check_max_failed_runs,
+        export_estimates: false,
+        estimates: None,
+        draws: noise.draws,
+        never_crossed_largest,
+    })
+}
+
+/// `[model]`: the system `kind` names (`None` when it names none, which is reported), and the
+/// rest of the table, which is the system's.
+fn model_table<'r>(
+    c: &mut Checker,
+    spec: &Spec,
+    registry: &'r Registry,
+) -> (String, toml::Table, Option<&'r dyn System>) {
     let mut model = spec.model.clone();
     // `None` when kind is absent or not a string, which is reported here.
     let given = match model.remove("kind") {
@@ -783,9 +915,12 @@ pub fn validate(
             ),
         );
     }
-    let kind = given.unwrap_or_default();
+    (given.unwrap_or_default(), model, system)
+}
 
-    // Scenario names (the rest of each table is the system's).
+/// `[[scenarios]]` names: present, usable as file names, unique (also ignoring case). The
+/// rest of each table is the system's.
+fn scenario_names(c: &mut Checker, spec: &Spec) -> BTreeSet<String> {
     if spec.scenarios.is_empty() {
         c.err("scenarios", "at least one [[scenarios]] entry is required");
     }
@@ -810,8 +945,11 @@ pub fn validate(
             None => c.err(key, "missing"),
         }
     }
+    names
+}
 
-    // Filter labels (the rest of each entry is its kind's).
+/// `[[filters]]` labels: usable as file names, unique (also ignoring case).
+fn filter_labels(c: &mut Checker, spec: &Spec) -> BTreeSet<String> {
     if spec.filters.is_empty() {
         c.err("filters", "at least one [[filters]] entry is required");
     }
@@ -830,11 +968,15 @@ pub fn validate(
             );
         }
     }
-    figure_name_clashes(&mut c, &spec, &names, &labels);
-    // External filters are kfmc's, not the system's: the system sees the others only, and
-    // `system_index[i]` is spec entry i's position among them.
+    labels
+}
+
+/// The `[[filters]]` entries the system validates. External filters are kfmc's, not the
+/// system's: the system sees the others only, and `system_index[i]` is spec entry i's
+/// position among them.
+fn filter_tables(c: &mut Checker, spec: &Spec) -> (Vec<Option<usize>>, Vec<FilterTable>) {
     let mut system_index = Vec::with_capacity(spec.filters.len());
-    let mut filter_tables: Vec<FilterTable> = Vec::new();
+    let mut tables: Vec<FilterTable> = Vec::new();
     for (i, f) in spec.filters.iter().enumerate() {
         if f.kind == EXTERNAL_KIND {
             system_index.push(None);
@@ -845,8 +987,8 @@ pub fn validate(
                 );
             }
         } else {
-            system_index.push(Some(filter_tables.len()));
-            filter_tables.push(FilterTable {
+            system_index.push(Some(tables.len()));
+            tables.push(FilterTable {
                 key: format!("filters[{i}]"),
                 label: f.label.clone(),
                 kind: f.kind.clone(),
@@ -854,41 +996,37 @@ pub fn validate(
             });
         }
     }
+    (system_index, tables)
+}
 
-    // Initial estimate: the mode is generic, P0 and any initialiser are the system's.
+/// `[initial_estimate]`: the mode is generic, P0 and any initialiser are the system's.
+fn initial_estimate_table(c: &mut Checker, spec: &Spec) -> InitialSpec {
     let ie = spec.initial_estimate.as_deref();
-    let imode = c.choice(
+    let mode = c.choice(
         "initial_estimate.mode",
         ie.and_then(|i| i.mode.as_deref()),
         "truth",
         &["truth", "sampled", "batch_ls"],
     );
-    let initial = match imode {
-        "sampled" => InitialMode::Sampled,
-        "batch_ls" => InitialMode::BatchLs,
-        _ => InitialMode::Truth,
-    };
-    let initial_spec = InitialSpec {
-        mode: initial,
+    InitialSpec {
+        mode: match mode {
+            "sampled" => InitialMode::Sampled,
+            "batch_ls" => InitialMode::BatchLs,
+            _ => InitialMode::Truth,
+        },
         present: ie.is_some(),
         p0_std: ie.and_then(|i| i.p0_std.clone()),
-    };
+    }
+}
 
-    let configured = system.and_then(|s| {
-        s.configure(
-            &SystemSpec {
-                file: path,
-                model: &model,
-                scenarios: &spec.scenarios,
-                filters: &filter_tables,
-                initial: &initial_spec,
-            },
-            &mut c,
-        )
-    });
-
-    // Filter variants: each (q_scale, r_scale) pair of an entry, with the same label; the
-    // scales are key columns of every table.
+/// The filter variants: each (q_scale, r_scale) pair of an entry, with the same label; the
+/// scales are key columns of every table.
+fn filter_variants(
+    c: &mut Checker,
+    spec: &Spec,
+    system_index: &[Option<usize>],
+    system: Option<&dyn SystemPlan>,
+) -> Vec<FilterPlan> {
     let mut filters = Vec::new();
     for (i, f) in spec.filters.iter().enumerate() {
         let key = format!("filters[{i}]");
@@ -911,10 +1049,7 @@ pub fn validate(
             });
             continue;
         };
-        let info = configured
-            .as_ref()
-            .and_then(|s| s.filters().get(entry).cloned());
-        if let Some(info) = &info {
+        if let Some(info) = system.and_then(|s| s.filters().get(entry)) {
             let msg = format!("not used by a {} filter", info.kind);
             c.reject_present(
                 &key,
@@ -925,22 +1060,10 @@ pub fn validate(
                 &msg,
             );
         }
-        let q_scales = scale_list(
-            &mut c,
-            &format!("{key}.q_scale"),
-            f.q_scale.as_ref(),
-            1.0,
-            positive,
-            "a positive number",
-        );
-        let r_scales = scale_list(
-            &mut c,
-            &format!("{key}.r_scale"),
-            f.r_scale.as_ref(),
-            1.0,
-            positive,
-            "a positive number",
-        );
+        let q_key = format!("{key}.q_scale");
+        let q_scales = scale_list(c, &q_key, f.q_scale.as_ref(), 1.0, positive, POSITIVE);
+        let r_key = format!("{key}.r_scale");
+        let r_scales = scale_list(c, &r_key, f.r_scale.as_ref(), 1.0, positive, POSITIVE);
         for &q_scale in &q_scales {
             for &r_scale in &r_scales {
                 filters.push(FilterPlan {
@@ -954,81 +1077,99 @@ pub fn validate(
             }
         }
     }
+    filters
+}
 
-    // Noise sweep.
+/// What "is not …" says of a value that must be positive.
+const POSITIVE: &str = "a positive number";
+
+/// `[noise]` as validated.
+struct Noise {
+    scales: Vec<f64>,
+    filter_noise: FilterNoiseMode,
+    draws: Draws,
+}
+
+/// `[noise]`: the sweep of truth-noise multipliers, the filters' noise mode, the draws.
+fn noise_table(c: &mut Checker, spec: &Spec) -> Noise {
     let noise = spec.noise.as_deref();
-    let noise_scales = scale_list(
-        &mut c,
+    let scales = scale_list(
+        c,
         "noise.scales",
         noise.and_then(|n| n.scales.as_ref()),
         1.0,
         non_negative,
         "a non-negative number",
     );
-    let fmode = c.choice(
+    let filter_noise = c.choice(
         "noise.filter_noise",
         noise.and_then(|n| n.filter_noise.as_deref()),
         "nominal",
         &["nominal", "matched"],
     );
-    let filter_noise = if fmode == "matched" {
-        FilterNoiseMode::Matched
-    } else {
-        FilterNoiseMode::Nominal
-    };
-    let draws = if c.choice(
+    let draws = c.choice(
         "noise.draws",
         noise.and_then(|n| n.draws.as_deref()),
         "common",
         &["common", "fresh"],
-    ) == "fresh"
-    {
-        Draws::Fresh
-    } else {
-        Draws::Common
-    };
-    let never_crossed_largest = c.choice(
+    );
+    Noise {
+        scales,
+        filter_noise: if filter_noise == "matched" {
+            FilterNoiseMode::Matched
+        } else {
+            FilterNoiseMode::Nominal
+        },
+        draws: if draws == "fresh" {
+            Draws::Fresh
+        } else {
+            Draws::Common
+        },
+    }
+}
+
+/// `divergence.never_crossed`: whether a run that never crosses records the largest scale.
+fn never_crossed(c: &mut Checker, spec: &Spec) -> bool {
+    c.choice(
         "divergence.never_crossed",
         spec.divergence
             .as_deref()
             .and_then(|d| d.never_crossed.as_deref()),
         "null",
         &["null", "largest_scale"],
-    ) == "largest_scale";
+    ) == "largest_scale"
+}
 
-    let states: Vec<String> = configured
-        .as_ref()
-        .map(|s| {
-            s.layout()
-                .quantities
-                .iter()
-                .map(|q| q.name.clone())
-                .collect()
-        })
-        .unwrap_or_default();
-    let nq = states.len();
-    let rmse_thresholds = spec
-        .divergence
-        .as_deref()
-        .and_then(|d| d.rmse_thresholds.as_ref())
-        .map(|t| {
-            // Without a configured system the dimension is unknown; the values can still be
-            // checked, so a second run of validate does not bring up a new error.
-            let n = match (configured.is_some(), t) {
-                (false, super::spec::OneOrMany::Many(v)) => v.len(),
-                (false, _) => 1,
-                _ => nq,
-            };
-            c.vector(
-                "divergence.rmse_thresholds",
-                Some(t),
-                n,
-                &vec![f64::INFINITY; n],
-                positive,
-                "a positive number",
-            )
-        });
+/// `divergence.rmse_thresholds`, one per evaluated quantity (`nq` of them).
+fn rmse_thresholds(c: &mut Checker, spec: &Spec, configured: bool, nq: usize) -> Option<Vec<f64>> {
+    let t = spec.divergence.as_deref()?.rmse_thresholds.as_ref()?;
+    // Without a configured system the dimension is unknown; the values can still be
+    // checked, so a second run of validate does not bring up a new error.
+    let n = match (configured, t) {
+        (false, super::spec::OneOrMany::Many(v)) => v.len(),
+        (false, _) => 1,
+        _ => nq,
+    };
+    Some(c.vector(
+        "divergence.rmse_thresholds",
+        Some(t),
+        n,
+        &vec![f64::INFINITY; n],
+        positive,
+        POSITIVE,
+    ))
+}
 
+/// `[consistency]` as validated (also when the table is absent, for the steps' bands).
+struct Consistency {
+    alpha: f64,
+    whiteness_lags: usize,
+    /// The consistency tests, when the spec has the table.
+    plan: Option<ConsistencyPlan>,
+}
+
+/// `[consistency]`: α, the whiteness lags and the subsets evaluated on the first runs.
+fn consistency_table(c: &mut Checker, spec: &Spec, runs: u64) -> Consistency {
     let cs = spec.consistency.as_deref();
     let alpha = cs.and_then(|c| c.alpha).unwrap_or(0.05);
     if !(alpha > 0.0 && alpha < 1.0) {
@@ -1044,7 +1185,6 @@ pub fn validate(
             ),
         );
     }
-    let runs = spec.runs.unwrap_or(100);
     let mut subsets = Vec::new();
     for (i, sub) in cs.iter().flat_map(|c| c.subsets.iter()).enumerate() {
         let key = format!("consistency.subsets[{i}]");
@@ -1067,265 +1207,320 @@ pub fn validate(
         }
         subsets.push((sub.runs as usize, sub.alpha));
     }
-    let consistency = cs.map(|_| ConsistencyPlan {
+    Consistency {
         alpha,
         whiteness_lags: whiteness_lags as usize,
-        subsets,
-    });
+        plan: cs.map(|_| ConsistencyPlan {
+            alpha,
+            whiteness_lags: whiteness_lags as usize,
+            subsets,
+        }),
+    }
+}
 
-    // The consistency tests this system's filters can produce; `test = "…"` must be one.
-    let state_refs: Vec<&str> = states.iter().map(String::as_str).collect();
-    let test_names = crate::metrics::consistency::test_names(&state_refs);
-    let covariance = |label: &str| -> Option<(bool, String)> {
-        let i = spec.filters.iter().position(|f| f.label == label)?;
-        // An external filter's columns are only known when its file is read.
-        let info = configured
-            .as_ref()?
-            .filters()
-            .get(system_index[i]?)?
-            .clone();
-        Some((info.has_covariance, info.kind))
-    };
+/// What `[[check.assert]]` entries may name: the spec's scenarios, filters and states.
+struct Targets<'a> {
+    spec: &'a Spec,
+    names: &'a BTreeSet<String>,
+    labels: &'a BTreeSet<String>,
+    states: &'a [String],
+    /// The configured system; `None` when it was refused (checks that need it are skipped).
+    system: Option<&'a dyn SystemPlan>,
+    system_index: &'a [Option<usize>],
+    /// `consistency.whiteness_lags` (its default without the table).
+    whiteness_lags: usize,
+}
+
+impl Targets<'_> {
+    /// (carries a covariance, kind) of the filter labelled `label`; `None` for an external
+    /// filter, whose columns are only known when its file is read.
+    fn covariance(&self, label: &str) -> Option<(bool, String)> {
+        let i = self.spec.filters.iter().position(|f| f.label == label)?;
+        let info = self.system?.filters().get(self.system_index[i]?)?;
+        Some((info.has_covariance, info.kind.clone()))
+    }
+
+    /// The consistency tests this system's filters can produce; `test = "…"` must be one.
+    fn test_names(&self) -> Vec<String> {
+        let states: Vec<&str> = self.states.iter().map(String::as_str).collect();
+        crate::metrics::consistency::test_names(&states)
+    }
+}
+
+/// `[[check.assert]]`: each entry's targets, then its kind's own keys.
+fn check_asserts(c: &mut Checker, t: &Targets) -> Vec<Assertion> {
+    let test_names = t.test_names();
+    let asserts = t.spec.check.iter().flat_map(|c| c.asserts.iter());
     let mut assertions = Vec::new();
-    for (i, a) in spec.check.iter().flat_map(|c| c.asserts.iter()).enumerate() {
+    for (i, a) in asserts.enumerate() {
         let key = format!("check.assert[{i}]");
-        if let Some(f) = &a.filter
-            && !labels.contains(f)
-        {
-            c.err(format!("{key}.filter"), format!("no filter labelled `{f}`"));
-        }
-        // A consistency test needs a covariance; without one, `kfmc check` would only find
-        // no matching rows after the whole study ran.
-        let is_test = matches!(
-            a.kind.as_str(),
-            "consistent" | "white" | "unbiased" | "test_passes" | "rejection_rate"
-        );
-        if is_test {
-            match &a.filter {
-                Some(f) => {
-                    if let Some((false, kind)) = covariance(f) {
-                        c.err(
-                            format!("{key}.filter"),
-                            format!("`{f}` is a {kind} filter, which carries no covariance and so has no consistency tests"),
-                        );
-                    }
-                }
-                None if configured.is_some()
-                    && !spec.filters.is_empty()
-                    && spec
-                        .filters
-                        .iter()
-                        .all(|f| covariance(&f.label).is_some_and(|(cov, _)| !cov)) =>
-                {
+        assert_targets(c, t, &key, a);
+        assertions.extend(assertion(c, t, &test_names, &key, a));
+    }
+    assertions
+}
+
+/// The filter, scenario and state an assertion names exist, and a consistency assertion's
+/// filter carries a covariance.
+fn assert_targets(c: &mut Checker, t: &Targets, key: &str, a: &AssertSpec) {
+    if let Some(f) = &a.filter
+        && !t.labels.contains(f)
+    {
+        c.err(format!("{key}.filter"), format!("no filter labelled `{f}`"));
+    }
+    // A consistency test needs a covariance; without one, `kfmc check` would only find
+    // no matching rows after the whole study ran.
+    let is_test = matches!(
+        a.kind.as_str(),
+        "consistent" | "white" | "unbiased" | "test_passes" | "rejection_rate"
+    );
+    if is_test {
+        match &a.filter {
+            Some(f) => {
+                if let Some((false, kind)) = t.covariance(f) {
                     c.err(
-                        format!("{key}.kind"),
-                        "no filter of this spec carries a covariance, so there are no consistency tests to assert",
+                        format!("{key}.filter"),
+                        format!("`{f}` is a {kind} filter, which carries no covariance and so has no consistency tests"),
                     );
                 }
-                None => {}
             }
-        }
-        let whiteness = a.kind == "white"
-            || (a.kind == "test_passes" && a.test.as_deref() == Some("innovation_whiteness"));
-        if whiteness && cs.is_some() && whiteness_lags == 0 {
-            c.err(
-                key.clone(),
-                "asserts innovation whiteness, but consistency.whiteness_lags = 0 computes no whiteness test; set whiteness_lags ≥ 1",
-            );
-        }
-        if let Some(sc) = &a.scenario
-            && !names.contains(sc)
-        {
-            c.err(
-                format!("{key}.scenario"),
-                format!("no scenario named `{sc}`"),
-            );
-        }
-        if let Some(st) = &a.state
-            && configured.is_some()
-            && !states.contains(st)
-        {
-            c.err(
-                format!("{key}.state"),
-                format!("unknown state `{st}`; states: {}", states.join(", ")),
-            );
-        }
-        let unused_msg = format!("not used by kind = \"{}\"", a.kind);
-        let unused =
-            |c: &mut Checker, keys: &[(&str, bool)]| c.reject_present(&key, keys, &unused_msg);
-        if a.kind != "rejection_rate" {
-            unused(
-                &mut c,
-                &[
-                    ("min", a.min.is_some()),
-                    ("q_scale", a.q_scale.is_some()),
-                    ("r_scale", a.r_scale.is_some()),
-                    ("runs", a.runs.is_some()),
-                    ("bound", a.bound.is_some()),
-                ],
-            );
-        }
-        let expect_fail = c.choice(
-            &format!("{key}.expect"),
-            a.expect.as_deref(),
-            "pass",
-            &["pass", "fail"],
-        ) == "fail";
-        let tests = |names: Vec<String>| Assertion::TestPasses {
-            kind: a.kind.clone(),
-            tests: names,
-            filter: a.filter.clone(),
-            scenario: a.scenario.clone(),
-            expect_fail,
-        };
-        let parsed = match a.kind.as_str() {
-            "consistent" | "white" => {
-                unused(
-                    &mut c,
-                    &[
-                        ("state", a.state.is_some()),
-                        ("max", a.max.is_some()),
-                        ("test", a.test.is_some()),
-                    ],
-                );
-                let t = if a.kind == "white" {
-                    "innovation_whiteness"
-                } else {
-                    "verdict"
-                };
-                Some(tests(vec![t.to_string()]))
-            }
-            "unbiased" => {
-                unused(
-                    &mut c,
-                    &[("max", a.max.is_some()), ("test", a.test.is_some())],
-                );
-                let which: Vec<String> = match &a.state {
-                    Some(s) => vec![format!("bias_{s}")],
-                    None => states.iter().map(|s| format!("bias_{s}")).collect(),
-                };
-                Some(tests(which))
-            }
-            "test_passes" => {
-                unused(
-                    &mut c,
-                    &[("state", a.state.is_some()), ("max", a.max.is_some())],
-                );
-                match &a.test {
-                    Some(t) if configured.is_some() && !test_names.contains(t) => {
-                        c.err(
-                            format!("{key}.test"),
-                            format!(
-                                "unknown test `{t}`; the tests of this system: {}",
-                                test_names.join(", ")
-                            ),
-                        );
-                        None
-                    }
-                    Some(t) => Some(tests(vec![t.clone()])),
-                    None => {
-                        c.err(
-                            format!("{key}.test"),
-                            "missing: kind = \"test_passes\" needs a test name of consistency.parquet",
-                        );
-                        None
-                    }
-                }
-            }
-            "rejection_rate" => {
-                unused(&mut c, &[("state", a.state.is_some())]);
-                let test = a.test.clone().unwrap_or_else(|| "verdict".into());
-                if configured.is_some() && !test_names.contains(&test) {
-                    c.err(
-                        format!("{key}.test"),
-                        format!(
-                            "unknown test `{test}`; the tests of this system: {}",
-                            test_names.join(", ")
-                        ),
-                    );
-                }
-                let rate = |c: &mut Checker, name: &str, v: Option<f64>| match v {
-                    Some(x) if !(0.0..=1.0).contains(&x) => {
-                        c.err(
-                            format!("{key}.{name}"),
-                            format!("{x} is not a rate in [0, 1]"),
-                        );
-                        None
-                    }
-                    v => v,
-                };
-                let (min, max) = (rate(&mut c, "min", a.min), rate(&mut c, "max", a.max));
-                let interval = c.choice(
-                    &format!("{key}.bound"),
-                    a.bound.as_deref(),
-                    "estimate",
-                    &["estimate", "interval"],
-                ) == "interval";
-                if a.min.is_none() && a.max.is_none() {
-                    c.err(
-                        key.clone(),
-                        "kind = \"rejection_rate\" needs min (a power) or max (a false-alarm rate)",
-                    );
-                }
-                (a.min.is_some() || a.max.is_some()).then(|| Assertion::RejectionRate {
-                    test,
-                    filter: a.filter.clone(),
-                    scenario: a.scenario.clone(),
-                    q_scale: a.q_scale,
-                    r_scale: a.r_scale,
-                    runs: a.runs,
-                    min,
-                    max,
-                    interval,
-                    expect_fail,
-                })
-            }
-            "rmse_below" => {
-                unused(&mut c, &[("test", a.test.is_some())]);
-                match (&a.state, a.max) {
-                    (Some(state), Some(max)) if positive(max) => Some(Assertion::RmseBelow {
-                        filter: a.filter.clone(),
-                        scenario: a.scenario.clone(),
-                        state: state.clone(),
-                        max,
-                        expect_fail,
-                    }),
-                    _ => {
-                        c.err(
-                            key.clone(),
-                            "kind = \"rmse_below\" needs state and a finite max > 0",
-                        );
-                        None
-                    }
-                }
-            }
-            other => {
+            None if t.system.is_some()
+                && !t.spec.filters.is_empty()
+                && t.spec
+                    .filters
+                    .iter()
+                    .all(|f| t.covariance(&f.label).is_some_and(|(cov, _)| !cov)) =>
+            {
                 c.err(
                     format!("{key}.kind"),
-                    format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below, rejection_rate"),
+                    "no filter of this spec carries a covariance, so there are no consistency tests to assert",
                 );
-                None
             }
-        };
-        assertions.extend(parsed);
+            None => {}
+        }
     }
-
-    let check_replications = spec.check.as_ref().and_then(|t| t.replications);
-    if check_replications == Some(0) {
-        c.err("check.replications", "must be at least 1");
-    }
-    let check_max_failed_runs = spec
-        .check
-        .as_ref()
-        .and_then(|t| t.max_failed_runs)
-        .unwrap_or(0.0);
-    if !(0.0..=1.0).contains(&check_max_failed_runs) {
+    let whiteness = a.kind == "white"
+        || (a.kind == "test_passes" && a.test.as_deref() == Some("innovation_whiteness"));
+    if whiteness && t.spec.consistency.is_some() && t.whiteness_lags == 0 {
         c.err(
-            "check.max_failed_runs",
-            format!("{check_max_failed_runs} is not a fraction in [0, 1]"),
+            key,
+            "asserts innovation whiteness, but consistency.whiteness_lags = 0 computes no whiteness test; set whiteness_lags ≥ 1",
         );
     }
+    if let Some(sc) = &a.scenario
+        && !t.names.contains(sc)
+    {
+        c.err(
+            format!("{key}.scenario"),
+            format!("no scenario named `{sc}`"),
+        );
+    }
+    if let Some(st) = &a.state
+        && t.system.is_some()
+        && !t.states.contains(st)
+    {
+        c.err(
+            format!("{key}.state"),
+            format!("unknown state `{st}`; states: {}", t.states.join(", ")),
+        );
+    }
+}
 
+/// One assertion of its kind, with the keys its kind does not use reported.
+fn assertion(
+    c: &mut Checker,
+    t: &Targets,
+    test_names: &[String],
+    key: &str,
+    a: &AssertSpec,
+) -> Option<Assertion> {
+    let unused_msg = format!("not used by kind = \"{}\"", a.kind);
+    let unused = |c: &mut Checker, keys: &[(&str, bool)]| c.reject_present(key, keys, &unused_msg);
+    if a.kind != "rejection_rate" {
+        unused(
+            c,
+            &[
+                ("min", a.min.is_some()),
+                ("q_scale", a.q_scale.is_some()),
+                ("r_scale", a.r_scale.is_some()),
+                ("runs", a.runs.is_some()),
+                ("bound", a.bound.is_some()),
+            ],
+        );
+    }
+    let expect_fail = c.choice(
+        &format!("{key}.expect"),
+        a.expect.as_deref(),
+        "pass",
+        &["pass", "fail"],
+    ) == "fail";
+    let tests = |names: Vec<String>| Assertion::TestPasses {
+        kind: a.kind.clone(),
+        tests: names,
+        filter: a.filter.clone(),
+        scenario: a.scenario.clone(),
+        expect_fail,
+    };
+    match a.kind.as_str() {
+        "consistent" | "white" => {
+            let present = [
+                ("state", a.state.is_some()),
+                ("max", a.max.is_some()),
+                ("test", a.test.is_some()),
+            ];
+            unused(c, &present);
+            let test = if a.kind == "white" {
+                "innovation_whiteness"
+            } else {
+                "verdict"
+            };
+            Some(tests(vec![test.to_string()]))
+        }
+        "unbiased" => {
+            unused(c, &[("max", a.max.is_some()), ("test", a.test.is_some())]);
+            let which: Vec<String> = match &a.state {
+                Some(s) => vec![format!("bias_{s}")],
+                None => t.states.iter().map(|s| format!("bias_{s}")).collect(),
+            };
+            Some(tests(which))
+        }
+        "test_passes" => {
+            unused(c, &[("state", a.state.is_some()), ("max", a.max.is_some())]);
+            match &a.test {
+                Some(test) if t.system.is_some() && !test_names.contains(test) => {
+                    unknown_test(c, key, test, test_names);
+                    None
+                }
+                Some(test) => Some(tests(vec![test.clone()])),
+                None => {
+                    c.err(
+                        format!("{key}.test"),
+                        "missing: kind = \"test_passes\" needs a test name of consistency.parquet",
+                    );
+                    None
+                }
+            }
+        }
+        "rejection_rate" => rejection_rate(c, t, test_names, key, a, expect_fail),
+        "rmse_below" => {
+            unused(c, &[("test", a.test.is_some())]);
+            match (&a.state, a.max) {
+                (Some(state), Some(max)) if positive(max) => Some(Assertion::RmseBelow {
+                    filter: a.filter.clone(),
+                    scenario: a.scenario.clone(),
+                    state: state.clone(),
+                    max,
+                    expect_fail,
+                }),
+                _ => {
+                    c.err(
+                        key,
+                        "kind = \"rmse_below\" needs state and a finite max > 0",
+                    );
+                    None
+                }
+            }
+        }
+        other => {
+            c.err(
+                format!("{key}.kind"),
+                format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below, rejection_rate"),
+            );
+            None
+        }
+    }
+}
+
+/// Reports `test` at `key.test` as none of the system's tests.
+fn unknown_test(c: &mut Checker, key: &str, test: &str, test_names: &[String]) {
+    c.err(
+        format!("{key}.test"),
+        format!(
+            "unknown test `{test}`; the tests of this system: {}",
+            test_names.join(", ")
+        ),
+    );
+}
+
+/// `kind = "rejection_rate"`: a test's rejection rate over replications, bounded by `min` (a
+/// power) or `max` (a false-alarm rate), as an estimate or by its interval.
+fn rejection_rate(
+    c: &mut Checker,
+    t: &Targets,
+    test_names: &[String],
+    key: &str,
+    a: &AssertSpec,
+    expect_fail: bool,
+) -> Option<Assertion> {
+    let unused_msg = format!("not used by kind = \"{}\"", a.kind);
+    c.reject_present(key, &[("state", a.state.is_some())], &unused_msg);
+    let test = a.test.clone().unwrap_or_else(|| "verdict".into());
+    if t.system.is_some() && !test_names.contains(&test) {
+        unknown_test(c, key, &test, test_names);
+    }
+    let rate = |c: &mut Checker, name: &str, v: Option<f64>| match v {
+        Some(x) if !(0.0..=1.0).contains(&x) => {
+            c.err(
+                format!("{key}.{name}"),
+                format!("{x} is not a rate in [0, 1]"),
+            );
+            None
+        }
+        v => v,
+    };
+    let (min, max) = (rate(c, "min", a.min), rate(c, "max", a.max));
+    let interval = c.choice(
+        &format!("{key}.bound"),
+        a.bound.as_deref(),
+        "estimate",
+        &["estimate", "interval"],
+    ) == "interval";
+    if a.min.is_none() && a.max.is_none() {
+        c.err(
+            key,
+            "kind = \"rejection_rate\" needs min (a power) or max (a false-alarm rate)",
+        );
+    }
+    (a.min.is_some() || a.max.is_some()).then(|| Assertion::RejectionRate {
+        test,
+        filter: a.filter.clone(),
+        scenario: a.scenario.clone(),
+        q_scale: a.q_scale,
+        r_scale: a.r_scale,
+        runs: a.runs,
+        min,
+        max,
+        interval,
+        expect_fail,
+    })
+}
+
+/// `[check]`'s own keys: (replications, max_failed_runs).
+fn check_table(c: &mut Checker, spec: &Spec) -> (Option<usize>, f64) {
+    let check = spec.check.as_deref();
+    let replications = check.and_then(|t| t.replications);
+    if replications == Some(0) {
+        c.err("check.replications", "must be at least 1");
+    }
+    let max_failed_runs = check.and_then(|t| t.max_failed_runs).unwrap_or(0.0);
+    if !(0.0..=1.0).contains(&max_failed_runs) {
+        c.err(
+            "check.max_failed_runs",
+            format!("{max_failed_runs} is not a fraction in [0, 1]"),
+        );
+    }
+    (replications, max_failed_runs)
+}
+
+/// The top level's counts within [`limits`]: runs, scenarios, filter variants, steps, and
+/// `trace_runs` ≤ `runs`.
+fn check_sizes(
+    c: &mut Checker,
+    spec: &Spec,
+    runs: u64,
+    variants: usize,
+    system: Option<&dyn SystemPlan>,
+) {
     if runs == 0 {
         c.err("runs", "must be at least 1");
     } else if runs > limits::MAX_RUNS {
@@ -1344,28 +1539,25 @@ pub fn validate(
             ),
         );
     }
-    if filters.len() > limits::MAX_ENTRIES {
+    if variants > limits::MAX_ENTRIES {
         c.err(
             "filters",
             format!(
-                "{} filter variants (entries × q_scale × r_scale values); at most {}",
-                filters.len(),
+                "{variants} filter variants (entries × q_scale × r_scale values); at most {}",
                 limits::MAX_ENTRIES
             ),
         );
     }
-    if let Some(sys) = &configured {
-        for (i, sc) in sys.scenarios().iter().enumerate() {
-            if sc.steps as u64 > limits::MAX_STEPS {
-                c.err(
-                    format!("scenarios[{i}]"),
-                    format!(
-                        "{} steps (duration / Δt); at most {} per run",
-                        sc.steps,
-                        limits::MAX_STEPS
-                    ),
-                );
-            }
+    for (i, sc) in system.iter().flat_map(|s| s.scenarios().iter()).enumerate() {
+        if sc.steps as u64 > limits::MAX_STEPS {
+            c.err(
+                format!("scenarios[{i}]"),
+                format!(
+                    "{} steps (duration / Δt); at most {} per run",
+                    sc.steps,
+                    limits::MAX_STEPS
+                ),
+            );
         }
     }
     let trace_runs = spec.trace_runs.unwrap_or(0);
@@ -1375,6 +1567,10 @@ pub fn validate(
             format!("{trace_runs} traced runs but only {runs} runs"),
         );
     }
+}
+
+/// `name`, or the file's name without it: a folder name of its own.
+fn experiment_name(c: &mut Checker, spec: &Spec, path: &Path) -> String {
     let name = spec.name.clone().unwrap_or_else(|| {
         path.file_stem()
             .map(|s| s.to_string_lossy().into_owned())
@@ -1397,75 +1593,7 @@ pub fn validate(
             ),
         );
     }
-    let output = spec
-        .output
-        .as_ref()
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from("results").join(&name));
-
-    let system = match configured {
-        Some(s) if c.is_clean() => s,
-        _ => {
-            // A system that refuses a spec without saying why would otherwise make an error
-            // with no problem in it ("invalid spec (0 problems)").
-            if c.is_clean() {
-                c.err(
-                    "model.kind",
-                    format!("the {kind} system refused the spec without naming a problem (a bug in the system)"),
-                );
-            }
-            return Err(SpecErrors(c.into_errors()));
-        }
-    };
-    let world = world_canonical(
-        &kind,
-        &spec.model,
-        &spec.scenarios,
-        initial,
-        spec.initial_estimate
-            .as_deref()
-            .and_then(|i| i.p0_std.as_ref()),
-        &noise_scales,
-        draws,
-    );
-    Ok(Plan {
-        name,
-        description: spec.description,
-        spec_path: path.to_path_buf(),
-        spec_text: text.to_string(),
-        spec_hash: format!("{:016x}", hash_str(text)),
-        world,
-        kind,
-        scenarios: system
-            .scenarios()
-            .iter()
-            .enumerate()
-            .map(|(index, s)| ScenarioPlan {
-                name: s.name.clone(),
-                steps: s.steps,
-                index,
-            })
-            .collect(),
-        system,
-        filters,
-        noise_scales,
-        filter_noise,
-        initial,
-        runs: runs as usize,
-        master_seed: spec.master_seed.unwrap_or(0),
-        trace_runs: trace_runs as usize,
-        output,
-        rmse_thresholds,
-        alpha,
-        consistency,
-        assertions,
-        check_replications,
-        check_max_failed_runs,
-        export_estimates: false,
-        estimates: None,
-        draws,
-        never_crossed_largest,
-    })
+    name
 }
 
 /// The canonical text of a world (all of [`Plan::world`]): the system, its model table, the

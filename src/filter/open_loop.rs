@@ -4,7 +4,7 @@
 //! It answers the question the seed's Monte Carlo figures ask by eye: does the propagated
 //! covariance describe the spread of the truth around the noise-free prediction? Over runs
 //! with a sampled initial estimate, its per-step ANEES must stay inside the χ² band and the
-//! sample covariance of x_k − x̂_k must match P_k (tests/open_loop.rs). It has no innovations,
+//! sample covariance of x_k − x̂_k must match P_k (tests/it/systems/linear_studies.rs). It has no innovations,
 //! so NIS is null.
 
 use super::ekf::Gaussian;

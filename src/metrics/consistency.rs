@@ -32,8 +32,8 @@ use std::path::Path;
 use statrs::distribution::{ChiSquared, ContinuousCDF, Normal, StudentsT};
 
 use super::RunConsistency;
+use super::spill::{SPILL_ROWS, Spill};
 use crate::error::OutputError;
-use crate::spill::{SPILL_ROWS, Spill};
 
 /// A two-sided acceptance interval.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -4,8 +4,8 @@
 
 use std::path::Path;
 
+use super::spill::{Spill, SpillReader};
 use crate::error::OutputError;
-use crate::spill::{Spill, SpillReader};
 
 /// Rows of crossings a tracker keeps in memory per pass before it writes to its scratch file;
 /// small, as every (scenario, filter) has a tracker alive until the tables are written.

@@ -10,6 +10,7 @@
 pub mod consistency;
 pub mod divergence;
 pub mod quantile;
+pub mod spill;
 
 use quantile::QuantileSketch;
 

@@ -24,8 +24,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::schema::{ColumnDef, Dtype};
-use super::table::Value;
+use super::schema::{ColumnDef, Dtype, Value};
 use crate::error::OutputError;
 
 /// The checkpoint's folder inside an output folder.
@@ -171,7 +170,7 @@ impl Index {
             path: path.clone(),
             message: format!("cannot encode the checkpoint index: {e}"),
         })?;
-        super::folder::write_atomic(&path, text.as_bytes()).map_err(io("cannot write", &path))?;
+        super::atomic::write_atomic(&path, text.as_bytes()).map_err(io("cannot write", &path))?;
         // write_atomic made the index's and the journals' entries durable in the checkpoint
         // folder; the folder's own entry in the output folder must be too, or a power cut
         // could lose the whole checkpoint.

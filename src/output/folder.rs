@@ -20,8 +20,10 @@ use std::io::{Read, Write};
 use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 
+pub use super::atomic::{sync_file, temp_beside, write_atomic};
 use super::manifest::{Manifest, StudyKind};
 use super::schema;
+pub use super::table::FinishedTable;
 use crate::error::OutputError;
 
 /// The lock file's name inside an output folder.
@@ -42,17 +44,6 @@ pub struct StudyFolder {
     dir: PathBuf,
     // Held, not read: dropping it releases the folder.
     _lock: FolderLock,
-}
-
-/// A table written in full under its temporary name, ready to be moved into place.
-#[derive(Debug)]
-pub struct FinishedTable {
-    /// Table name (`runs`, `steps`, …).
-    pub name: String,
-    /// Its temporary file.
-    pub tmp: PathBuf,
-    /// Rows.
-    pub rows: u64,
 }
 
 /// A sub-folder of a study (a tuning stage) written in full under a temporary path, moved
@@ -437,44 +428,4 @@ pub fn verify(dir: &Path) -> Result<Manifest, OutputError> {
         }
     }
     Ok(manifest)
-}
-
-/// Writes `bytes` to `path` atomically: a temporary file beside it, flushed to disk (fsync),
-/// then a rename and an fsync of the folder, so a full disk, a kill or a power cut never leaves
-/// a truncated file under the real name.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = temp_beside(path);
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
-        std::fs::rename(&tmp, path)?;
-        // The rename is durable once the folder's entry is; not every platform can open a
-        // folder for syncing, and the file is already complete either way.
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty())
-            && let Ok(d) = std::fs::File::open(dir)
-        {
-            let _ = d.sync_all();
-        }
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
-}
-
-/// Flushes a written file's data and metadata to the disk.
-pub fn sync_file(path: &Path) -> std::io::Result<()> {
-    std::fs::File::open(path)?.sync_all()
-}
-
-/// The temporary name used for `path` while it is written: `.<name>.partial` beside it.
-pub fn temp_beside(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    path.with_file_name(format!(".{name}.partial"))
 }

@@ -179,7 +179,7 @@ impl Manifest {
         })?;
         let path = dir.join("manifest.toml");
         // The commit record: written, synced and renamed into place, then the folder synced.
-        super::folder::write_atomic(&path, text.as_bytes()).map_err(|source| OutputError::Io {
+        super::atomic::write_atomic(&path, text.as_bytes()).map_err(|source| OutputError::Io {
             action: "cannot write",
             path,
             source,

@@ -16,6 +16,21 @@ pub enum Dtype {
     Bool,
 }
 
+/// One cell value. `None` is written as a Parquet null.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Value<'a> {
+    /// String.
+    Str(&'a str),
+    /// Nullable float (NaN is stored as null too: "not defined").
+    F64(Option<f64>),
+    /// Nullable integer.
+    I64(Option<i64>),
+    /// Unsigned integer.
+    U64(u64),
+    /// Nullable boolean.
+    Bool(Option<bool>),
+}
+
 /// A column definition.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ColumnDef {

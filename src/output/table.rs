@@ -7,22 +7,19 @@ use std::sync::{Arc, Mutex};
 
 use polars::prelude::*;
 
+pub use super::schema::Value;
 use super::schema::{ColumnDef, Dtype};
 use crate::error::OutputError;
 
-/// One cell value. `None` is written as a Parquet null.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Value<'a> {
-    /// String.
-    Str(&'a str),
-    /// Nullable float (NaN is stored as null too: "not defined").
-    F64(Option<f64>),
-    /// Nullable integer.
-    I64(Option<i64>),
-    /// Unsigned integer.
-    U64(u64),
-    /// Nullable boolean.
-    Bool(Option<bool>),
+/// A table written in full under its temporary name, ready to be moved into place.
+#[derive(Debug)]
+pub struct FinishedTable {
+    /// Table name (`runs`, `steps`, …).
+    pub name: String,
+    /// Its temporary file.
+    pub tmp: PathBuf,
+    /// Rows.
+    pub rows: u64,
 }
 
 enum Buffer {
@@ -274,11 +271,11 @@ impl TableWriter {
 
     /// Finishes the file under its temporary name, for a [`super::folder::StudyFolder`] to
     /// move into place with the others.
-    pub fn finish(mut self) -> Result<super::folder::FinishedTable, OutputError> {
+    pub fn finish(mut self) -> Result<FinishedTable, OutputError> {
         self.flush()?;
         self.end_file()?;
         self.ended = true;
-        Ok(super::folder::FinishedTable {
+        Ok(FinishedTable {
             name: std::mem::take(&mut self.name),
             tmp: std::mem::take(&mut self.tmp),
             rows: self.rows,
@@ -289,7 +286,7 @@ impl TableWriter {
     pub fn commit(mut self) -> Result<(PathBuf, u64), OutputError> {
         self.flush()?;
         self.end_file()?;
-        super::folder::sync_file(&self.tmp).map_err(|source| OutputError::Io {
+        super::atomic::sync_file(&self.tmp).map_err(|source| OutputError::Io {
             action: "cannot sync",
             path: self.tmp.clone(),
             source,

@@ -1,4 +1,4 @@
-"""FilterPy reference for tests/filterpy_ukf.rs.
+"""FilterPy reference for tests/it/cross_checks/filterpy_ukf.rs.
 
 Reads tests/golden/filterpy_ukf_p1_input.csv (P1's parameters, Q, R, x0, P0, two sets of
 unscented parameters and 1,000 steps of the roll scenario with controls, measurements and
@@ -16,7 +16,7 @@ only some components report is an update with those rows of h and R.
     pip install filterpy numpy
     python3 tests/reference/filterpy_ukf_p1.py [OUTPUT]
 
-OUTPUT defaults to the golden file; tests/filterpy_ukf.rs passes a scratch path to check that
+OUTPUT defaults to the golden file; tests/it/cross_checks/filterpy_ukf.rs passes a scratch path to check that
 the committed golden is still what FilterPy computes.
 """
 
