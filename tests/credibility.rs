@@ -229,3 +229,76 @@ fn studies_without_consistency_tests_have_no_credibility_columns() {
             .all(|c| !c.starts_with("block_anees") && *c != "nci")
     );
 }
+
+#[test]
+fn covariance_information_and_square_root_forms_agree() {
+    // Three implementations of one Kalman filter: the same P up to round-off, so the same
+    // block ANEES, NCI and inclination to round-off.
+    let filters = r#"
+[[filters]]
+label = "kf"
+kind = "ekf"
+[[filters]]
+label = "information"
+kind = "information"
+[[filters]]
+label = "sqrt"
+kind = "sqrt"
+"#;
+    let (_d, steps, cons) = study(&spec(8, 15, r#"["m", "m/s"]"#, filters));
+    for col in [
+        "block_anees_position",
+        "block_anees_velocity",
+        "nci",
+        "inclination",
+    ] {
+        let want = cell(&cons, "kf", "nees_time_average", col).unwrap();
+        for f in ["information", "sqrt"] {
+            let got = cell(&cons, f, "nees_time_average", col).unwrap();
+            assert!(
+                (got - want).abs() <= 1e-8 * want.abs().max(1.0),
+                "{f} {col}: {got} vs {want}"
+            );
+        }
+    }
+    // Per step too.
+    let f = strs(&steps, "filter");
+    let nci = f64s(&steps, "nci");
+    let kf: Vec<f64> = (0..f.len())
+        .filter(|&i| f[i] == "kf")
+        .map(|i| nci[i].unwrap())
+        .collect();
+    let sq: Vec<f64> = (0..f.len())
+        .filter(|&i| f[i] == "sqrt")
+        .map(|i| nci[i].unwrap())
+        .collect();
+    assert_eq!(kf.len(), sq.len());
+    for (a, b) in kf.iter().zip(&sq) {
+        assert!((a - b).abs() <= 1e-8 * a.max(1.0), "{a} vs {b}");
+    }
+}
+
+#[test]
+fn the_credibility_columns_do_not_depend_on_the_thread_count() {
+    let text = spec(9, 40, r#"["m", "m/s"]"#, KF);
+    let (dir, path) = common::spec_in_tempdir(&text);
+    let mut tables = Vec::new();
+    for threads in ["1", "2"] {
+        let out = dir.path().join(format!("t{threads}"));
+        let (code, _, err) = run(&[
+            "run",
+            path.to_str().unwrap(),
+            "-q",
+            "--threads",
+            threads,
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 0, "{err}");
+        tables.push(common::table_bytes(&out));
+    }
+    assert!(
+        tables[0] == tables[1],
+        "tables differ between 1 and 2 threads"
+    );
+}

@@ -245,8 +245,8 @@ pub fn nci_of(errors: &[f64], nees: &[f64], n: usize) -> Option<(f64, f64)> {
 /// true covariance — both then depend on M and n alone (ρ is unchanged by e → Ae, P → APAᵀ,
 /// so P = I loses nothing). A Monte Carlo at a fixed seed, computed once per (M, n) and
 /// kept: max([`REFERENCE_REPLICATIONS`], ⌈[`REFERENCE_DRAWS`]/M⌉) replications of M draws;
-/// `None` when M < n (Σ̂ singular). Its Monte Carlo standard error is below 0.2 % of the
-/// value for every (M, n) tried (see the credibility chapter of the book).
+/// `None` when M < n (Σ̂ singular). Its Monte Carlo standard error is at most 0.7 % of the
+/// NCI and 0.01 dB of the inclination for M from 5 to 1,000 (the book's credibility chapter).
 pub fn credible_reference(m: usize, n: usize) -> Option<(f64, f64)> {
     static CACHE: Mutex<Option<HashMap<(usize, usize), Option<(f64, f64)>>>> = Mutex::new(None);
     if let Some(v) = CACHE
