@@ -1230,6 +1230,99 @@ pub(crate) fn divergence_tables(
     Ok((d, dr))
 }
 
+/// The credibility columns of one `steps.parquet` row ([`schema::credibility_steps`]): per
+/// block its ANEES with the per-step χ² band at the study's α, then NCI, inclination and the
+/// credible filter's values at the step's run count.
+fn credibility_step_values(
+    c: &CredibilityStep,
+    blocks: &[QuantityBlock],
+    bands: &mut BandCache,
+    nx: usize,
+) -> Vec<Value<'static>> {
+    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
+    for (b, blk) in blocks.iter().enumerate() {
+        let a = c.block_anees(b);
+        let band = a.and_then(|(_, m)| bands.band(m as u64 * blk.indices.len() as u64, m as u64));
+        row.extend([
+            Value::F64(a.map(|x| x.0)),
+            Value::F64(band.map(|b| b.lo)),
+            Value::F64(band.map(|b| b.hi)),
+            Value::Bool(a.zip(band).map(|(x, b)| b.contains(x.0))),
+        ]);
+    }
+    let reference = c.nci.and_then(|_| credible_reference(c.runs as usize, nx));
+    row.extend([
+        Value::F64(c.nci),
+        Value::F64(c.inclination),
+        Value::F64(reference.map(|r| r.0)),
+        Value::F64(reference.map(|r| r.1)),
+    ]);
+    row
+}
+
+/// The credibility columns of the whole cell's `consistency.parquet` rows
+/// ([`schema::consistency`]), over steps `first..=K`: per block the ANEES pooled over runs and
+/// steps with the χ² band of that average at `alpha` if the steps were independent (N·K·n_b
+/// degrees of freedom) and the fraction of steps whose block ANEES lies inside its per-step
+/// band; then the time averages of NCI, inclination and their credible references.
+fn credibility_averages(
+    steps: &[CredibilityStep],
+    blocks: &[QuantityBlock],
+    alpha: f64,
+    first: usize,
+    nx: usize,
+) -> Vec<Value<'static>> {
+    let after = steps.get(first..).unwrap_or(&[]);
+    let mut bands = BandCache::new(alpha);
+    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
+    for (b, blk) in blocks.iter().enumerate() {
+        let nb = blk.indices.len() as u64;
+        let (mut sum, mut count, mut inside, mut judged) = (0.0, 0u64, 0u64, 0u64);
+        for c in after {
+            let (s, n) = c.blocks[b];
+            if n == 0 {
+                continue;
+            }
+            sum += s;
+            count += u64::from(n);
+            if let Some(band) = bands.band(u64::from(n) * nb, u64::from(n)) {
+                judged += 1;
+                inside += u64::from(band.contains(s / f64::from(n)));
+            }
+        }
+        let mean = (count > 0).then(|| sum / count as f64);
+        let band = mean.and_then(|_| average_chi2_band(nb as f64, count as f64, alpha));
+        row.extend([
+            Value::F64(mean),
+            Value::F64(band.map(|b| b.lo)),
+            Value::F64(band.map(|b| b.hi)),
+            Value::F64((judged > 0).then(|| inside as f64 / judged as f64)),
+        ]);
+    }
+    let (mut nci, mut incl, mut r_nci, mut r_incl, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
+    for c in after {
+        if let (Some(a), Some(b), Some(r)) = (
+            c.nci,
+            c.inclination,
+            credible_reference(c.runs as usize, nx),
+        ) {
+            nci += a;
+            incl += b;
+            r_nci += r.0;
+            r_incl += r.1;
+            n += 1;
+        }
+    }
+    let avg = |s: f64| (n > 0).then(|| s / n as f64);
+    row.extend([
+        Value::F64(avg(nci)),
+        Value::F64(avg(incl)),
+        Value::F64(avg(r_nci)),
+        Value::F64(avg(r_incl)),
+    ]);
+    row
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1382,97 +1475,4 @@ rmse_thresholds = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]
         let e = feed.summary_row(&rows[5], BAD).unwrap_err();
         assert_eq!(why(e), "names a cell the spec does not have");
     }
-}
-
-/// The credibility columns of one `steps.parquet` row ([`schema::credibility_steps`]): per
-/// block its ANEES with the per-step χ² band at the study's α, then NCI, inclination and the
-/// credible filter's values at the step's run count.
-fn credibility_step_values(
-    c: &CredibilityStep,
-    blocks: &[QuantityBlock],
-    bands: &mut BandCache,
-    nx: usize,
-) -> Vec<Value<'static>> {
-    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
-    for (b, blk) in blocks.iter().enumerate() {
-        let a = c.block_anees(b);
-        let band = a.and_then(|(_, m)| bands.band(m as u64 * blk.indices.len() as u64, m as u64));
-        row.extend([
-            Value::F64(a.map(|x| x.0)),
-            Value::F64(band.map(|b| b.lo)),
-            Value::F64(band.map(|b| b.hi)),
-            Value::Bool(a.zip(band).map(|(x, b)| b.contains(x.0))),
-        ]);
-    }
-    let reference = c.nci.and_then(|_| credible_reference(c.runs as usize, nx));
-    row.extend([
-        Value::F64(c.nci),
-        Value::F64(c.inclination),
-        Value::F64(reference.map(|r| r.0)),
-        Value::F64(reference.map(|r| r.1)),
-    ]);
-    row
-}
-
-/// The credibility columns of the whole cell's `consistency.parquet` rows
-/// ([`schema::consistency`]), over steps `first..=K`: per block the ANEES pooled over runs and
-/// steps with the χ² band of that average at `alpha` if the steps were independent (N·K·n_b
-/// degrees of freedom) and the fraction of steps whose block ANEES lies inside its per-step
-/// band; then the time averages of NCI, inclination and their credible references.
-fn credibility_averages(
-    steps: &[CredibilityStep],
-    blocks: &[QuantityBlock],
-    alpha: f64,
-    first: usize,
-    nx: usize,
-) -> Vec<Value<'static>> {
-    let after = steps.get(first..).unwrap_or(&[]);
-    let mut bands = BandCache::new(alpha);
-    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
-    for (b, blk) in blocks.iter().enumerate() {
-        let nb = blk.indices.len() as u64;
-        let (mut sum, mut count, mut inside, mut judged) = (0.0, 0u64, 0u64, 0u64);
-        for c in after {
-            let (s, n) = c.blocks[b];
-            if n == 0 {
-                continue;
-            }
-            sum += s;
-            count += u64::from(n);
-            if let Some(band) = bands.band(u64::from(n) * nb, u64::from(n)) {
-                judged += 1;
-                inside += u64::from(band.contains(s / f64::from(n)));
-            }
-        }
-        let mean = (count > 0).then(|| sum / count as f64);
-        let band = mean.and_then(|_| average_chi2_band(nb as f64, count as f64, alpha));
-        row.extend([
-            Value::F64(mean),
-            Value::F64(band.map(|b| b.lo)),
-            Value::F64(band.map(|b| b.hi)),
-            Value::F64((judged > 0).then(|| inside as f64 / judged as f64)),
-        ]);
-    }
-    let (mut nci, mut incl, mut r_nci, mut r_incl, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
-    for c in after {
-        if let (Some(a), Some(b), Some(r)) = (
-            c.nci,
-            c.inclination,
-            credible_reference(c.runs as usize, nx),
-        ) {
-            nci += a;
-            incl += b;
-            r_nci += r.0;
-            r_incl += r.1;
-            n += 1;
-        }
-    }
-    let avg = |s: f64| (n > 0).then(|| s / n as f64);
-    row.extend([
-        Value::F64(avg(nci)),
-        Value::F64(avg(incl)),
-        Value::F64(avg(r_nci)),
-        Value::F64(avg(r_incl)),
-    ]);
-    row
 }

@@ -240,6 +240,9 @@ pub fn nci_of(errors: &[f64], nees: &[f64], n: usize) -> Option<(f64, f64)> {
     Some((10.0 * abs / m as f64, 10.0 * sum / m as f64))
 }
 
+/// The references computed so far, by (M, n).
+type ReferenceCache = HashMap<(usize, usize), Option<(f64, f64)>>;
+
 /// What a perfectly credible filter scores at one step with M runs of n quantities: the mean
 /// NCI and the mean inclination (dB) when every run's error is drawn from N(0, P) with P the
 /// true covariance — both then depend on M and n alone (ρ is unchanged by e → Ae, P → APAᵀ,
@@ -248,7 +251,7 @@ pub fn nci_of(errors: &[f64], nees: &[f64], n: usize) -> Option<(f64, f64)> {
 /// `None` when M < n (Σ̂ singular). Its Monte Carlo standard error is at most 0.7 % of the
 /// NCI and 0.01 dB of the inclination for M from 5 to 1,000 (the book's credibility chapter).
 pub fn credible_reference(m: usize, n: usize) -> Option<(f64, f64)> {
-    static CACHE: Mutex<Option<HashMap<(usize, usize), Option<(f64, f64)>>>> = Mutex::new(None);
+    static CACHE: Mutex<Option<ReferenceCache>> = Mutex::new(None);
     if let Some(v) = CACHE
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner)
