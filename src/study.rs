@@ -768,12 +768,13 @@ fn run_in(
         run: i % n_runs,
     };
     let first_unit = (cells.start + cells_resumed) * n_runs;
-    // An exported run's result carries its whole trajectory: the window holds fewer of them.
+    // An exported run's result carries its whole trajectory, and with the consistency tests
+    // each filter's signed errors and block NEES per step: the window holds fewer of them.
     let unit_bytes = if plan.export_estimates {
         trajectory_bytes(plan)
     } else {
         0
-    };
+    } + credibility_bytes(plan);
     let executed = execute_windowed::<_, KfmcError>(
         (cells.end - cells.start - cells_resumed) * n_runs,
         opts.threads,
@@ -839,6 +840,24 @@ fn run_in(
 /// About the bytes a run's result holds when it keeps its trajectories for every filter of
 /// `plan` (the longest scenario's truth, z, u and world states, and per filter the estimate,
 /// P's lower triangle, ν, S and A per step), for [`crate::runner::window_for`].
+/// Bytes of one run's per-step values kept for the credibility measures (signed errors and
+/// block NEES of every filter; [`crate::metrics::StepValues::enable_credibility`]); 0 without
+/// `[consistency]`.
+fn credibility_bytes(plan: &Plan) -> u64 {
+    if plan.consistency.is_none() {
+        return 0;
+    }
+    let l = plan.layout();
+    let per_step = (l.quantities.len() + crate::trial::layout_blocks(l).len()) as u64;
+    let samples = plan
+        .scenarios
+        .iter()
+        .map(|s| s.steps as u64 + 1)
+        .max()
+        .unwrap_or(1);
+    samples * 8 * per_step * plan.filters.len() as u64
+}
+
 pub(crate) fn trajectory_bytes(plan: &Plan) -> u64 {
     let l = plan.layout();
     let (nq, nz) = (l.quantities.len() as u64, l.measurements.len() as u64);
