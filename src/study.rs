@@ -5,7 +5,9 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::{FilterPlan, Plan};
-use crate::metrics::consistency::{BandCache, ConsistencyFold};
+use crate::metrics::blocks::QuantityBlock;
+use crate::metrics::consistency::{BandCache, ConsistencyFold, average_chi2_band};
+use crate::metrics::credibility::{CredibilityFold, CredibilityStep, credible_reference};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::spill::Spill;
 use crate::metrics::{RunStatus, StepAccumulator};
@@ -127,6 +129,9 @@ struct CellState {
     /// Per filter: the runs' consistency sums folded for the whole cell and each subset
     /// (when the study asks for the tests), in bounded memory.
     consistency: Vec<ConsistencyFold>,
+    /// Per filter (when the study asks for the tests): block NEES sums and each run's errors
+    /// for the credibility measures.
+    credibility: Vec<CredibilityFold>,
     /// Per filter: RMSE rows of the runs that completed (failures excluded), in bounded
     /// memory for the exact quantiles of the summary.
     rmse: Vec<Spill>,
@@ -148,6 +153,8 @@ struct Aggregator<'a> {
     consistency: Option<TableWriter>,
     sensors: Option<TableWriter>,
     bands: BandCache,
+    /// The layout's blocks of quantities, when the study asks for the consistency tests.
+    blocks: Vec<QuantityBlock>,
     /// Per (scenario, filter).
     divergence: Vec<DivergenceTracker>,
     cell: Option<(usize, usize, CellState)>,
@@ -216,6 +223,15 @@ impl Aggregator<'_> {
                     consistency: (0..nf)
                         .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))
                         .collect(),
+                    credibility: if plan.consistency.is_some() {
+                        (0..nf)
+                            .map(|_| {
+                                CredibilityFold::new(&self.scratch, nx, self.blocks.len(), steps)
+                            })
+                            .collect()
+                    } else {
+                        Vec::new()
+                    },
                     failed: vec![0; nf],
                     world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
                 },
@@ -247,6 +263,9 @@ impl Aggregator<'_> {
             cell.acc[fi].fold(&fr.steps);
             if let Some(c) = &fr.consistency {
                 cell.consistency[fi].push(run, c)?;
+            }
+            if let Some(c) = cell.credibility.get_mut(fi) {
+                c.push(&fr.steps)?;
             }
             if failed {
                 cell.failed[fi] += 1;
@@ -384,6 +403,10 @@ impl Aggregator<'_> {
             }
         }
         for (fi, f) in plan.filters.iter().enumerate() {
+            let credibility = match cell.credibility.get_mut(fi) {
+                Some(c) => Some(c.finish()?),
+                None => None,
+            };
             let acc = &cell.acc[fi];
             let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
             for k in 0..acc.len() {
@@ -425,6 +448,14 @@ impl Aggregator<'_> {
                 for q in 0..3 {
                     row.extend(s.abs_err.iter().map(|a| Value::F64(a[q])));
                 }
+                if let Some(c) = &credibility {
+                    row.extend(credibility_step_values(
+                        &c[k],
+                        &self.blocks,
+                        &mut self.bands,
+                        self.states.len(),
+                    ));
+                }
                 self.steps.push(&row)?;
             }
             if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency.as_ref()) {
@@ -437,8 +468,24 @@ impl Aggregator<'_> {
                 )];
                 evaluations.extend(cp.subsets.iter().map(|&(_, alpha)| (alpha, (None, None))));
                 let folded = cell.consistency[fi].finish()?;
-                for (sums, (alpha, inside)) in folded.into_iter().zip(evaluations) {
+                for (ev, (sums, (alpha, inside))) in folded.into_iter().zip(evaluations).enumerate()
+                {
                     let burn_in = sums.burn_in();
+                    // The credibility columns describe the whole cell; a subset's rows leave
+                    // them null.
+                    let cred: Vec<Value<'static>> = match &credibility {
+                        Some(c) if ev == 0 => credibility_averages(
+                            c,
+                            &self.blocks,
+                            alpha,
+                            burn_in.map_or(1, |b| b + 1).max(1),
+                            self.states.len(),
+                        ),
+                        Some(_) => {
+                            vec![Value::F64(None); 4 * self.blocks.len() + 4]
+                        }
+                        None => Vec::new(),
+                    };
                     for t in sums.tests(&self.states, alpha, inside) {
                         let mut row = cell_key(sname, noise, f).to_vec();
                         row.extend([
@@ -454,6 +501,7 @@ impl Aggregator<'_> {
                             Value::I64(Some(sums.runs() as i64)),
                             Value::I64(burn_in.map(|b| b as i64)),
                         ]);
+                        row.extend(cred.iter().cloned());
                         w.push(&row)?;
                     }
                 }
@@ -637,11 +685,25 @@ fn run_in(
     })?;
     let divergence = feed.into_trackers();
     let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
+    // The blocks the runs keep NEES for (none when they do not fit the runs' masks).
+    let blocks = if plan.consistency.is_some()
+        && !crate::trial::ConsistencyOptions::blocks_of(plan).is_empty()
+    {
+        crate::trial::layout_blocks(layout)
+    } else {
+        Vec::new()
+    };
+    let block_names: Vec<String> = blocks.iter().map(QuantityBlock::column_name).collect();
+    let block_names: Vec<&str> = block_names.iter().map(String::as_str).collect();
     let mut agg = Aggregator {
         plan,
         trial: trial.as_ref(),
         runs,
-        steps: open("steps", schema::steps(&states), &mut ignore)?,
+        steps: open(
+            "steps",
+            schema::steps(&states, plan.consistency.as_ref().map(|_| &block_names[..])),
+            &mut ignore,
+        )?,
         summary,
         traces: if plan.trace_runs > 0 {
             Some(open(
@@ -658,7 +720,11 @@ fn run_in(
             None
         },
         consistency: if plan.consistency.is_some() {
-            Some(open("consistency", schema::consistency(), &mut ignore)?)
+            Some(open(
+                "consistency",
+                schema::consistency(Some(&block_names)),
+                &mut ignore,
+            )?)
         } else {
             None
         },
@@ -677,6 +743,7 @@ fn run_in(
             None
         },
         bands: BandCache::new(plan.alpha),
+        blocks,
         divergence,
         states,
         cell: None,
@@ -701,12 +768,13 @@ fn run_in(
         run: i % n_runs,
     };
     let first_unit = (cells.start + cells_resumed) * n_runs;
-    // An exported run's result carries its whole trajectory: the window holds fewer of them.
+    // An exported run's result carries its whole trajectory, and with the consistency tests
+    // each filter's signed errors and block NEES per step: the window holds fewer of them.
     let unit_bytes = if plan.export_estimates {
         trajectory_bytes(plan)
     } else {
         0
-    };
+    } + credibility_bytes(plan);
     let executed = execute_windowed::<_, KfmcError>(
         (cells.end - cells.start - cells_resumed) * n_runs,
         opts.threads,
@@ -772,6 +840,24 @@ fn run_in(
 /// About the bytes a run's result holds when it keeps its trajectories for every filter of
 /// `plan` (the longest scenario's truth, z, u and world states, and per filter the estimate,
 /// P's lower triangle, ν, S and A per step), for [`crate::runner::window_for`].
+/// Bytes of one run's per-step values kept for the credibility measures (signed errors and
+/// block NEES of every filter; [`crate::metrics::StepValues::enable_credibility`]); 0 without
+/// `[consistency]`.
+fn credibility_bytes(plan: &Plan) -> u64 {
+    if plan.consistency.is_none() {
+        return 0;
+    }
+    let l = plan.layout();
+    let per_step = (l.quantities.len() + crate::trial::layout_blocks(l).len()) as u64;
+    let samples = plan
+        .scenarios
+        .iter()
+        .map(|s| s.steps as u64 + 1)
+        .max()
+        .unwrap_or(1);
+    samples * 8 * per_step * plan.filters.len() as u64
+}
+
 pub(crate) fn trajectory_bytes(plan: &Plan) -> u64 {
     let l = plan.layout();
     let (nq, nz) = (l.quantities.len() as u64, l.measurements.len() as u64);
@@ -1161,6 +1247,99 @@ pub(crate) fn divergence_tables(
         }
     }
     Ok((d, dr))
+}
+
+/// The credibility columns of one `steps.parquet` row ([`schema::credibility_steps`]): per
+/// block its ANEES with the per-step χ² band at the study's α, then NCI, inclination and the
+/// credible filter's values at the step's run count.
+fn credibility_step_values(
+    c: &CredibilityStep,
+    blocks: &[QuantityBlock],
+    bands: &mut BandCache,
+    nx: usize,
+) -> Vec<Value<'static>> {
+    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
+    for (b, blk) in blocks.iter().enumerate() {
+        let a = c.block_anees(b);
+        let band = a.and_then(|(_, m)| bands.band(m as u64 * blk.indices.len() as u64, m as u64));
+        row.extend([
+            Value::F64(a.map(|x| x.0)),
+            Value::F64(band.map(|b| b.lo)),
+            Value::F64(band.map(|b| b.hi)),
+            Value::Bool(a.zip(band).map(|(x, b)| b.contains(x.0))),
+        ]);
+    }
+    let reference = c.nci.and_then(|_| credible_reference(c.runs as usize, nx));
+    row.extend([
+        Value::F64(c.nci),
+        Value::F64(c.inclination),
+        Value::F64(reference.map(|r| r.0)),
+        Value::F64(reference.map(|r| r.1)),
+    ]);
+    row
+}
+
+/// The credibility columns of the whole cell's `consistency.parquet` rows
+/// ([`schema::consistency`]), over steps `first..=K`: per block the ANEES pooled over runs and
+/// steps with the χ² band of that average at `alpha` if the steps were independent (N·K·n_b
+/// degrees of freedom) and the fraction of steps whose block ANEES lies inside its per-step
+/// band; then the time averages of NCI, inclination and their credible references.
+fn credibility_averages(
+    steps: &[CredibilityStep],
+    blocks: &[QuantityBlock],
+    alpha: f64,
+    first: usize,
+    nx: usize,
+) -> Vec<Value<'static>> {
+    let after = steps.get(first..).unwrap_or(&[]);
+    let mut bands = BandCache::new(alpha);
+    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
+    for (b, blk) in blocks.iter().enumerate() {
+        let nb = blk.indices.len() as u64;
+        let (mut sum, mut count, mut inside, mut judged) = (0.0, 0u64, 0u64, 0u64);
+        for c in after {
+            let (s, n) = c.blocks[b];
+            if n == 0 {
+                continue;
+            }
+            sum += s;
+            count += u64::from(n);
+            if let Some(band) = bands.band(u64::from(n) * nb, u64::from(n)) {
+                judged += 1;
+                inside += u64::from(band.contains(s / f64::from(n)));
+            }
+        }
+        let mean = (count > 0).then(|| sum / count as f64);
+        let band = mean.and_then(|_| average_chi2_band(nb as f64, count as f64, alpha));
+        row.extend([
+            Value::F64(mean),
+            Value::F64(band.map(|b| b.lo)),
+            Value::F64(band.map(|b| b.hi)),
+            Value::F64((judged > 0).then(|| inside as f64 / judged as f64)),
+        ]);
+    }
+    let (mut nci, mut incl, mut r_nci, mut r_incl, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
+    for c in after {
+        if let (Some(a), Some(b), Some(r)) = (
+            c.nci,
+            c.inclination,
+            credible_reference(c.runs as usize, nx),
+        ) {
+            nci += a;
+            incl += b;
+            r_nci += r.0;
+            r_incl += r.1;
+            n += 1;
+        }
+    }
+    let avg = |s: f64| (n > 0).then(|| s / n as f64);
+    row.extend([
+        Value::F64(avg(nci)),
+        Value::F64(avg(incl)),
+        Value::F64(avg(r_nci)),
+        Value::F64(avg(r_incl)),
+    ]);
+    row
 }
 
 #[cfg(test)]

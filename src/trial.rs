@@ -155,6 +155,9 @@ pub struct ConsistencyOptions {
     pub burn_in: bool,
     /// Whether to record the NEES of x̂_0 (an estimate whose covariance is to be tested).
     pub initial_nees: bool,
+    /// The layout's blocks of quantities, whose NEES and the signed errors are kept per step
+    /// for the credibility measures ([`crate::metrics::credibility`]).
+    pub blocks: crate::metrics::blocks::BlockMasks,
 }
 
 impl ConsistencyOptions {
@@ -165,8 +168,20 @@ impl ConsistencyOptions {
             lags: c.whiteness_lags,
             burn_in: plan.initial != InitialMode::Sampled,
             initial_nees: plan.initial == InitialMode::BatchLs,
+            blocks: Self::blocks_of(plan),
         })
     }
+
+    /// The block masks of a plan's layout.
+    pub fn blocks_of(plan: &Plan) -> crate::metrics::blocks::BlockMasks {
+        let layout = plan.layout();
+        crate::metrics::blocks::BlockMasks::new(&layout_blocks(layout), layout.quantities.len())
+    }
+}
+
+/// The blocks of a layout's quantities ([`crate::metrics::blocks::group`]).
+pub fn layout_blocks(layout: &crate::system::Layout) -> Vec<crate::metrics::blocks::QuantityBlock> {
+    crate::metrics::blocks::group(layout.quantities.iter().map(|q| (q.unit.as_str(), q.angle)))
 }
 
 /// The initial-error term tr(P_k⁻¹ G_k) below which a step counts as free of the prior.
@@ -392,6 +407,10 @@ where
     let mut belief = filter.init(model, prior.x0_hat, prior.p0, &ctx.measurements[0]);
     let opts = ctx.consistency;
     let lags = opts.map_or(0, |o| o.lags);
+    let mut block_nees = [f64::NAN; crate::metrics::blocks::MAX_BLOCKS];
+    if let Some(o) = opts {
+        values.enable_credibility(o.blocks.len());
+    }
     // Truth mode: one window from step 1 and one from the end of the burn-in (G_k tracks the
     // prior's share of P_k); sampled mode: the prior is real, so every step from 1 counts.
     let mut from_start = opts.map(|_| Window::<NQ, NZ>::new(1, lags));
@@ -462,6 +481,10 @@ where
                 .and_then(|p| eval.covariance_ref(p))
                 .unwrap_or(&p_own);
             nees = chol.inverse_quadratic_form(&e);
+            if let Some(o) = opts {
+                o.blocks.nees(&e, p_now, nees, &mut block_nees);
+                values.record_credibility(k, e.as_slice(), &block_nees);
+            }
             if k > 0 && opts.is_some() {
                 let a = filter
                     .error_transition(&belief)

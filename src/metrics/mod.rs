@@ -7,7 +7,9 @@
 //!   factors; `nees_mean` averages k = 1..=K (k = 0 is the prior, not a filter output) and
 //!   `nis_mean` the steps with a measurement update.
 
+pub mod blocks;
 pub mod consistency;
+pub mod credibility;
 pub mod divergence;
 pub mod quantile;
 pub mod spill;
@@ -135,6 +137,12 @@ pub struct StepValues {
     abs_err_stride: usize,
     /// The next grid step to record.
     next_grid_step: usize,
+    /// The signed errors e_k (`nx` per step) and the block NEES (`cred_nb` per step) that the
+    /// credibility measures need ([`credibility`]); empty unless
+    /// [`StepValues::enable_credibility`] was called.
+    cred_err: Vec<f64>,
+    cred_blocks: Vec<f64>,
+    cred_nb: usize,
 }
 
 impl Drop for StepValues {
@@ -289,6 +297,33 @@ impl StepValues {
             abs_err: b.abs_err,
             abs_err_stride: abs_err_stride(samples),
             next_grid_step: 0,
+            cred_err: Vec::new(),
+            cred_blocks: Vec::new(),
+            cred_nb: 0,
+        }
+    }
+
+    /// Keeps, from now on, what the credibility measures need: the signed errors and the NEES
+    /// of `blocks` blocks per step ([`StepValues::record_credibility`]).
+    pub fn enable_credibility(&mut self, blocks: usize) {
+        let samples = self.nees.len();
+        self.cred_err.clear();
+        self.cred_err.resize(samples * self.nx, f64::NAN);
+        self.cred_blocks.clear();
+        self.cred_blocks.resize(samples * blocks, f64::NAN);
+        self.cred_nb = blocks;
+    }
+
+    /// Records step `k`'s signed error (`nx` values) and its block NEES (one per block), when
+    /// [`StepValues::enable_credibility`] was called; nothing otherwise.
+    #[inline]
+    pub fn record_credibility(&mut self, k: usize, error: &[f64], block_nees: &[f64]) {
+        let (nx, nb) = (self.nx, self.cred_nb);
+        if let Some(row) = self.cred_err.get_mut(k * nx..(k + 1) * nx) {
+            row.copy_from_slice(&error[..nx]);
+        }
+        if let Some(row) = self.cred_blocks.get_mut(k * nb..(k + 1) * nb) {
+            row.copy_from_slice(&block_nees[..nb]);
         }
     }
 

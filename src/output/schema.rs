@@ -167,8 +167,10 @@ pub fn runs(states: &[&str]) -> Vec<ColumnDef> {
     c
 }
 
-/// `steps.parquet`: one row per cell × filter × step.
-pub fn steps(states: &[&str]) -> Vec<ColumnDef> {
+/// `steps.parquet`: one row per cell × filter × step. `blocks`: the layout's blocks of
+/// quantities when the study has a `[consistency]` section, which adds the credibility
+/// columns ([`credibility_steps`]).
+pub fn steps(states: &[&str], blocks: Option<&[&str]>) -> Vec<ColumnDef> {
     let mut c = cell_keys();
     c.extend([
         col("step", Dtype::I64),
@@ -192,11 +194,42 @@ pub fn steps(states: &[&str]) -> Vec<ColumnDef> {
                 .map(|s| col(format!("abs_err_{q}_{s}"), Dtype::F64)),
         );
     }
+    if let Some(b) = blocks {
+        c.extend(credibility_steps(b));
+    }
     c
 }
 
-/// `consistency.parquet`: one row per cell × filter × test.
-pub fn consistency() -> Vec<ColumnDef> {
+/// The credibility columns of `steps.parquet` (studies with `[consistency]`): per block of
+/// quantities its ANEES and per-step χ² band at the study's α, then Li and Zhao's NCI and
+/// inclination (dB) and what a credible filter scores at the step's run count
+/// ([`crate::metrics::credibility`]).
+pub fn credibility_steps(blocks: &[&str]) -> Vec<ColumnDef> {
+    let mut c = Vec::new();
+    for b in blocks {
+        c.extend([
+            col(format!("block_anees_{b}"), Dtype::F64),
+            col(format!("block_anees_{b}_lo"), Dtype::F64),
+            col(format!("block_anees_{b}_hi"), Dtype::F64),
+            col(format!("block_anees_{b}_inside"), Dtype::Bool),
+        ]);
+    }
+    c.extend(credibility_indices());
+    c
+}
+
+fn credibility_indices() -> [ColumnDef; 4] {
+    [
+        col("nci", Dtype::F64),
+        col("inclination", Dtype::F64),
+        col("nci_credible_reference", Dtype::F64),
+        col("inclination_credible_reference", Dtype::F64),
+    ]
+}
+
+/// `consistency.parquet`: one row per cell × filter × test. `blocks`: the layout's blocks of
+/// quantities (`None`: no credibility columns).
+pub fn consistency(blocks: Option<&[&str]>) -> Vec<ColumnDef> {
     let mut c = cell_keys();
     c.extend([
         col("test", Dtype::Str),
@@ -211,6 +244,19 @@ pub fn consistency() -> Vec<ColumnDef> {
         col("runs", Dtype::I64),
         col("burn_in_steps", Dtype::I64),
     ]);
+    if let Some(b) = blocks {
+        // Time averages over the steps after the burn-in, on the rows of the whole cell (null
+        // on the subsets' rows).
+        for b in b {
+            c.extend([
+                col(format!("block_anees_{b}"), Dtype::F64),
+                col(format!("block_anees_{b}_lo"), Dtype::F64),
+                col(format!("block_anees_{b}_hi"), Dtype::F64),
+                col(format!("block_anees_{b}_inside_fraction"), Dtype::F64),
+            ]);
+        }
+        c.extend(credibility_indices());
+    }
     c
 }
 

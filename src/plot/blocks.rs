@@ -2,9 +2,10 @@
 //! estimates, truths and full covariances (traces.parquet `P_<qi>_<qj>`).
 //!
 //! The whole-state ANEES says whether a filter is consistent; the blocks say *where* it is not
-//! (issue 11: a drone filter's excess sits in position when the GPS latency is unmodelled, in
-//! attitude when the gyro bias is). A block is the quantities sharing a unit, in the system's
-//! quantity order: for the drone `px, py, pz` (m), `vx, vy, vz` (m/s), `roll, pitch, yaw` (deg).
+//! (a drone filter's excess sits in position when the GPS latency is unmodelled, in attitude
+//! when the gyro bias is). The blocks are those of [`crate::metrics::blocks::group`], the same
+//! as the `block_anees_<block>` columns of the tables: for the drone `px, py, pz` (m),
+//! `vx, vy, vz` (m/s), `roll, pitch, yaw` (deg).
 
 use nalgebra::{DMatrix, DVector};
 
@@ -38,28 +39,22 @@ pub fn blocks(t: &Tables) -> Vec<Block> {
             .and_then(|m| m.quantities.iter().find(|e| e.name == q))
             .is_some_and(|e| e.angle)
     };
-    let mut out: Vec<Block> = Vec::new();
-    for (i, q) in t.states.iter().enumerate() {
-        let unit = t.unit(q).to_string();
-        match out.iter_mut().find(|b| b.unit == unit) {
-            Some(b) => {
-                b.quantities.push(q.clone());
-                b.idx.push(i);
-            }
-            None => out.push(Block {
-                name: match unit.as_str() {
-                    "m" => "position".into(),
-                    "m/s" => "velocity".into(),
-                    _ if angle(q) => "attitude".into(),
-                    "" => "unitless".into(),
-                    u => u.to_string(),
-                },
-                unit,
-                quantities: vec![q.clone()],
-                idx: vec![i],
-            }),
-        }
-    }
+    // The tables' grouping ([`crate::metrics::blocks`]), one definition for both.
+    let units: Vec<(String, bool)> = t
+        .states
+        .iter()
+        .map(|q| (t.unit(q).to_string(), angle(q)))
+        .collect();
+    let out: Vec<Block> =
+        crate::metrics::blocks::group(units.iter().map(|(u, a)| (u.as_str(), *a)))
+            .into_iter()
+            .map(|b| Block {
+                name: b.name,
+                unit: b.unit,
+                quantities: b.indices.iter().map(|&i| t.states[i].clone()).collect(),
+                idx: b.indices,
+            })
+            .collect();
     let covariances = out.iter().all(|b| {
         b.idx.iter().all(|&i| {
             b.idx

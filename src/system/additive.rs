@@ -965,6 +965,7 @@ where
                 lags: 0,
                 burn_in: plan.initial != InitialMode::Sampled,
                 initial_nees: plan.initial == InitialMode::BatchLs,
+                blocks: ConsistencyOptions::blocks_of(plan),
             })),
             unit: Unit {
                 scenario,

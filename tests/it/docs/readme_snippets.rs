@@ -530,10 +530,10 @@ fn tables_reference() -> String {
     let q: &[&str] = &["<q>"];
     let tables: Vec<(&str, Vec<ColumnDef>)> = vec![
         ("runs", schema::runs(q)),
-        ("steps", schema::steps(q)),
+        ("steps", schema::steps(q, Some(&["<block>"]))),
         ("summary", schema::summary()),
         ("sensors", schema::sensors()),
-        ("consistency", schema::consistency()),
+        ("consistency", schema::consistency(Some(&["<block>"]))),
         ("divergence", schema::divergence()),
         ("divergence_runs", schema::divergence_runs()),
         ("traces", schema::traces(q, &["<u>"], &["<z>"], &["<w>"])),

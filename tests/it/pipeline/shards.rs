@@ -33,6 +33,20 @@ fn merged_parts_are_byte_identical_to_one_process_for_any_part_count() {
             "traces.parquet"
         ]
     );
+    // The credibility columns (per-block ANEES, NCI) are part of what is compared: the
+    // identity below covers them only if they hold values.
+    for table in ["consistency.parquet", "steps.parquet"] {
+        let df = common::read(&single.join(table));
+        for c in [
+            "block_anees_position",
+            "block_anees_rad_s",
+            "nci",
+            "inclination",
+        ] {
+            let col = df.column(c).unwrap_or_else(|_| panic!("{table} has {c}"));
+            assert!(col.null_count() < col.len(), "{table}: {c} is all null");
+        }
+    }
     // The divergence points are rebuilt by the merge from every part's runs and summary: the
     // comparison below means something only if runs cross first at every noise scale (a
     // rebuild that lost or mixed up a scale's rows would then change them).
