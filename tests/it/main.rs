@@ -46,6 +46,7 @@ mod pipeline {
 /// Statistical facts and the tests of the tests (verdicts, power, draws, whiteness).
 mod statistics {
     mod calibration;
+    mod credibility;
     mod draws;
     mod power;
     #[allow(clippy::module_inception)]

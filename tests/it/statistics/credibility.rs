@@ -1,9 +1,9 @@
 //! Credibility measures in the tables: per-block ANEES, Li and Zhao's NCI and inclination
 //! indicator, and the credible filter's reference values beside them.
 
-mod common;
 
-use common::run_cli as run;
+use crate::common;
+use crate::common::run_cli as run;
 use polars::prelude::DataFrame;
 
 /// A generic linear system: a double integrator with a position sensor. `units` are the two
