@@ -962,9 +962,9 @@ pub enum RunError {
     Stage {
         /// What was being done.
         context: String,
-        /// The cause.
+        /// The cause (boxed: a `Result` carrying it stays small).
         #[source]
-        source: KfmcError,
+        source: Box<KfmcError>,
     },
 }
 
@@ -972,7 +972,8 @@ impl RunError {
     /// The library error underneath, whatever the stage.
     pub fn error(&self) -> &KfmcError {
         match self {
-            RunError::Invalid(e) | RunError::Stage { source: e, .. } => e,
+            RunError::Invalid(e) => e,
+            RunError::Stage { source, .. } => source,
         }
     }
 }
@@ -1022,7 +1023,12 @@ pub fn run<O: crate::runner::RunObserver>(
             },
         ]))));
     }
-    let stage = |context: String| move |source: KfmcError| RunError::Stage { context, source };
+    let stage = |context: String| {
+        move |source: KfmcError| RunError::Stage {
+            context,
+            source: Box::new(source),
+        }
+    };
     let mut cases = Vec::new();
     let mut wall_s = 0.0;
     if plan.assertions.iter().any(|a| !a.needs_replications()) {

@@ -193,10 +193,11 @@ impl Progress {
             obs.done.load(Ordering::Relaxed),
             obs.total.load(Ordering::Relaxed),
         );
-        if total == 0 {
+        let elapsed = (now - self.started).as_secs_f64();
+        // A study done within half a second prints nothing: a loop of short calls stays quiet.
+        if total == 0 || (!self.shown && elapsed < 0.5) {
             return;
         }
-        let elapsed = (now - self.started).as_secs_f64();
         let text = if last {
             if !self.shown {
                 return;
@@ -752,7 +753,7 @@ fn check<'py>(
                 .map_err(|e| match e {
                     kfmc::check::RunError::Invalid(e) => Failure::from(e),
                     kfmc::check::RunError::Stage { context, source } => {
-                        Failure::from(source).context(context)
+                        Failure::from(*source).context(context)
                     }
                 });
             drop(memory);

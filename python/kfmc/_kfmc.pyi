@@ -2,6 +2,26 @@
 import os
 from typing import Any, Dict, List, Optional, Sequence, Union
 
+__all__ = [
+    "__version__",
+    "Error",
+    "SpecError",
+    "EstimatesError",
+    "StudyError",
+    "IncompleteError",
+    "CheckFailedError",
+    "cli_main",
+    "validate",
+    "run",
+    "simulate",
+    "score",
+    "check",
+    "power",
+    "describe",
+    "schema",
+    "load_toml",
+]
+
 __version__: str
 
 class Error(ValueError): ...

@@ -575,7 +575,7 @@ pub fn score_plan(
             dir.display()
         ));
     }
-    let manifest = crate::output::folder::verify(&dir)
+    let manifest = crate::output::folder::verify(dir)
         .map_err(KfmcError::from)
         .map_err(|e| anyhow::Error::from(e).context(format!("reading {}", dir.display())))?;
     if manifest.exchange.is_none() {
@@ -960,7 +960,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             .map_err(|e| match e {
                 crate::check::RunError::Invalid(e) => anyhow::Error::from(e),
                 crate::check::RunError::Stage { context, source } => {
-                    anyhow::Error::from(source).context(context)
+                    anyhow::Error::from(*source).context(context)
                 }
             })?;
             emit(&outcome.render());
