@@ -619,7 +619,9 @@ fn import_streams(objects: &[Bound<'_, PyAny>], plan: &Plan) -> PyResult<InMemor
                 .map_err(|e| bad(format!("cannot form a table: {e}")))?;
             if writer.is_none() {
                 let metadata = kfmc::score::stamp_metadata(plan);
+                // LZ4: cheap to write and read; the file is read once, right away.
                 let w = ParquetWriter::new(file.take().expect("taken once"))
+                    .with_compression(ParquetCompression::Lz4Raw)
                     .with_key_value_metadata(Some(
                         polars::io::parquet::write::KeyValueMetadata::from_static(metadata),
                     ))
