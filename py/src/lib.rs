@@ -104,14 +104,16 @@ impl Failure {
             (_, Some(KfmcError::Spec(_))) => SpecError::new_err(message),
             (Kind::Estimates, _) => EstimatesError::new_err(message),
             (Kind::Study, _) => StudyError::new_err(message),
-            (Kind::Auto, Some(KfmcError::Output(e))) => match e {
-                OutputError::Locked { .. }
-                | OutputError::OtherKind { .. }
-                | OutputError::Foreign { .. }
-                | OutputError::NotAStudy { .. }
-                | OutputError::Mismatch { .. } => StudyError::new_err(message),
-                _ => Error::new_err(message),
-            },
+            (
+                Kind::Auto,
+                Some(KfmcError::Output(
+                    OutputError::Locked { .. }
+                    | OutputError::OtherKind { .. }
+                    | OutputError::Foreign { .. }
+                    | OutputError::NotAStudy { .. }
+                    | OutputError::Mismatch { .. },
+                )),
+            ) => StudyError::new_err(message),
             _ => Error::new_err(message),
         }
     }
