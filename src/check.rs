@@ -6,7 +6,7 @@ use std::path::Path;
 
 use polars::prelude::*;
 
-use crate::error::OutputError;
+use crate::error::{KfmcError, OutputError};
 use std::collections::HashMap;
 
 use crate::experiment::Plan;
@@ -906,4 +906,207 @@ mod tests {
         settle(&a, "consistent", &mut out, 0);
         assert!(out[0].incomplete && !out[0].pass, "{:?}", out[0]);
     }
+}
+
+/// The gate's exit code when an assertion failed.
+pub const EXIT_CHECK_FAILED: u8 = 3;
+/// The gate's exit code when no assertion failed but a case could not be judged on the runs
+/// the spec declares (incomplete).
+pub const EXIT_CHECK_INCOMPLETE: u8 = 4;
+
+/// What `kfmc check` found: the evaluated cases of one spec, as the CLI prints them and the
+/// Python module returns them.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CheckOutcome {
+    /// The experiment's name.
+    pub experiment: String,
+    /// Every evaluated case, in the order the report lists them.
+    pub cases: Vec<CaseResult>,
+    /// Wall-clock seconds of the studies behind the cases.
+    pub wall_s: f64,
+}
+
+impl CheckOutcome {
+    /// Failed and incomplete cases ([`tally`]).
+    pub fn tally(&self) -> (usize, usize) {
+        tally(&self.cases)
+    }
+    /// The readable report ([`render`]).
+    pub fn render(&self) -> String {
+        render(&self.experiment, &self.cases)
+    }
+    /// The JUnit XML ([`junit`]).
+    pub fn junit(&self) -> String {
+        junit(&self.experiment, &self.cases, self.wall_s)
+    }
+    /// The gate's exit code: 0 all hold, 3 one failed (a judged failure outranks a case that
+    /// could not be judged), 4 none failed but one is incomplete.
+    pub fn exit_code(&self) -> u8 {
+        match self.tally() {
+            (0, 0) => 0,
+            (0, _) => EXIT_CHECK_INCOMPLETE,
+            _ => EXIT_CHECK_FAILED,
+        }
+    }
+}
+
+/// Why [`run`] stopped: an invalid request (reported as it is), or a failure of one stage,
+/// which the CLI prefixes with `context` (`running SPEC`, `evaluating the assertions`).
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The spec or the request is invalid (no assertion, no replications, over a limit).
+    #[error(transparent)]
+    Invalid(KfmcError),
+    /// A stage failed.
+    #[error("{context}")]
+    Stage {
+        /// What was being done.
+        context: String,
+        /// The cause (boxed: a `Result` carrying it stays small).
+        #[source]
+        source: Box<KfmcError>,
+    },
+}
+
+impl RunError {
+    /// The library error underneath, whatever the stage.
+    pub fn error(&self) -> &KfmcError {
+        match self {
+            RunError::Invalid(e) => e,
+            RunError::Stage { source, .. } => source,
+        }
+    }
+}
+
+/// Runs `kfmc check`'s studies for `plan` (loaded from `spec`, overrides applied, external
+/// filters' estimates attached) and evaluates its `[check]` assertions: the study itself for
+/// the per-cell assertions, `replications` (or `check.replications`) replications of it for
+/// the rejection-rate ones. Each study gets its own observer from `observer`. Printing and
+/// exit codes are the caller's ([`CheckOutcome`]).
+pub fn run<O: crate::runner::RunObserver>(
+    mut plan: Plan,
+    spec: &Path,
+    replications: Option<usize>,
+    allow_large: bool,
+    exec: &crate::study::ExecOptions,
+    observer: impl Fn() -> O,
+) -> Result<CheckOutcome, RunError> {
+    use crate::error::{SpecError, SpecErrors};
+    if plan.assertions.is_empty() {
+        return Err(RunError::Invalid(KfmcError::Spec(SpecErrors(vec![
+            SpecError {
+                file: spec.to_path_buf(),
+                key_path: "check.assert".into(),
+                message: "kfmc check needs at least one [[check.assert]]".into(),
+            },
+        ]))));
+    }
+    // Consistency assertions need the tests even when the spec did not ask for them.
+    plan.consistency
+        .get_or_insert(crate::experiment::plan::ConsistencyPlan {
+            alpha: plan.alpha,
+            whiteness_lags: 5,
+            subsets: Vec::new(),
+        });
+    let needs_power = plan.assertions.iter().any(|a| a.needs_replications());
+    let replications = replications.or(plan.check_replications);
+    if let Some(r) = replications.filter(|_| needs_power) {
+        plan.check_replications(r, allow_large)
+            .map_err(|e| RunError::Invalid(e.into()))?;
+    }
+    if needs_power && replications.is_none_or(|r| r == 0) {
+        return Err(RunError::Invalid(KfmcError::Spec(SpecErrors(vec![
+            SpecError {
+                file: spec.to_path_buf(),
+                key_path: "check.replications".into(),
+                message: "a rejection_rate assertion is judged over replications of the whole study: set check.replications ≥ 1 or pass --replications R".into(),
+            },
+        ]))));
+    }
+    let stage = |context: String| {
+        move |source: KfmcError| RunError::Stage {
+            context,
+            source: Box::new(source),
+        }
+    };
+    let mut cases = Vec::new();
+    let mut wall_s = 0.0;
+    if plan.assertions.iter().any(|a| !a.needs_replications()) {
+        // Judged while still held: the tables read back are this study's.
+        let (report, _held) = crate::study::run_locked(&plan, exec, &observer())
+            .map_err(stage(format!("running {}", spec.display())))?;
+        wall_s += report.wall_s;
+        cases.extend(
+            evaluate(&plan, &report.output)
+                .map_err(KfmcError::from)
+                .map_err(stage("evaluating the assertions".into()))?,
+        );
+    }
+    if let Some(r) = replications.filter(|_| needs_power) {
+        let out = plan.output.join("power");
+        let mut power_plan = plan.clone();
+        power_plan.output = out.clone();
+        let report = crate::power::power(&power_plan, r, plan.master_seed, &out, exec, &observer())
+            .map_err(stage(format!(
+                "running {} replications of {}",
+                r,
+                spec.display()
+            )))?;
+        wall_s += report.wall_s;
+        cases.extend(
+            evaluate_power(&plan, &report.output)
+                .map_err(KfmcError::from)
+                .map_err(stage("evaluating the rejection-rate assertions".into()))?,
+        );
+    }
+    Ok(CheckOutcome {
+        experiment: plan.name.clone(),
+        cases,
+        wall_s,
+    })
+}
+
+/// What a command does with an estimates file that carries no world stamp.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Unstamped {
+    /// Read it, with a warning on stderr (`kfmc score`, `kfmc check --allow-unstamped`).
+    Warn,
+    /// Refuse it (`kfmc check`: a CI gate passes only on data tied to its spec's runs).
+    Refuse,
+}
+
+/// Reads the external filters' estimates into `plan`; files without a world stamp are
+/// warned about or refused, as `unstamped` says.
+pub fn attach_estimates(
+    plan: &mut Plan,
+    files: &[std::path::PathBuf],
+    unstamped: Unstamped,
+) -> Result<(), KfmcError> {
+    let set = crate::score::EstimateSet::load(plan, files)?;
+    let stamp = format!(
+        "{} = {}, {} = {}",
+        crate::score::STAMP_KEY,
+        plan.world_stamp(),
+        crate::score::SEED_KEY,
+        plan.master_seed
+    );
+    for path in set.unstamped() {
+        match unstamped {
+            Unstamped::Warn => eprintln!(
+                "warning: {} carries no world stamp: nothing ties its rows to this study's runs (estimates of another simulation would be judged as data). A writer stamps its file with the metadata {stamp} (`kfmc schema estimates SPEC` shows them)",
+                path.display()
+            ),
+            Unstamped::Refuse => {
+                return Err(OutputError::Format {
+                    path: path.clone(),
+                    message: format!(
+                        "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped"
+                    ),
+                }
+                .into());
+            }
+        }
+    }
+    plan.estimates = Some(std::sync::Arc::new(set));
+    Ok(())
 }

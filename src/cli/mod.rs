@@ -32,10 +32,10 @@ pub const EXIT_FAILURE: u8 = 1;
 /// Exit code: invalid spec or usage.
 pub const EXIT_INVALID_SPEC: u8 = 2;
 /// Exit code: `kfmc check` found a failing assertion.
-pub const EXIT_CHECK_FAILED: u8 = 3;
+pub const EXIT_CHECK_FAILED: u8 = crate::check::EXIT_CHECK_FAILED;
 /// Exit code: `kfmc check` found no failing assertion, but a case it could not judge on the
 /// runs the spec declares (incomplete).
-pub const EXIT_CHECK_INCOMPLETE: u8 = 4;
+pub const EXIT_CHECK_INCOMPLETE: u8 = crate::check::EXIT_CHECK_INCOMPLETE;
 /// Exit code: stopped by SIGINT or SIGTERM (128 + SIGINT's number, as shells report it);
 /// nothing of the interrupted run was committed.
 pub const EXIT_INTERRUPTED: u8 = 130;
@@ -704,54 +704,16 @@ fn shard_arg(
     })
 }
 
-/// What a command does with an estimates file that carries no world stamp.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Unstamped {
-    /// Read it, with a warning on stderr (`kfmc score`, `kfmc check --allow-unstamped`).
-    Warn,
-    /// Refuse it (`kfmc check`: a CI gate passes only on data tied to its spec's runs).
-    Refuse,
-}
+use crate::check::Unstamped;
 
-/// Reads the external filters' estimates into `plan`, naming the files on trouble; files
-/// without a world stamp are warned about or refused, as `unstamped` says.
+/// Reads the external filters' estimates into `plan`, naming the files on trouble.
 fn attach_estimates(
     plan: &mut Plan,
     files: &[PathBuf],
     unstamped: Unstamped,
 ) -> anyhow::Result<()> {
-    let set = crate::score::EstimateSet::load(plan, files)
-        .map_err(KfmcError::from)
-        .map_err(|e| anyhow::Error::from(e).context("reading the estimates"))?;
-    let stamp = format!(
-        "{} = {}, {} = {}",
-        crate::score::STAMP_KEY,
-        plan.world_stamp(),
-        crate::score::SEED_KEY,
-        plan.master_seed
-    );
-    for path in set.unstamped() {
-        let why = format!(
-            "{} carries no world stamp: nothing ties its rows to this study's runs (estimates of another simulation would be judged as data). A writer stamps its file with the metadata {stamp} (`kfmc schema estimates SPEC` shows them)",
-            path.display()
-        );
-        match unstamped {
-            Unstamped::Warn => eprintln!("warning: {why}"),
-            Unstamped::Refuse => {
-                return Err(anyhow::Error::from(KfmcError::from(
-                    crate::error::OutputError::Format {
-                        path: path.clone(),
-                        message: format!(
-                            "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped"
-                        ),
-                    },
-                ))
-                .context("reading the estimates"));
-            }
-        }
-    }
-    plan.estimates = Some(std::sync::Arc::new(set));
-    Ok(())
+    crate::check::attach_estimates(plan, files, unstamped)
+        .map_err(|e| anyhow::Error::from(e).context("reading the estimates"))
 }
 
 fn describe(plan: &Plan) -> String {
@@ -809,6 +771,58 @@ fn list(registry: &Registry) -> String {
     s
 }
 
+/// The plan `kfmc score DIR` runs: the spec recorded in the `kfmc simulate` folder `dir`
+/// (checked against its manifest: a whole simulation, unaltered), with the folder's runs and
+/// seed, writing into `out` (default `DIR/score`). The estimates are the caller's to attach.
+pub fn score_plan(
+    dir: &std::path::Path,
+    out: Option<PathBuf>,
+    registry: &Registry,
+) -> anyhow::Result<Plan> {
+    if dir.is_file() {
+        return Err(anyhow::anyhow!(
+            "{} is a file; kfmc score takes the folder `kfmc simulate` wrote: kfmc score SIM_DIR --estimates FILE…",
+            dir.display()
+        ));
+    }
+    let manifest = crate::output::folder::verify(dir)
+        .map_err(KfmcError::from)
+        .map_err(|e| anyhow::Error::from(e).context(format!("reading {}", dir.display())))?;
+    if manifest.exchange.is_none() {
+        return Err(anyhow::anyhow!(
+            "{} was not written by `kfmc simulate` (its manifest has no [exchange] section)",
+            dir.display()
+        ));
+    }
+    let spec_path = PathBuf::from(&manifest.spec_path);
+    let mut plan = experiment::parse_with(&manifest.spec, &spec_path, registry)
+        .map_err(KfmcError::from)
+        .map_err(|e| {
+            anyhow::Error::from(e).context(format!("the spec recorded in {}", dir.display()))
+        })?;
+    if plan.spec_hash != manifest.spec_hash {
+        return Err(anyhow::anyhow!(
+            "{}: the recorded spec hashes to {}, the manifest says {}; the folder was altered",
+            dir.join("manifest.toml").display(),
+            plan.spec_hash,
+            manifest.spec_hash
+        ));
+    }
+    if manifest.shard.is_some() {
+        return Err(anyhow::anyhow!(
+            "{} is one part of a sharded simulation; score the whole simulation's folder",
+            dir.display()
+        ));
+    }
+    plan.apply(&Overrides {
+        runs: Some(manifest.runs_per_cell as usize),
+        master_seed: Some(manifest.master_seed),
+        output: Some(out.unwrap_or_else(|| dir.join("score"))),
+        trace_runs: None,
+    })?;
+    Ok(plan)
+}
+
 /// The whole command line for the systems of `registry`: parses the process's arguments,
 /// runs the command and returns the exit code. A downstream crate's `main` is
 /// `kfmc::cli::main_with(Registry::builtin().with(MySystem))`.
@@ -817,19 +831,52 @@ pub fn main_with(registry: Registry) -> ExitCode {
     run(Cli::parse(), &registry)
 }
 
+/// The whole command line from `args` (the program name first, as `std::env::args`), for an
+/// embedding that is not `main` (the Python module's `kfmc` script): parses with clap's
+/// `try_parse_from`, so help, version and usage errors are printed exactly as the binary
+/// prints them but returned as an exit code instead of ending the process, runs the command
+/// with the binary's signal handling, flushes stdout and returns the binary's exit code.
+pub fn main_from_args<I, T>(args: I, registry: &Registry) -> u8
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    use std::io::Write;
+    let code = match Cli::try_parse_from(args) {
+        Ok(cli) => {
+            crate::runner::stop_on_signals();
+            run_code(cli, registry)
+        }
+        Err(e) => {
+            // Help and version go to stdout with code 0, usage errors to stderr with code 2,
+            // as `Error::exit` does.
+            let _ = e.print();
+            u8::try_from(e.exit_code()).unwrap_or(EXIT_INVALID_SPEC)
+        }
+    };
+    let _ = std::io::stdout().flush();
+    let _ = std::io::stderr().flush();
+    code
+}
+
 /// Runs a parsed command line and returns the process exit code.
 pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
+    ExitCode::from(run_code(cli, registry))
+}
+
+/// [`run`], returning the exit code as a number.
+pub fn run_code(cli: Cli, registry: &Registry) -> u8 {
     match dispatch(cli, registry) {
-        Ok(()) => ExitCode::from(EXIT_OK),
+        Ok(()) => EXIT_OK,
         Err(e) => {
             if let Some(c) = e.downcast_ref::<CheckFailed>() {
                 // The report already said what failed: a judged failure outranks a case that
                 // could not be judged.
-                return ExitCode::from(if c.failed > 0 {
+                return if c.failed > 0 {
                     EXIT_CHECK_FAILED
                 } else {
                     EXIT_CHECK_INCOMPLETE
-                });
+                };
             }
             let code = match e.downcast_ref::<KfmcError>() {
                 _ if e.downcast_ref::<UsageError>().is_some() => EXIT_INVALID_SPEC,
@@ -841,7 +888,7 @@ pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
                 _ => EXIT_FAILURE,
             };
             eprintln!("error: {e:#}");
-            ExitCode::from(code)
+            code
         }
     }
 }
@@ -1007,50 +1054,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
             quiet,
             force,
         } => {
-            if dir.is_file() {
-                return Err(anyhow::anyhow!(
-                    "{} is a file; kfmc score takes the folder `kfmc simulate` wrote: kfmc score SIM_DIR --estimates FILE…",
-                    dir.display()
-                ));
-            }
-            let manifest = crate::output::folder::verify(&dir)
-                .map_err(KfmcError::from)
-                .map_err(|e| {
-                    anyhow::Error::from(e).context(format!("reading {}", dir.display()))
-                })?;
-            if manifest.exchange.is_none() {
-                return Err(anyhow::anyhow!(
-                    "{} was not written by `kfmc simulate` (its manifest has no [exchange] section)",
-                    dir.display()
-                ));
-            }
-            let spec_path = PathBuf::from(&manifest.spec_path);
-            let mut plan = experiment::parse_with(&manifest.spec, &spec_path, registry)
-                .map_err(KfmcError::from)
-                .map_err(|e| {
-                    anyhow::Error::from(e)
-                        .context(format!("the spec recorded in {}", dir.display()))
-                })?;
-            if plan.spec_hash != manifest.spec_hash {
-                return Err(anyhow::anyhow!(
-                    "{}: the recorded spec hashes to {}, the manifest says {}; the folder was altered",
-                    dir.join("manifest.toml").display(),
-                    plan.spec_hash,
-                    manifest.spec_hash
-                ));
-            }
-            if manifest.shard.is_some() {
-                return Err(anyhow::anyhow!(
-                    "{} is one part of a sharded simulation; score the whole simulation's folder",
-                    dir.display()
-                ));
-            }
-            plan.apply(&Overrides {
-                runs: Some(manifest.runs_per_cell as usize),
-                master_seed: Some(manifest.master_seed),
-                output: Some(out.unwrap_or_else(|| dir.join("score"))),
-                trace_runs: None,
-            })?;
+            let mut plan = score_plan(&dir, out, registry)?;
             attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
             let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
             let observer = ProgressObserver::new(!quiet);
@@ -1179,93 +1183,29 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
                 allow_large,
                 ..
             } = study;
-            if plan.assertions.is_empty() {
-                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-                    crate::error::SpecError {
-                        file: spec.clone(),
-                        key_path: "check.assert".into(),
-                        message: "kfmc check needs at least one [[check.assert]]".into(),
-                    },
-                ]))
-                .into());
-            }
-            // Consistency assertions need the tests even when the spec did not ask for them.
-            plan.consistency
-                .get_or_insert(crate::experiment::plan::ConsistencyPlan {
-                    alpha: plan.alpha,
-                    whiteness_lags: 5,
-                    subsets: Vec::new(),
-                });
-            let needs_power = plan.assertions.iter().any(|a| a.needs_replications());
-            let replications = replications.or(plan.check_replications);
-            if let Some(r) = replications.filter(|_| needs_power) {
-                plan.check_replications(r, allow_large)
-                    .map_err(KfmcError::from)?;
-            }
-            if needs_power && replications.is_none_or(|r| r == 0) {
-                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-                    crate::error::SpecError {
-                        file: spec.clone(),
-                        key_path: "check.replications".into(),
-                        message: "a rejection_rate assertion is judged over replications of the whole study: set check.replications ≥ 1 or pass --replications R".into(),
-                    },
-                ]))
-                .into());
-            }
             let exec = crate::study::ExecOptions {
                 threads,
                 force,
                 shard: None,
                 checkpoints: None,
             };
-            let observer = ProgressObserver::new(!quiet);
-            let mut cases = Vec::new();
-            let mut wall_s = 0.0;
-            if plan.assertions.iter().any(|a| !a.needs_replications()) {
-                // Judged while still held: the tables read back are this study's.
-                let (report, _held) = crate::study::run_locked(&plan, &exec, &observer)
-                    .map_err(anyhow::Error::from)
-                    .map_err(|e| e.context(format!("running {}", spec.display())))?;
-                wall_s += report.wall_s;
-                cases.extend(
-                    crate::check::evaluate(&plan, &report.output)
-                        .map_err(KfmcError::from)
-                        .map_err(|e| anyhow::Error::from(e).context("evaluating the assertions"))?,
-                );
-            }
-            if let Some(r) = replications.filter(|_| needs_power) {
-                let out = plan.output.join("power");
-                let mut power_plan = plan.clone();
-                power_plan.output = out.clone();
-                let report = crate::power::power(
-                    &power_plan,
-                    r,
-                    plan.master_seed,
-                    &out,
-                    &exec,
-                    &ProgressObserver::new(!quiet),
-                )
-                .map_err(anyhow::Error::from)
-                .map_err(|e| {
-                    e.context(format!("running {} replications of {}", r, spec.display()))
-                })?;
-                wall_s += report.wall_s;
-                cases.extend(
-                    crate::check::evaluate_power(&plan, &report.output)
-                        .map_err(KfmcError::from)
-                        .map_err(|e| {
-                            anyhow::Error::from(e)
-                                .context("evaluating the rejection-rate assertions")
-                        })?,
-                );
-            }
-            emit(&crate::check::render(&plan.name, &cases));
+            let outcome = crate::check::run(plan, &spec, replications, allow_large, &exec, || {
+                ProgressObserver::new(!quiet)
+            })
+            .map_err(|e| match e {
+                crate::check::RunError::Invalid(e) => anyhow::Error::from(e),
+                crate::check::RunError::Stage { context, source } => {
+                    anyhow::Error::from(*source).context(context)
+                }
+            })?;
+            emit(&outcome.render());
             if let Some(path) = junit {
-                std::fs::write(&path, crate::check::junit(&plan.name, &cases, wall_s)).map_err(
-                    |e| anyhow::Error::from(e).context(format!("writing {}", path.display())),
-                )?;
+                std::fs::write(&path, outcome.junit()).map_err(|e| {
+                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
+                })?;
             }
-            let (failed, incomplete) = crate::check::tally(&cases);
+            let cases = &outcome.cases;
+            let (failed, incomplete) = crate::check::tally(cases);
             if failed + incomplete > 0 {
                 return Err(CheckFailed {
                     failed,

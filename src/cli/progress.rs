@@ -3,12 +3,13 @@
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::IsTerminal;
 
-use crate::runner::RunObserver;
+use crate::runner::{CancelToken, RunObserver};
 
 /// A progress bar over simulated runs, with rate and ETA; hidden with `--quiet` or when
 /// stderr is not a terminal, so logs and pipes stay clean.
 pub struct ProgressObserver {
     bar: ProgressBar,
+    cancel: Option<CancelToken>,
 }
 
 impl ProgressObserver {
@@ -29,7 +30,13 @@ impl ProgressObserver {
             .expect("the template is valid")
             .progress_chars("=> "),
         );
-        ProgressObserver { bar }
+        ProgressObserver { bar, cancel: None }
+    }
+
+    /// The same observer, whose study also stops when `token` is cancelled.
+    pub fn with_cancel(mut self, token: CancelToken) -> Self {
+        self.cancel = Some(token);
+        self
     }
 }
 
@@ -42,5 +49,8 @@ impl RunObserver for ProgressObserver {
     }
     fn on_finish(&self) {
         self.bar.finish_and_clear();
+    }
+    fn cancelled(&self) -> bool {
+        self.cancel.as_ref().is_some_and(CancelToken::is_cancelled)
     }
 }

@@ -17,6 +17,32 @@ pub trait RunObserver: Sync {
     fn on_units_done(&self, _n: u64) {}
     /// After the last unit.
     fn on_finish(&self) {}
+    /// Whether the caller asked this run to stop (a [`CancelToken`] it holds): polled by the
+    /// executor between windows exactly as a signal is, so a cancelled study stops with the
+    /// same checkpoint semantics as an interrupted one, without any process-wide handler.
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+/// A per-study stop request: an embedding (the Python module) cancels one study through it
+/// instead of installing signal handlers for the whole process. Clones share the request.
+#[derive(Clone, Debug, Default)]
+pub struct CancelToken(std::sync::Arc<std::sync::atomic::AtomicBool>);
+
+impl CancelToken {
+    /// A token nobody has cancelled yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// Asks the study holding this token to stop at its next window.
+    pub fn cancel(&self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+    /// Whether [`CancelToken::cancel`] was called.
+    pub fn is_cancelled(&self) -> bool {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
 }
 
 /// An observer that ignores everything (tests, library use).
@@ -128,7 +154,7 @@ where
             if failed.load(std::sync::atomic::Ordering::Relaxed) {
                 break;
             }
-            if interrupted() {
+            if interrupted() || observer.cancelled() {
                 stopped = true;
                 break;
             }
@@ -217,5 +243,52 @@ mod tests {
             .unwrap();
             assert_eq!(seen, units.iter().map(|u| u * 3).collect::<Vec<_>>());
         }
+    }
+
+    /// Cancels its token once `after` units are done.
+    struct CancelAfter {
+        token: CancelToken,
+        done: std::sync::atomic::AtomicU64,
+        after: u64,
+    }
+    impl RunObserver for CancelAfter {
+        fn on_units_done(&self, n: u64) {
+            let done = self.done.fetch_add(n, std::sync::atomic::Ordering::Relaxed) + n;
+            if done >= self.after {
+                self.token.cancel();
+            }
+        }
+        fn cancelled(&self) -> bool {
+            self.token.is_cancelled()
+        }
+    }
+
+    #[test]
+    fn a_cancelled_token_stops_the_run_between_windows_as_a_signal_does() {
+        let observer = CancelAfter {
+            token: CancelToken::new(),
+            done: Default::default(),
+            after: 10,
+        };
+        let mut seen = Vec::new();
+        let result = execute_windowed::<_, KfmcError>(
+            1000,
+            1,
+            4,
+            |u| u,
+            &observer,
+            |r| {
+                seen.push(r);
+                Ok(())
+            },
+        );
+        assert!(matches!(
+            result,
+            Err(KfmcError::Output(crate::error::OutputError::Interrupted))
+        ));
+        // The window in flight when the token was cancelled (units 8..12) still reaches the
+        // sink, in order; nothing after it is run.
+        assert_eq!(seen, (0..12).collect::<Vec<_>>());
+        assert!(!interrupted(), "no process-wide flag was set");
     }
 }

@@ -1,0 +1,968 @@
+//! `kfmc._kfmc`: the compiled half of the Python package. Every function here is one call
+//! into the kfmc library (the same functions the command line calls, never its printed
+//! text); the typed, documented API users import is the pure-Python layer in
+//! `python/kfmc/__init__.py`.
+//!
+//! Three rules hold at this boundary:
+//! * no panic crosses it: every entry point runs under `catch_unwind`, and a study's thread
+//!   is joined, its panic turned into `kfmc.Error`;
+//! * the GIL is released while Rust works, and a study runs on its own thread while the
+//!   caller waits in short released-GIL slices, checking Python's signals between them: a
+//!   Ctrl-C cancels the study through its [`CancelToken`] (the executor's checkpoint path,
+//!   as SIGINT does for the command) and is re-raised as `KeyboardInterrupt`, without any
+//!   process-wide signal handler being installed;
+//! * library errors become `kfmc.Error` subclasses by their kind, with the whole cause chain
+//!   as the message (as the command prints it).
+
+use std::panic::AssertUnwindSafe;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use kfmc::error::{KfmcError, OutputError};
+use kfmc::experiment::{self, Overrides, Plan};
+use kfmc::runner::{CancelToken, RunObserver};
+use kfmc::system::Registry;
+use polars::prelude::*;
+use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyBool, PyCapsule, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
+
+pyo3::create_exception!(_kfmc, Error, PyValueError, "Any kfmc error (a ValueError).");
+pyo3::create_exception!(
+    _kfmc,
+    SpecError,
+    Error,
+    "An invalid spec: the message names the file, the key path and what is wrong."
+);
+pyo3::create_exception!(
+    _kfmc,
+    EstimatesError,
+    Error,
+    "Estimates kfmc cannot judge: the message names the table, the column and the first offending key."
+);
+pyo3::create_exception!(
+    _kfmc,
+    StudyError,
+    Error,
+    "A result folder that is locked by another kfmc, holds another kind of result, or is not a kfmc study."
+);
+pyo3::create_exception!(
+    _kfmc,
+    IncompleteError,
+    Error,
+    "kfmc check: no assertion failed, but a case could not be judged on the runs the spec declares."
+);
+pyo3::create_exception!(
+    _kfmc,
+    CheckFailedError,
+    Error,
+    "kfmc check: at least one assertion failed."
+);
+
+/// Which Python exception a failure becomes when its library error does not say more.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    /// Decided by the library error's variant.
+    Auto,
+    /// Reading the caller's estimates: every problem is the estimates'.
+    Estimates,
+    /// A result folder the caller named.
+    Study,
+}
+
+/// A failure on the Rust side: the error with its context chain, and how to classify it.
+struct Failure {
+    kind: Kind,
+    error: anyhow::Error,
+}
+
+impl Failure {
+    fn new(kind: Kind, error: impl Into<anyhow::Error>) -> Self {
+        Failure {
+            kind,
+            error: error.into(),
+        }
+    }
+    fn auto(error: impl Into<anyhow::Error>) -> Self {
+        Self::new(Kind::Auto, error)
+    }
+    fn context(self, context: String) -> Self {
+        Failure {
+            kind: self.kind,
+            error: self.error.context(context),
+        }
+    }
+    fn into_py(self) -> PyErr {
+        let message = format!("{:#}", self.error);
+        let library = self
+            .error
+            .chain()
+            .find_map(|e| e.downcast_ref::<KfmcError>());
+        match (self.kind, library) {
+            (_, Some(KfmcError::Spec(_))) => SpecError::new_err(message),
+            (Kind::Estimates, _) => EstimatesError::new_err(message),
+            (Kind::Study, _) => StudyError::new_err(message),
+            (
+                Kind::Auto,
+                Some(KfmcError::Output(
+                    OutputError::Locked { .. }
+                    | OutputError::OtherKind { .. }
+                    | OutputError::Foreign { .. }
+                    | OutputError::NotAStudy { .. }
+                    | OutputError::Mismatch { .. },
+                )),
+            ) => StudyError::new_err(message),
+            _ => Error::new_err(message),
+        }
+    }
+}
+
+impl From<KfmcError> for Failure {
+    fn from(e: KfmcError) -> Self {
+        Failure::auto(e)
+    }
+}
+
+impl From<kfmc::error::SpecErrors> for Failure {
+    fn from(e: kfmc::error::SpecErrors) -> Self {
+        Failure::auto(KfmcError::from(e))
+    }
+}
+
+/// Runs `f`, turning a panic into `kfmc.Error` instead of unwinding into Python.
+fn guarded<T>(f: impl FnOnce() -> PyResult<T>) -> PyResult<T> {
+    match std::panic::catch_unwind(AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(panic) => Err(Error::new_err(format!(
+            "internal error in kfmc (please report it): {}",
+            panic_message(&*panic)
+        ))),
+    }
+}
+
+fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic".into())
+}
+
+/// Counts a study's units for the progress line and carries its cancellation.
+#[derive(Default)]
+struct Observer {
+    token: CancelToken,
+    total: AtomicU64,
+    done: AtomicU64,
+}
+
+impl RunObserver for Observer {
+    fn on_start(&self, total_units: u64) {
+        // A command may run the executor several times (power's replications): the line
+        // counts all of them.
+        self.total.fetch_add(total_units, Ordering::Relaxed);
+    }
+    fn on_units_done(&self, n: u64) {
+        self.done.fetch_add(n, Ordering::Relaxed);
+    }
+    fn cancelled(&self) -> bool {
+        self.token.is_cancelled()
+    }
+}
+
+/// A progress line written through Python's `sys.stderr` (so a terminal and a Jupyter cell
+/// both show it): `\r` redraws it in place.
+struct Progress {
+    started: Instant,
+    last: Option<Instant>,
+    shown: bool,
+}
+
+impl Progress {
+    fn show(&mut self, py: Python<'_>, obs: &Observer, last: bool) {
+        let now = Instant::now();
+        if !last
+            && self
+                .last
+                .is_some_and(|t| now - t < Duration::from_millis(250))
+        {
+            return;
+        }
+        self.last = Some(now);
+        let (done, total) = (
+            obs.done.load(Ordering::Relaxed),
+            obs.total.load(Ordering::Relaxed),
+        );
+        let elapsed = (now - self.started).as_secs_f64();
+        // A study done within half a second prints nothing: a loop of short calls stays quiet.
+        if total == 0 || (!self.shown && elapsed < 0.5) {
+            return;
+        }
+        let text = if last {
+            if !self.shown {
+                return;
+            }
+            format!("\r{done}/{total} runs in {elapsed:.1} s\n")
+        } else {
+            format!(
+                "\r{done}/{total} runs  {:.0} runs/s  {elapsed:.0} s",
+                done as f64 / elapsed.max(1e-9)
+            )
+        };
+        self.shown = true;
+        // Progress is best effort: a closed or replaced stderr does not stop the study.
+        if let Ok(stderr) = py.import("sys").and_then(|s| s.getattr("stderr")) {
+            let _ = stderr.call_method1("write", (text,));
+            let _ = stderr.call_method0("flush");
+        }
+    }
+}
+
+/// Runs `job` on its own thread while the caller waits in released-GIL slices; between
+/// slices Python's signal handlers run (`py.check_signals`), and an exception there (Ctrl-C's
+/// `KeyboardInterrupt`) cancels the study, waits for it to stop at its next window (keeping
+/// its checkpoint) and is re-raised.
+fn run_study<T: Send + 'static>(
+    py: Python<'_>,
+    quiet: bool,
+    job: impl FnOnce(&Observer) -> Result<T, Failure> + Send + 'static,
+) -> PyResult<T> {
+    let observer = Arc::new(Observer::default());
+    let theirs = observer.clone();
+    let handle = std::thread::Builder::new()
+        .name("kfmc-study".into())
+        .spawn(move || job(&theirs))
+        .map_err(|e| Error::new_err(format!("cannot start the study's thread: {e}")))?;
+    let mut progress = (!quiet).then(|| Progress {
+        started: Instant::now(),
+        last: None,
+        shown: false,
+    });
+    let mut interrupt: Option<PyErr> = None;
+    loop {
+        let finished = py.detach(|| {
+            let until = Instant::now() + Duration::from_millis(100);
+            while !handle.is_finished() && Instant::now() < until {
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            handle.is_finished()
+        });
+        if finished {
+            break;
+        }
+        if interrupt.is_none()
+            && let Err(e) = py.check_signals()
+        {
+            observer.token.cancel();
+            interrupt = Some(e);
+        }
+        if let Some(p) = progress.as_mut() {
+            p.show(py, &observer, false);
+        }
+    }
+    let joined = py.detach(|| handle.join());
+    if let Some(p) = progress.as_mut() {
+        p.show(py, &observer, true);
+    }
+    if let Some(e) = interrupt {
+        return Err(e);
+    }
+    match joined {
+        Ok(r) => r.map_err(Failure::into_py),
+        Err(panic) => Err(Error::new_err(format!(
+            "internal error in kfmc (please report it): {}",
+            panic_message(&*panic)
+        ))),
+    }
+}
+
+/// A Python value as TOML: dicts are tables, lists and tuples arrays.
+fn to_toml(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
+    let spec_err = |what: &str| {
+        SpecError::new_err(format!(
+            "<dict>: {}: {what}",
+            if key.is_empty() { "(top level)" } else { key }
+        ))
+    };
+    if v.is_instance_of::<PyBool>() {
+        return Ok(toml::Value::Boolean(v.extract()?));
+    }
+    if v.is_instance_of::<PyInt>() {
+        return v
+            .extract::<i64>()
+            .map(toml::Value::Integer)
+            .map_err(|_| spec_err("an integer outside TOML's 64-bit range"));
+    }
+    if v.is_instance_of::<PyFloat>() {
+        return Ok(toml::Value::Float(v.extract()?));
+    }
+    if v.is_instance_of::<PyString>() {
+        return Ok(toml::Value::String(v.extract()?));
+    }
+    if let Ok(d) = v.cast::<PyDict>() {
+        let mut table = toml::Table::new();
+        for (k, item) in d.iter() {
+            let k: String = k
+                .extract()
+                .map_err(|_| spec_err("a key that is not a string"))?;
+            let path = if key.is_empty() {
+                k.clone()
+            } else {
+                format!("{key}.{k}")
+            };
+            table.insert(k, to_toml(&item, &path)?);
+        }
+        return Ok(toml::Value::Table(table));
+    }
+    if v.is_instance_of::<PyList>() || v.is_instance_of::<PyTuple>() {
+        let mut items = Vec::new();
+        for (i, item) in v.try_iter()?.enumerate() {
+            items.push(to_toml(&item?, &format!("{key}[{i}]"))?);
+        }
+        return Ok(toml::Value::Array(items));
+    }
+    if v.is_none() {
+        return Err(spec_err(
+            "None has no TOML form: leave the key out to take its default",
+        ));
+    }
+    Err(spec_err(&format!(
+        "a {} has no TOML form (use bool, int, float, str, list or dict)",
+        v.get_type().name()?
+    )))
+}
+
+/// A spec given as a path, a dict or TOML text (a `str` with a newline), loaded and
+/// validated.
+fn load_spec(spec: &Bound<'_, PyAny>, registry: &Registry) -> PyResult<(Plan, PathBuf)> {
+    let loaded = if let Ok(d) = spec.cast::<PyDict>() {
+        let toml::Value::Table(table) = to_toml(d.as_any(), "")? else {
+            unreachable!("a dict is a table");
+        };
+        let text = toml::to_string(&table)
+            .map_err(|e| SpecError::new_err(format!("<dict>: cannot write it as TOML: {e}")))?;
+        let path = PathBuf::from("<dict>");
+        (experiment::parse_with(&text, &path, registry), path)
+    } else if let Ok(text) = spec.extract::<String>()
+        && text.contains('\n')
+    {
+        let path = PathBuf::from("<string>");
+        (experiment::parse_with(&text, &path, registry), path)
+    } else {
+        let path: PathBuf = spec.extract().map_err(|_| {
+            PyTypeError::new_err(format!(
+                "a spec is a path, a dict or TOML text, not a {}",
+                spec.get_type()
+                    .name()
+                    .map(|n| n.to_string())
+                    .unwrap_or_default()
+            ))
+        })?;
+        (experiment::load_with(&path, registry), path)
+    };
+    match loaded {
+        (Ok(plan), path) => Ok((plan, path)),
+        (Err(e), _) => Err(Failure::from(e).into_py()),
+    }
+}
+
+/// The overrides every study command takes, applied and checked against the limits.
+fn prepared(
+    spec: &Bound<'_, PyAny>,
+    out: Option<PathBuf>,
+    runs: Option<usize>,
+    seed: Option<u64>,
+    allow_large: bool,
+    trace_runs: Option<usize>,
+) -> PyResult<(Plan, PathBuf)> {
+    let registry = Registry::builtin();
+    let (mut plan, path) = load_spec(spec, &registry)?;
+    plan.apply(&Overrides {
+        runs,
+        master_seed: seed,
+        output: out,
+        trace_runs,
+    })
+    .map_err(|e| Failure::from(e).into_py())?;
+    plan.check_limits(allow_large)
+        .map_err(|e| Failure::from(e).into_py())?;
+    Ok((plan, path))
+}
+
+/// More threads than logical CPUs only add contention (as the command clamps them).
+fn clamp_threads(threads: usize) -> usize {
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    threads.min(cpus)
+}
+
+fn report_dict<'py>(py: Python<'py>, r: &kfmc::study::StudyReport) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("folder", r.output.clone())?;
+    d.set_item("runs", r.runs)?;
+    d.set_item("wall_s", r.wall_s)?;
+    d.set_item("cells_resumed", r.cells_resumed)?;
+    d.set_item("tables", r.tables.clone())?;
+    Ok(d)
+}
+
+/// The console script `kfmc`: the command line with argv (program name first); returns the
+/// binary's exit code. This is the command, so it handles SIGINT as the binary does.
+#[pyfunction]
+fn cli_main(py: Python<'_>, argv: Vec<std::ffi::OsString>) -> PyResult<u8> {
+    guarded(|| Ok(py.detach(|| kfmc::cli::main_from_args(argv, &Registry::builtin()))))
+}
+
+/// The plan's size and resources, or SpecError.
+#[pyfunction]
+#[pyo3(signature = (spec, *, allow_large = false))]
+fn validate<'py>(
+    py: Python<'py>,
+    spec: &Bound<'py, PyAny>,
+    allow_large: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let registry = Registry::builtin();
+        let (plan, _) = load_spec(spec, &registry)?;
+        plan.check_limits(allow_large)
+            .map_err(|e| Failure::from(e).into_py())?;
+        let size = plan.size();
+        let res = plan.resources();
+        let d = PyDict::new(py);
+        d.set_item("experiment", &plan.name)?;
+        d.set_item("cells", size.cells)?;
+        d.set_item("runs_per_cell", plan.runs)?;
+        d.set_item("runs", size.runs)?;
+        d.set_item("filter_runs", size.filter_runs)?;
+        d.set_item("filter_steps", size.filter_steps)?;
+        d.set_item("memory_bytes", res.memory_bytes)?;
+        d.set_item("disk_bytes", res.disk_bytes)?;
+        d.set_item("scratch_bytes", res.scratch_bytes)?;
+        d.set_item("master_seed", plan.master_seed)?;
+        d.set_item("output", plan.output.clone())?;
+        d.set_item(
+            "scenarios",
+            plan.scenarios
+                .iter()
+                .map(|s| s.name.clone())
+                .collect::<Vec<_>>(),
+        )?;
+        d.set_item(
+            "filters",
+            plan.filters
+                .iter()
+                .map(|f| f.label.clone())
+                .collect::<Vec<_>>(),
+        )?;
+        d.set_item("noise_scales", plan.noise_scales.clone())?;
+        d.set_item("summary", plan.resources().describe())?;
+        Ok(d)
+    })
+}
+
+/// `kfmc run`: returns the report as a dict (folder, runs, wall_s, cells_resumed, tables).
+#[pyfunction]
+#[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, resume=false, force=false, allow_large=false, checkpoint_every=10.0))]
+#[allow(clippy::too_many_arguments)]
+fn run<'py>(
+    py: Python<'py>,
+    spec: &Bound<'py, PyAny>,
+    out: Option<PathBuf>,
+    runs: Option<usize>,
+    seed: Option<u64>,
+    threads: Option<usize>,
+    quiet: bool,
+    resume: bool,
+    force: bool,
+    allow_large: bool,
+    checkpoint_every: f64,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let every = Duration::try_from_secs_f64(checkpoint_every).map_err(|_| {
+            PyValueError::new_err(format!(
+                "checkpoint_every: {checkpoint_every} is not a number of seconds ≥ 0"
+            ))
+        })?;
+        let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        let exec = kfmc::study::ExecOptions {
+            threads: clamp_threads(threads.unwrap_or(0)),
+            force,
+            shard: None,
+            checkpoints: Some(kfmc::study::Checkpoints {
+                every,
+                existing: if resume {
+                    kfmc::study::ExistingCheckpoint::Resume
+                } else {
+                    kfmc::study::ExistingCheckpoint::Refuse
+                },
+            }),
+        };
+        let report = run_study(py, quiet, move |obs| {
+            kfmc::study::run(&plan, &exec, obs)
+                .map_err(|e| Failure::from(e).context(format!("running {}", path.display())))
+        })?;
+        report_dict(py, &report)
+    })
+}
+
+/// `kfmc simulate`: returns the report as a dict.
+#[pyfunction]
+#[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
+#[allow(clippy::too_many_arguments)]
+fn simulate<'py>(
+    py: Python<'py>,
+    spec: &Bound<'py, PyAny>,
+    out: Option<PathBuf>,
+    runs: Option<usize>,
+    seed: Option<u64>,
+    threads: Option<usize>,
+    quiet: bool,
+    force: bool,
+    allow_large: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        let exec = kfmc::study::ExecOptions {
+            threads: clamp_threads(threads.unwrap_or(0)),
+            force,
+            shard: None,
+            checkpoints: None,
+        };
+        let report = run_study(py, quiet, move |obs| {
+            kfmc::simulate::simulate(&plan, &exec, obs)
+                .map_err(|e| Failure::from(e).context(format!("simulating {}", path.display())))
+        })?;
+        report_dict(py, &report)
+    })
+}
+
+/// Estimates handed over in memory: each object's Arrow C stream (`__arrow_c_stream__`) is
+/// imported through polars-arrow's C stream interface and written, with the plan's world
+/// stamp (the caller pairs them with this simulation), to a private Parquet file the
+/// estimates reader takes; the files are removed when this value is dropped.
+struct InMemoryEstimates {
+    dir: PathBuf,
+    files: Vec<PathBuf>,
+}
+
+impl Drop for InMemoryEstimates {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn import_streams(objects: &[Bound<'_, PyAny>], plan: &Plan) -> PyResult<InMemoryEstimates> {
+    use std::sync::atomic::AtomicUsize;
+    static COUNTER: AtomicUsize = AtomicUsize::new(0);
+    let dir = std::env::temp_dir().join(format!(
+        "kfmc-estimates-{}-{}",
+        std::process::id(),
+        COUNTER.fetch_add(1, Ordering::Relaxed)
+    ));
+    std::fs::create_dir_all(&dir)
+        .map_err(|e| Error::new_err(format!("cannot create {}: {e}", dir.display())))?;
+    let mut held = InMemoryEstimates {
+        dir,
+        files: Vec::new(),
+    };
+    for (i, obj) in objects.iter().enumerate() {
+        let name = format!("<estimates {i}>");
+        let bad = |what: String| EstimatesError::new_err(format!("{name}: {what}"));
+        let capsule = obj
+            .call_method0("__arrow_c_stream__")?
+            .cast_into::<PyCapsule>()
+            .map_err(|_| bad("__arrow_c_stream__ did not return a capsule".into()))?;
+        let ptr = capsule
+            .pointer_checked(Some(c"arrow_array_stream"))
+            .map_err(|_| {
+                bad("__arrow_c_stream__ did not return an `arrow_array_stream` capsule".into())
+            })?;
+        // SAFETY: the capsule holds an ArrowArrayStream (its name says so, as the Arrow
+        // PyCapsule interface specifies); moving it out and leaving a released (empty) one
+        // behind is how a consumer takes ownership of the stream under that interface.
+        let stream = unsafe {
+            std::ptr::replace(
+                ptr.as_ptr().cast::<polars_arrow::ffi::ArrowArrayStream>(),
+                polars_arrow::ffi::ArrowArrayStream::empty(),
+            )
+        };
+        // SAFETY: a stream from the Arrow PyCapsule interface fulfils the C stream interface.
+        let mut reader =
+            unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
+                .map_err(|e| bad(format!("not an Arrow stream: {e}")))?;
+        let path = held.dir.join(format!("estimates-{i}.parquet"));
+        let file = std::fs::File::create(&path)
+            .map_err(|e| Error::new_err(format!("cannot create {}: {e}", path.display())))?;
+        let mut writer: Option<polars::io::parquet::write::BatchedWriter<std::fs::File>> = None;
+        let mut file = Some(file);
+        loop {
+            // SAFETY: as above, the producer fulfils the C data interface.
+            let Some(chunk) = (unsafe { reader.next() }) else {
+                break;
+            };
+            let chunk = chunk.map_err(|e| bad(format!("cannot read a batch: {e}")))?;
+            let Some(batch) = chunk
+                .as_any()
+                .downcast_ref::<polars_arrow::array::StructArray>()
+            else {
+                return Err(bad(format!(
+                    "a stream of {:?}, not of table rows (a struct per row)",
+                    chunk.dtype()
+                )));
+            };
+            let mut columns = Vec::with_capacity(batch.fields().len());
+            for (field, values) in batch.fields().iter().zip(batch.values()) {
+                let s = Series::from_arrow(field.name.clone(), values.clone())
+                    .map_err(|e| bad(format!("column `{}`: {e}", field.name)))?;
+                columns.push(s.into_column());
+            }
+            let df = DataFrame::new(batch.len(), columns)
+                .map_err(|e| bad(format!("cannot form a table: {e}")))?;
+            if writer.is_none() {
+                let metadata = kfmc::score::stamp_metadata(plan);
+                // LZ4: cheap to write and read; the file is read once, right away.
+                let w = ParquetWriter::new(file.take().expect("taken once"))
+                    .with_compression(ParquetCompression::Lz4Raw)
+                    .with_key_value_metadata(Some(
+                        polars::io::parquet::write::KeyValueMetadata::from_static(metadata),
+                    ))
+                    .batched(&df.schema().clone())
+                    .map_err(|e| Error::new_err(format!("writing {}: {e}", path.display())))?;
+                writer = Some(w);
+            }
+            if df.height() > 0 {
+                writer
+                    .as_mut()
+                    .expect("started above")
+                    .write_batch(&df)
+                    .map_err(|e| bad(format!("{e}")))?;
+            }
+        }
+        match writer {
+            Some(w) => {
+                w.finish()
+                    .map_err(|e| Error::new_err(format!("writing {}: {e}", path.display())))?;
+            }
+            None => return Err(bad("an empty stream (no batch, so no columns)".into())),
+        }
+        held.files.push(path);
+    }
+    Ok(held)
+}
+
+/// Attaches estimates files and in-memory tables to `plan`, as EstimatesError on trouble.
+fn attach(
+    plan: &mut Plan,
+    paths: &[PathBuf],
+    streams: &[Bound<'_, PyAny>],
+    unstamped: kfmc::check::Unstamped,
+) -> PyResult<Option<InMemoryEstimates>> {
+    let memory = if streams.is_empty() {
+        None
+    } else {
+        Some(import_streams(streams, plan)?)
+    };
+    let mut files = paths.to_vec();
+    if let Some(m) = &memory {
+        files.extend(m.files.iter().cloned());
+    }
+    kfmc::check::attach_estimates(plan, &files, unstamped).map_err(|e| {
+        Failure::new(Kind::Estimates, e)
+            .context("reading the estimates".into())
+            .into_py()
+    })?;
+    Ok(memory)
+}
+
+/// `kfmc score`: `simulation` is a `kfmc simulate` folder; estimates are files and/or
+/// objects with `__arrow_c_stream__`.
+#[pyfunction]
+#[pyo3(signature = (simulation, paths, streams, *, out=None, threads=None, quiet=false, force=false))]
+#[allow(clippy::too_many_arguments)]
+fn score<'py>(
+    py: Python<'py>,
+    simulation: PathBuf,
+    paths: Vec<PathBuf>,
+    streams: Vec<Bound<'py, PyAny>>,
+    out: Option<PathBuf>,
+    threads: Option<usize>,
+    quiet: bool,
+    force: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let registry = Registry::builtin();
+        let mut plan = kfmc::cli::score_plan(&simulation, out, &registry)
+            .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
+        let memory = attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
+        let exec = kfmc::study::ExecOptions {
+            threads: clamp_threads(threads.unwrap_or(0)),
+            force,
+            shard: None,
+            checkpoints: None,
+        };
+        let report = run_study(py, quiet, move |obs| {
+            let r = kfmc::study::run(&plan, &exec, obs).map_err(|e| {
+                Failure::from(e).context(format!("scoring against {}", simulation.display()))
+            });
+            drop(memory);
+            r
+        })?;
+        report_dict(py, &report)
+    })
+}
+
+/// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
+#[pyfunction]
+#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false))]
+#[allow(clippy::too_many_arguments)]
+fn check<'py>(
+    py: Python<'py>,
+    spec: &Bound<'py, PyAny>,
+    paths: Vec<PathBuf>,
+    streams: Vec<Bound<'py, PyAny>>,
+    out: Option<PathBuf>,
+    runs: Option<usize>,
+    seed: Option<u64>,
+    threads: Option<usize>,
+    quiet: bool,
+    replications: Option<usize>,
+    allow_unstamped: bool,
+    force: bool,
+    allow_large: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        let memory = if paths.is_empty() && streams.is_empty() {
+            None
+        } else {
+            let unstamped = if allow_unstamped {
+                kfmc::check::Unstamped::Warn
+            } else {
+                kfmc::check::Unstamped::Refuse
+            };
+            attach(&mut plan, &paths, &streams, unstamped)?
+        };
+        let folder = plan.output.clone();
+        let exec = kfmc::study::ExecOptions {
+            threads: clamp_threads(threads.unwrap_or(0)),
+            force,
+            shard: None,
+            checkpoints: None,
+        };
+        // The observer of each of check's studies is the one the caller waits on.
+        let outcome = run_study(py, quiet, move |obs| {
+            let shared = SharedObserver(obs);
+            let r = kfmc::check::run(plan, &path, replications, allow_large, &exec, || shared)
+                .map_err(|e| match e {
+                    kfmc::check::RunError::Invalid(e) => Failure::from(e),
+                    kfmc::check::RunError::Stage { context, source } => {
+                        Failure::from(*source).context(context)
+                    }
+                });
+            drop(memory);
+            r
+        })?;
+        let d = PyDict::new(py);
+        d.set_item("exit_code", outcome.exit_code())?;
+        d.set_item("report", outcome.render())?;
+        d.set_item("junit", outcome.junit())?;
+        d.set_item("folder", folder)?;
+        let cases = PyList::empty(py);
+        for c in &outcome.cases {
+            let case = PyDict::new(py);
+            case.set_item("kind", &c.kind)?;
+            case.set_item("name", &c.name)?;
+            case.set_item("passed", c.pass)?;
+            case.set_item("incomplete", c.incomplete)?;
+            case.set_item("detail", &c.detail)?;
+            cases.append(case)?;
+        }
+        d.set_item("cases", cases)?;
+        Ok(d)
+    })
+}
+
+/// The study thread's observer, lent to each of check's studies.
+#[derive(Clone, Copy)]
+struct SharedObserver<'a>(&'a Observer);
+
+impl RunObserver for SharedObserver<'_> {
+    fn on_start(&self, total_units: u64) {
+        self.0.on_start(total_units);
+    }
+    fn on_units_done(&self, n: u64) {
+        self.0.on_units_done(n);
+    }
+    fn cancelled(&self) -> bool {
+        self.0.cancelled()
+    }
+}
+
+/// `kfmc power`: returns the folder holding power.parquet.
+#[pyfunction]
+#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
+#[allow(clippy::too_many_arguments)]
+fn power(
+    py: Python<'_>,
+    spec: &Bound<'_, PyAny>,
+    replications: usize,
+    out: Option<PathBuf>,
+    runs: Option<usize>,
+    seed: Option<u64>,
+    threads: Option<usize>,
+    quiet: bool,
+    force: bool,
+    allow_large: bool,
+) -> PyResult<PathBuf> {
+    guarded(|| {
+        if replications == 0 {
+            return Err(SpecError::new_err("replications: must be at least 1"));
+        }
+        let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
+        plan.check_replications(replications, allow_large)
+            .map_err(|e| Failure::from(e).into_py())?;
+        let out = out.unwrap_or_else(|| plan.output.join("power"));
+        plan.output = out.clone();
+        let exec = kfmc::study::ExecOptions {
+            threads: clamp_threads(threads.unwrap_or(0)),
+            force,
+            shard: None,
+            checkpoints: None,
+        };
+        let report = run_study(py, quiet, move |obs| {
+            kfmc::power::power(&plan, replications, plan.master_seed, &out, &exec, obs)
+                .map_err(|e| Failure::from(e).context(format!("power of {}", path.display())))
+        })?;
+        Ok(report.output)
+    })
+}
+
+/// TOML text as Python values (tables as dicts).
+fn toml_to_py<'py>(py: Python<'py>, v: &toml::Value) -> PyResult<Bound<'py, PyAny>> {
+    Ok(match v {
+        toml::Value::String(s) => s.into_pyobject(py)?.into_any(),
+        toml::Value::Integer(i) => i.into_pyobject(py)?.into_any(),
+        toml::Value::Float(f) => f.into_pyobject(py)?.into_any(),
+        toml::Value::Boolean(b) => b.into_pyobject(py)?.to_owned().into_any(),
+        toml::Value::Datetime(d) => d.to_string().into_pyobject(py)?.into_any(),
+        toml::Value::Array(a) => {
+            let l = PyList::empty(py);
+            for item in a {
+                l.append(toml_to_py(py, item)?)?;
+            }
+            l.into_any()
+        }
+        toml::Value::Table(t) => {
+            let d = PyDict::new(py);
+            for (k, item) in t {
+                d.set_item(k, toml_to_py(py, item)?)?;
+            }
+            d.into_any()
+        }
+    })
+}
+
+/// A TOML file (a result folder's manifest) as a dict.
+#[pyfunction]
+fn load_toml<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
+    guarded(|| {
+        let text = std::fs::read_to_string(&path)
+            .map_err(|e| StudyError::new_err(format!("cannot read {}: {e}", path.display())))?;
+        let table: toml::Table = toml::from_str(&text)
+            .map_err(|e| StudyError::new_err(format!("{}: {e}", path.display())))?;
+        toml_to_py(py, &toml::Value::Table(table))
+    })
+}
+
+/// `kfmc describe`: the system's analysis for a spec, as a dict (what `describe.toml` holds).
+#[pyfunction]
+fn describe<'py>(py: Python<'py>, spec: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
+    guarded(|| {
+        let registry = Registry::builtin();
+        let (plan, _) = load_spec(spec, &registry)?;
+        let text = py.detach(|| plan.system.describe(&plan).to_toml());
+        let table: toml::Table = toml::from_str(&text)
+            .map_err(|e| Error::new_err(format!("the description is not TOML: {e}")))?;
+        toml_to_py(py, &toml::Value::Table(table))
+    })
+}
+
+/// `kfmc schema KIND SPEC`: the columns (name → type) of an exchange table, and for the
+/// estimates the stamp a writer puts in the file's metadata.
+#[pyfunction]
+fn schema<'py>(
+    py: Python<'py>,
+    kind: &str,
+    spec: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        use kfmc::output::schema::{self as s, Dtype};
+        let registry = Registry::builtin();
+        let (plan, _) = load_spec(spec, &registry)?;
+        let l = plan.layout();
+        let (q, z, u, w) = (
+            l.quantity_names(),
+            l.measurement_names(),
+            l.input_names(),
+            l.world_state_names(),
+        );
+        let cols = match kind {
+            "estimates" => kfmc::score::estimate_columns(&q, &z),
+            "truth" => s::truth(&q, &w),
+            "measurements" => s::measurements(&z, &u),
+            "initial" => s::initial(&q),
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "unknown table `{other}`: one of estimates, truth, measurements, initial"
+                )));
+            }
+        };
+        let columns = PyDict::new(py);
+        for c in &cols {
+            let ty = match c.dtype {
+                Dtype::Str => "string",
+                Dtype::F64 => "float64",
+                Dtype::I64 => "int64",
+                Dtype::U64 => "uint64",
+                Dtype::Bool => "bool",
+            };
+            columns.set_item(&c.name, ty)?;
+        }
+        let d = PyDict::new(py);
+        d.set_item("columns", columns)?;
+        if kind == "estimates" {
+            let meta = PyDict::new(py);
+            for (k, v) in kfmc::score::stamp_metadata(&plan) {
+                meta.set_item(k, v)?;
+            }
+            d.set_item("metadata", meta)?;
+            d.set_item("error_convention", kfmc::score::ERROR_CONVENTION)?;
+        }
+        Ok(d)
+    })
+}
+
+/// The compiled module.
+#[pymodule]
+fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("Error", py.get_type::<Error>())?;
+    m.add("SpecError", py.get_type::<SpecError>())?;
+    m.add("EstimatesError", py.get_type::<EstimatesError>())?;
+    m.add("StudyError", py.get_type::<StudyError>())?;
+    m.add("IncompleteError", py.get_type::<IncompleteError>())?;
+    m.add("CheckFailedError", py.get_type::<CheckFailedError>())?;
+    m.add_function(wrap_pyfunction!(cli_main, m)?)?;
+    m.add_function(wrap_pyfunction!(validate, m)?)?;
+    m.add_function(wrap_pyfunction!(run, m)?)?;
+    m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(score, m)?)?;
+    m.add_function(wrap_pyfunction!(check, m)?)?;
+    m.add_function(wrap_pyfunction!(power, m)?)?;
+    m.add_function(wrap_pyfunction!(describe, m)?)?;
+    m.add_function(wrap_pyfunction!(schema, m)?)?;
+    m.add_function(wrap_pyfunction!(load_toml, m)?)?;
+    Ok(())
+}

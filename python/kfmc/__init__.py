@@ -1,0 +1,418 @@
+"""kfmc: judge state estimators (Kalman filters etc.) statistically.
+
+A thin, typed layer over the compiled kfmc library (``kfmc._kfmc``): every call runs the
+same Rust code as the ``kfmc`` command, and the tables it writes are read as polars
+DataFrames. A *spec* is a path to a TOML file, a ``dict`` with the TOML's structure, or TOML
+text (a ``str`` containing a newline).
+
+The functions release the GIL while the library works. A study runs on its own thread;
+Ctrl-C stops it at its next window exactly as SIGINT stops ``kfmc run`` (nothing committed,
+the checkpoint kept, so ``run(..., resume=True)`` continues it) and is re-raised as
+``KeyboardInterrupt``; no signal handler is installed.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+
+import polars as pl
+
+from kfmc import _kfmc
+from kfmc._kfmc import (
+    CheckFailedError,
+    Error,
+    EstimatesError,
+    IncompleteError,
+    SpecError,
+    StudyError,
+)
+
+__all__ = [
+    "__version__",
+    "CheckFailedError",
+    "CheckResult",
+    "Error",
+    "EstimatesError",
+    "IncompleteError",
+    "Simulation",
+    "SpecError",
+    "Study",
+    "StudyError",
+    "check",
+    "describe",
+    "power",
+    "run",
+    "schema",
+    "score",
+    "simulate",
+    "validate",
+]
+
+#: The kfmc version (the crate's, the command's and the wheel's).
+__version__: str = _kfmc.__version__
+
+#: A spec: a TOML file's path, a dict, or TOML text (a str containing a newline).
+Spec = Union[str, "os.PathLike[str]", Mapping[str, Any]]
+#: A file or folder path.
+PathLike = Union[str, "os.PathLike[str]"]
+
+#: The consistency table's rows that carry the verdict of each cell.
+_VERDICT = "verdict"
+
+
+def _spec(spec: Spec) -> Any:
+    if isinstance(spec, Mapping) and not isinstance(spec, dict):
+        return dict(spec)
+    return spec
+
+
+def _path(p: Optional[PathLike]) -> Optional[str]:
+    return None if p is None else os.fspath(p)
+
+
+class Study:
+    """A result folder written by :func:`run`, :func:`score` or :func:`check`.
+
+    Its tables are Parquet files; :meth:`table` reads one as a polars DataFrame with the
+    columns the command writes (``kfmc schema`` and the book's table pages list them).
+    """
+
+    def __init__(self, folder: PathLike, report: Optional[Mapping[str, Any]] = None) -> None:
+        #: The folder.
+        self.folder: Path = Path(folder)
+        #: What the command reported: runs, wall_s, cells_resumed, tables (name, rows).
+        self.report: Dict[str, Any] = dict(report or {})
+
+    def __repr__(self) -> str:
+        return f"kfmc.Study({str(self.folder)!r})"
+
+    def tables(self) -> List[str]:
+        """The names of the tables present (``"summary"``, ``"runs"``, ``"steps"``, …)."""
+        return sorted(
+            p.name[: -len(".parquet")]
+            for p in self.folder.glob("*.parquet")
+            if not p.name.startswith(".")
+        )
+
+    def table(self, name: str) -> pl.DataFrame:
+        """The table ``name`` (``"summary"``, ``"runs"``, ``"steps"``, ``"consistency"``, …)."""
+        path = self.folder / f"{name}.parquet"
+        if not path.is_file():
+            raise StudyError(
+                f"{self.folder} has no table `{name}` (it has: {', '.join(self.tables()) or 'none'})"
+            )
+        return pl.read_parquet(path)
+
+    @property
+    def manifest(self) -> Dict[str, Any]:
+        """``manifest.toml`` as a dict: the spec, seed, runs, versions and the tables' checksums."""
+        return _kfmc.load_toml(self.folder / "manifest.toml")
+
+    def verdict(self) -> pl.DataFrame:
+        """The consistency verdict of every (cell, filter) as a DataFrame (the
+        ``consistency`` table's ``test == "verdict"`` rows)."""
+        return self.table("consistency").filter(pl.col("test") == _VERDICT)
+
+
+class Simulation:
+    """A folder written by :func:`simulate`: every run's world for a filter outside kfmc.
+
+    ``truth``, ``measurements`` and ``initial`` are the whole tables (the columns ``kfmc
+    simulate`` writes); :meth:`runs` yields one run at a time, so a loop over many runs never
+    holds all of them.
+    """
+
+    def __init__(self, folder: PathLike, report: Optional[Mapping[str, Any]] = None) -> None:
+        #: The folder.
+        self.folder: Path = Path(folder)
+        #: What the command reported: runs, wall_s, tables (name, rows).
+        self.report: Dict[str, Any] = dict(report or {})
+
+    def __repr__(self) -> str:
+        return f"kfmc.Simulation({str(self.folder)!r})"
+
+    def _read(self, name: str) -> pl.DataFrame:
+        return pl.read_parquet(self.folder / f"{name}.parquet")
+
+    @property
+    def truth(self) -> pl.DataFrame:
+        """``truth.parquet``: the true state (``truth_*``, ``world_*``) per run and step."""
+        return self._read("truth")
+
+    @property
+    def measurements(self) -> pl.DataFrame:
+        """``measurements.parquet``: ``z_*`` (null where a sensor did not report) and the
+        inputs ``u_*`` per run and step."""
+        return self._read("measurements")
+
+    @property
+    def initial(self) -> pl.DataFrame:
+        """``initial.parquet``: each run's seed and prior (``est_*``, ``P_*``)."""
+        return self._read("initial")
+
+    @property
+    def manifest(self) -> Dict[str, Any]:
+        """``manifest.toml`` as a dict (what the tables mean: the exchange section)."""
+        return _kfmc.load_toml(self.folder / "manifest.toml")
+
+    def runs(self) -> Iterator[Tuple[Tuple[str, float, int], pl.DataFrame, pl.DataFrame, pl.DataFrame]]:
+        """Yields ``((scenario, noise_scale, run), truth, measurements, initial)`` for one run
+        at a time, in the tables' order. Each table is scanned with a filter on the run's
+        keys, so only that run's rows are read into memory."""
+        keys = ["scenario", "noise_scale", "run"]
+        files = {n: self.folder / f"{n}.parquet" for n in ("truth", "measurements", "initial")}
+        order = (
+            pl.scan_parquet(files["initial"])
+            .select(keys)
+            .collect()
+        )
+        for scenario, noise_scale, run in order.iter_rows():
+            pred = (
+                (pl.col("scenario") == scenario)
+                & (pl.col("noise_scale") == noise_scale)
+                & (pl.col("run") == run)
+            )
+            yield (
+                (scenario, noise_scale, run),
+                pl.scan_parquet(files["truth"]).filter(pred).collect(),
+                pl.scan_parquet(files["measurements"]).filter(pred).collect(),
+                pl.scan_parquet(files["initial"]).filter(pred).collect(),
+            )
+
+
+class CheckResult:
+    """What :func:`check` found: the same cases, report and exit code as ``kfmc check``."""
+
+    def __init__(self, raw: Mapping[str, Any]) -> None:
+        #: The command's exit code: 0 all hold, 3 an assertion failed, 4 incomplete.
+        self.exit_code: int = int(raw["exit_code"])
+        #: The readable report ``kfmc check`` prints.
+        self.report: str = raw["report"]
+        #: The JUnit XML ``kfmc check --junit`` writes.
+        self.junit: str = raw["junit"]
+        #: Every case: dicts with kind, name, passed, incomplete, detail.
+        self.cases: List[Dict[str, Any]] = list(raw["cases"])
+        #: The study folder the assertions were judged on.
+        self.study: Study = Study(raw["folder"])
+
+    @property
+    def ok(self) -> bool:
+        """Whether every assertion holds on every run the spec declares (exit code 0)."""
+        return self.exit_code == 0
+
+    @property
+    def failures(self) -> List[Dict[str, Any]]:
+        """The cases that failed or could not be judged (incomplete)."""
+        return [c for c in self.cases if not c["passed"]]
+
+    def raise_for_status(self) -> None:
+        """Raises :class:`CheckFailedError` (exit 3) or :class:`IncompleteError` (exit 4)."""
+        if self.exit_code == 3:
+            raise CheckFailedError(self.report)
+        if self.exit_code == 4:
+            raise IncompleteError(self.report)
+
+    def __repr__(self) -> str:
+        return f"kfmc.CheckResult(exit_code={self.exit_code}, cases={len(self.cases)}, failures={len(self.failures)})"
+
+
+def validate(spec: Spec, *, allow_large: bool = False) -> Dict[str, Any]:
+    """Checks a spec and returns the plan's summary (cells, runs, filter steps, estimated
+    memory and disk) without running it; raises :class:`SpecError`."""
+    return _kfmc.validate(_spec(spec), allow_large=allow_large)
+
+
+def run(
+    spec: Spec,
+    *,
+    out: Optional[PathLike] = None,
+    runs: Optional[int] = None,
+    seed: Optional[int] = None,
+    threads: Optional[int] = None,
+    quiet: bool = False,
+    resume: bool = False,
+    force: bool = False,
+    checkpoint_every: float = 10.0,
+) -> Study:
+    """Runs a Monte Carlo study (``kfmc run``) and returns its folder.
+
+    ``out``, ``runs`` and ``seed`` override the spec's ``output``, ``runs`` and
+    ``master_seed``; ``threads`` (default all cores) does not change any result. With
+    ``resume=True`` an interrupted run's checkpoint is continued, and the tables come out
+    identical to an uninterrupted run's. A checkpoint follows a complete cell once
+    ``checkpoint_every`` seconds have passed since the last (0: after every cell).
+    """
+    r = _kfmc.run(
+        _spec(spec),
+        out=_path(out),
+        runs=runs,
+        seed=seed,
+        threads=threads,
+        quiet=quiet,
+        resume=resume,
+        force=force,
+        checkpoint_every=checkpoint_every,
+    )
+    return Study(r["folder"], r)
+
+
+def simulate(
+    spec: Spec,
+    *,
+    out: Optional[PathLike] = None,
+    runs: Optional[int] = None,
+    seed: Optional[int] = None,
+    threads: Optional[int] = None,
+    quiet: bool = False,
+    force: bool = False,
+) -> Simulation:
+    """Writes every run's world (``kfmc simulate``): truth, measurements and priors for a
+    filter outside kfmc, the same runs ``kfmc run`` gives its own filters."""
+    r = _kfmc.simulate(
+        _spec(spec), out=_path(out), runs=runs, seed=seed, threads=threads, quiet=quiet, force=force
+    )
+    return Simulation(r["folder"], r)
+
+
+def _is_path(x: Any) -> bool:
+    return isinstance(x, (str, os.PathLike))
+
+
+def _as_stream(x: Any) -> Any:
+    if hasattr(x, "__arrow_c_stream__"):
+        return x
+    if type(x).__module__.startswith("pandas"):
+        # An older pandas without the Arrow PyCapsule interface: polars converts it.
+        return pl.from_pandas(x)
+    raise TypeError(
+        f"estimates must be a polars or pandas DataFrame, a pyarrow Table (anything with "
+        f"__arrow_c_stream__), an iterable of them, or a path; got {type(x).__name__}"
+    )
+
+
+def _estimates(estimates: Any) -> Tuple[List[str], List[Any]]:
+    if estimates is None:
+        return [], []
+    if _is_path(estimates) or hasattr(estimates, "__arrow_c_stream__") or type(
+        estimates
+    ).__module__.startswith("pandas"):
+        estimates = [estimates]
+    paths: List[str] = []
+    streams: List[Any] = []
+    for e in estimates:
+        if _is_path(e):
+            paths.append(os.fspath(e))
+        else:
+            streams.append(_as_stream(e))
+    return paths, streams
+
+
+Estimates = Any
+"""Estimates: a polars or pandas DataFrame, a pyarrow Table (anything with
+``__arrow_c_stream__``), an iterable of them, a Parquet file's path, or a list of paths."""
+
+
+def score(
+    simulation: Union[Simulation, PathLike],
+    estimates: Estimates,
+    *,
+    out: Optional[PathLike] = None,
+    quiet: bool = False,
+    threads: Optional[int] = None,
+    force: bool = False,
+) -> Study:
+    """Scores estimates made outside kfmc against a simulation (``kfmc score``): writes the
+    tables ``kfmc run`` writes, with kfmc's own filters of the spec run beside them.
+
+    In-memory estimates (the columns ``schema("estimates", spec)`` lists) go to the library
+    through the Arrow C stream interface; they are taken as made from ``simulation``'s runs
+    (a file must carry the world stamp for that, a table in memory has nowhere to carry it).
+    """
+    folder = simulation.folder if isinstance(simulation, Simulation) else Path(simulation)
+    paths, streams = _estimates(estimates)
+    if not paths and not streams:
+        raise EstimatesError("no estimates given")
+    r = _kfmc.score(
+        os.fspath(folder), paths, streams, out=_path(out), threads=threads, quiet=quiet, force=force
+    )
+    return Study(r["folder"], r)
+
+
+def check(
+    spec: Spec,
+    *,
+    estimates: Estimates = None,
+    out: Optional[PathLike] = None,
+    runs: Optional[int] = None,
+    seed: Optional[int] = None,
+    threads: Optional[int] = None,
+    quiet: bool = True,
+    replications: Optional[int] = None,
+    allow_unstamped: bool = False,
+    force: bool = False,
+) -> CheckResult:
+    """Runs the study and evaluates its ``[check]`` assertions (``kfmc check``). A failing
+    or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
+    :meth:`CheckResult.raise_for_status` raises it. Estimates files must carry the world
+    stamp unless ``allow_unstamped``; in-memory tables are taken as made from the spec's
+    runs."""
+    paths, streams = _estimates(estimates)
+    r = _kfmc.check(
+        _spec(spec),
+        paths,
+        streams,
+        out=_path(out),
+        runs=runs,
+        seed=seed,
+        threads=threads,
+        quiet=quiet,
+        replications=replications,
+        allow_unstamped=allow_unstamped,
+        force=force,
+    )
+    return CheckResult(r)
+
+
+def power(
+    spec: Spec,
+    replications: int,
+    *,
+    out: Optional[PathLike] = None,
+    runs: Optional[int] = None,
+    seed: Optional[int] = None,
+    threads: Optional[int] = None,
+    quiet: bool = False,
+    force: bool = False,
+) -> pl.DataFrame:
+    """Runs the study ``replications`` times with independent seeds (``kfmc power``) and
+    returns power.parquet: per (cell, filter variant, test) the rejection rate with its 95 %
+    Clopper–Pearson interval."""
+    folder = _kfmc.power(
+        _spec(spec),
+        replications,
+        out=_path(out),
+        runs=runs,
+        seed=seed,
+        threads=threads,
+        quiet=quiet,
+        force=force,
+    )
+    return pl.read_parquet(Path(folder) / "power.parquet")
+
+
+def describe(spec: Spec) -> Dict[str, Any]:
+    """The system's analysis for a spec (``kfmc describe``) as a dict: per scenario F, G, H,
+    Q, R, the observability ranks, the steady-state gain, and per filter the tests'
+    effective degrees of freedom."""
+    return _kfmc.describe(_spec(spec))
+
+
+def schema(kind: str, spec: Spec) -> Dict[str, Any]:
+    """The columns (name → type) of an exchange table for a spec (``kfmc schema``): ``kind``
+    is ``"estimates"``, ``"truth"``, ``"measurements"`` or ``"initial"``. For the estimates
+    also the stamp a writer puts in the file's metadata and the error convention."""
+    return _kfmc.schema(kind, _spec(spec))
+
+

@@ -1,0 +1,372 @@
+"""The Python API against the command: same tables, same errors, same exit codes."""
+
+import filecmp
+import os
+import pathlib
+import re
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import polars as pl
+import pytest
+
+import kfmc
+
+
+def crate_version(root: pathlib.Path) -> str:
+    text = (root / "Cargo.toml").read_text()
+    section = text.split("[workspace.package]", 1)[1]
+    return re.search(r'^version = "([^"]+)"', section, re.M).group(1)
+
+
+def parquet_files(folder: pathlib.Path):
+    return sorted(p.relative_to(folder) for p in folder.rglob("*.parquet"))
+
+
+def assert_same_tables(a: pathlib.Path, b: pathlib.Path):
+    """Every Parquet table of two folders, byte for byte (kfmc's tables are deterministic)."""
+    fa, fb = parquet_files(a), parquet_files(b)
+    assert fa and fa == fb
+    for rel in fa:
+        assert filecmp.cmp(a / rel, b / rel, shallow=False), f"{rel} differs"
+
+
+def test_version_is_the_crates(root, kfmc_bin, script_kfmc):
+    v = crate_version(root)
+    assert kfmc.__version__ == v
+    out = subprocess.run([script_kfmc, "--version"], capture_output=True, text=True)
+    assert out.returncode == 0
+    assert out.stdout == f"kfmc {v}\n"
+    assert out.stdout == subprocess.run([kfmc_bin, "--version"], capture_output=True, text=True).stdout
+
+
+def test_the_script_prints_help_and_usage_errors_as_the_binary(kfmc_bin, script_kfmc):
+    for args in (["--help"], ["run", "--help"], ["no-such-command"], ["run"], ["run", "x.toml", "--runs", "many"]):
+        a = subprocess.run([kfmc_bin, *args], capture_output=True, text=True)
+        b = subprocess.run([script_kfmc, *args], capture_output=True, text=True)
+        assert (b.returncode, b.stdout, b.stderr) == (a.returncode, a.stdout, a.stderr), args
+    assert subprocess.run([script_kfmc, "no-such-command"], capture_output=True).returncode == 2
+
+
+def test_the_script_returns_the_gates_exit_codes(root, kfmc_bin, script_kfmc, tmp_path):
+    spec = root / "experiments" / "ci_consistency.toml"
+    # Q × 8: the consistency assertion fails (exit 3), as the command's.
+    text = spec.read_text().replace("q_scale = 1.0", "q_scale = 8.0")
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    codes = []
+    for exe, out in ((kfmc_bin, "a"), (script_kfmc, "b")):
+        r = subprocess.run(
+            [exe, "check", str(bad), "--runs", "20", "--out", str(tmp_path / out), "-q"],
+            capture_output=True,
+            text=True,
+        )
+        codes.append((r.returncode, r.stdout))
+    assert codes[0][0] == 3
+    assert codes[0] == codes[1]
+
+
+def test_run_writes_the_tables_the_command_writes(root, kfmc_bin, tmp_path):
+    spec = root / "experiments" / "ci_consistency.toml"
+    subprocess.run(
+        [kfmc_bin, "run", str(spec), "--out", str(tmp_path / "cli"), "--runs", "12", "--seed", "7", "-q"],
+        check=True,
+    )
+    study = kfmc.run(spec, out=tmp_path / "api", runs=12, seed=7, quiet=True)
+    assert study.folder == tmp_path / "api"
+    assert_same_tables(tmp_path / "cli", tmp_path / "api")
+    assert set(study.tables()) >= {"summary", "runs", "steps", "consistency"}
+    assert study.manifest["master_seed"] == 7
+    assert study.manifest["runs_per_cell"] == 12
+    summary = study.table("summary")
+    assert summary.height > 0 and "filter" in summary.columns
+    verdict = study.verdict()
+    assert verdict.height == 2  # two scenarios × one filter
+    assert set(verdict["test"]) == {"verdict"}
+    # A spec given as TOML text or as a dict is the same study.
+    text = spec.read_text()
+    kfmc.run(text, out=tmp_path / "text", runs=12, seed=7, quiet=True)
+    assert_same_tables(tmp_path / "cli", tmp_path / "text")
+
+
+def test_validate_describe_schema(root):
+    spec = root / "experiments" / "linear_nees.toml"
+    v = kfmc.validate(spec)
+    assert v["cells"] == 1 and v["runs_per_cell"] == 200 and v["runs"] == 200
+    assert v["memory_bytes"] > 0 and v["disk_bytes"] > 0
+    d = kfmc.describe(spec)
+    assert isinstance(d, dict) and d
+    s = kfmc.schema("estimates", spec)
+    assert list(s["columns"])[:5] == ["scenario", "noise_scale", "run", "step", "filter"]
+    assert "kfmc.world_stamp" in s["metadata"]
+    with pytest.raises(ValueError):
+        kfmc.schema("nope", spec)
+
+
+L1 = {
+    "name": "py_l1",
+    "master_seed": 11,
+    "runs": 6,
+    "output": "unused",
+    "model": {"kind": "linear_quadrotor", "sensor": "positions"},
+    "scenarios": [{"name": "hover", "x0": [1.0, 0.0, 1.0, 0.0, 1.0, 0.0], "duration_s": 5.0}],
+    "filters": [{"label": "kf", "kind": "ekf"}],
+    "initial_estimate": {"mode": "sampled", "p0_std": 1.0},
+    "consistency": {"alpha": 0.01},
+}
+
+
+def l1_with_external():
+    spec = {k: v for k, v in L1.items()}
+    spec["filters"] = [{"label": "kf", "kind": "ekf"}, {"label": "mine", "kind": "external"}]
+    return spec
+
+
+@pytest.fixture(scope="module")
+def l1_world(tmp_path_factory, script_kfmc):
+    """An L1 simulation and, as `mine`, the estimates kfmc's own KF makes on its runs
+    (`kfmc run --export-estimates`, relabelled): an outside filter known to equal kfmc's."""
+    base = tmp_path_factory.mktemp("l1")
+    spec = l1_with_external()
+    sim = kfmc.simulate(spec, out=base / "sim", quiet=True)
+    own = base / "own.toml"
+    own.write_text(dict_to_toml(L1))
+    subprocess.run(
+        [script_kfmc, "run", str(own), "--out", str(base / "own"), "--export-estimates", "-q"],
+        check=True,
+    )
+    est = pl.read_parquet(base / "own" / "estimates.parquet").with_columns(
+        pl.lit("mine").alias("filter")
+    )
+    return spec, sim, est, base
+
+
+def dict_to_toml(d):
+    """The few shapes the test specs use (flat tables, arrays of tables, scalars, lists)."""
+
+    def val(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return f'"{v}"'
+        if isinstance(v, list):
+            return "[" + ", ".join(val(x) for x in v) + "]"
+        return repr(v)
+
+    lines, tables = [], []
+    for k, v in d.items():
+        if isinstance(v, dict):
+            tables.append((f"[{k}]", v))
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            tables.extend((f"[[{k}]]", x) for x in v)
+        else:
+            lines.append(f"{k} = {val(v)}")
+    for head, t in tables:
+        lines.append(head)
+        lines.extend(f"{k} = {val(v)}" for k, v in t.items())
+    return "\n".join(lines) + "\n"
+
+
+def test_simulation_reads_and_iterates_runs(l1_world):
+    spec, sim, est, base = l1_world
+    assert sim.truth.height == 6 * 51 and sim.measurements.height == 6 * 51
+    assert sim.initial.height == 6
+    runs = list(sim.runs())
+    assert len(runs) == 6
+    (key, truth, meas, init) = runs[2]
+    assert key == ("hover", 1.0, 2)
+    assert truth.height == 51 and meas.height == 51 and init.height == 1
+    assert truth["step"].to_list() == list(range(51))
+    assert truth.equals(sim.truth.filter((pl.col("run") == 2)))
+
+
+def test_score_from_memory_equals_score_from_a_file(l1_world, kfmc_bin, tmp_path):
+    spec, sim, est, base = l1_world
+    stamp = kfmc.schema("estimates", spec)["metadata"]
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = est.to_arrow().replace_schema_metadata(stamp)
+    pq.write_table(table, tmp_path / "mine.parquet")
+    subprocess.run(
+        [kfmc_bin, "score", str(sim.folder), "--estimates", str(tmp_path / "mine.parquet"),
+         "--out", str(tmp_path / "files"), "-q"],
+        check=True,
+    )
+    for name, estimates in (
+        ("polars", est),
+        ("arrow", est.to_arrow()),
+        ("pandas", est.to_pandas()),
+        ("batches", [est.slice(0, 100), est.slice(100)]),
+        ("path", tmp_path / "mine.parquet"),
+    ):
+        study = kfmc.score(sim, estimates, out=tmp_path / name, quiet=True)
+        assert_same_tables(tmp_path / "files", study.folder)
+    # The outside filter is kfmc's own KF: its RMSE equals kf's to 1e-12 relative.
+    s = study.table("summary")
+    mine = s.filter(pl.col("filter") == "mine").sort("state")["rmse_mean"].to_numpy()
+    kf = s.filter(pl.col("filter") == "kf").sort("state")["rmse_mean"].to_numpy()
+    assert len(mine) == len(kf) > 0
+    assert (abs(mine - kf) <= 1e-12 * abs(kf)).all()
+
+
+@pytest.mark.parametrize(
+    "column",
+    ["est_x", "step", "P_x_x"],
+)
+def test_bad_estimates_name_the_column(l1_world, tmp_path, column):
+    spec, sim, est, base = l1_world
+    names = [c for c in est.columns if c.startswith("est_")]
+    column = {"est_x": names[0], "step": "step", "P_x_x": [c for c in est.columns if c.startswith("P_")][0]}[column]
+    with pytest.raises(kfmc.EstimatesError, match=re.escape(f"`{column}`")):
+        kfmc.score(sim, est.drop(column), out=tmp_path / "o", quiet=True)
+    # A key of the wrong type is named too.
+    with pytest.raises(kfmc.EstimatesError, match="`step`"):
+        kfmc.score(sim, est.with_columns(pl.col("step").cast(pl.Float64)), out=tmp_path / "p", quiet=True)
+
+
+def spec_with(path, value):
+    """L1 with `value` set at the dotted key `path` (a list index as an integer)."""
+    import copy
+
+    d = copy.deepcopy(L1)
+    keys = path.split(".")
+    node = d
+    for k in keys[:-1]:
+        node = node[int(k)] if isinstance(node, list) else node.setdefault(k, {})
+    last = keys[-1]
+    if isinstance(node, list):
+        node[int(last)] = value
+    else:
+        node[last] = value
+    return d
+
+
+BAD_SPECS = [
+    # (what, spec, the key path the message must name)
+    ("a wrong type", spec_with("runs", "many"), "runs"),
+    ("an out-of-range run count", spec_with("runs", 0), "runs"),
+    ("a negative seed", spec_with("master_seed", -1), "master_seed"),
+    ("an unknown top-level key", spec_with("colour", "red"), "colour"),
+    ("an unknown model", spec_with("model.kind", "submarine"), "model.kind"),
+    ("an unknown sensor", spec_with("model.sensor", "sonar"), "model.sensor"),
+    ("a negative duration", spec_with("scenarios.0.duration_s", -1.0), "scenarios[0].duration_s"),
+    ("an unknown filter kind", spec_with("filters.0.kind", "magic"), "filters[0].kind"),
+    ("a negative prior std", spec_with("initial_estimate.p0_std", -1.0), "initial_estimate.p0_std"),
+    ("alpha outside (0, 1)", spec_with("consistency.alpha", 2.0), "consistency.alpha"),
+    ("an unknown key in a table", spec_with("consistency.alhpa", 0.1), "consistency.alhpa"),
+    ("x0 of the wrong length", spec_with("scenarios.0.x0", [1.0, 2.0]), "scenarios[0].x0"),
+]
+
+
+@pytest.mark.parametrize("what,spec,key", BAD_SPECS, ids=[b[0] for b in BAD_SPECS])
+def test_bad_specs_raise_spec_error_naming_the_key_path(what, spec, key, tmp_path):
+    with pytest.raises(kfmc.SpecError) as e:
+        kfmc.run(spec, out=tmp_path / "o", quiet=True)
+    assert key in str(e.value), str(e.value)
+    assert isinstance(e.value, kfmc.Error) and isinstance(e.value, ValueError)
+    # The same spec as a TOML file: the message names the file too, as the command's does.
+    path = tmp_path / "bad.toml"
+    path.write_text(dict_to_toml(spec))
+    with pytest.raises(kfmc.SpecError) as e:
+        kfmc.validate(path)
+    assert str(path) in str(e.value) and key in str(e.value)
+
+
+def test_a_missing_spec_file_and_bad_toml_are_spec_errors(tmp_path):
+    with pytest.raises(kfmc.SpecError, match="nope.toml"):
+        kfmc.validate(tmp_path / "nope.toml")
+    with pytest.raises(kfmc.SpecError):
+        kfmc.validate("name = \nruns = [\n")
+
+
+def test_a_folder_of_another_kind_is_a_study_error(l1_world, tmp_path):
+    spec, sim, est, base = l1_world
+    with pytest.raises(kfmc.StudyError):
+        kfmc.score(tmp_path, est, quiet=True)
+    # run into a simulation's folder: another kind of result.
+    with pytest.raises(kfmc.StudyError):
+        kfmc.run(L1, out=sim.folder, quiet=True)
+
+
+def test_check_returns_the_gates_result(root, kfmc_bin, tmp_path):
+    spec = root / "experiments" / "ci_consistency.toml"
+    r = kfmc.check(spec, runs=20, out=tmp_path / "ok")
+    cli = subprocess.run(
+        [kfmc_bin, "check", str(spec), "--runs", "20", "--out", str(tmp_path / "cli"),
+         "--junit", str(tmp_path / "cli.xml"), "-q"],
+        capture_output=True, text=True,
+    )
+    assert r.exit_code == cli.returncode
+    assert r.report == cli.stdout
+    assert r.ok == (cli.returncode == 0)
+    # The JUnit XML differs from the command's only in the measured time.
+    strip = lambda s: re.sub(r'time="[^"]*"', "", s)
+    assert strip(r.junit) == strip((tmp_path / "cli.xml").read_text())
+    bad = kfmc.check(spec.read_text().replace("q_scale = 1.0", "q_scale = 8.0"), runs=20, out=tmp_path / "bad")
+    assert bad.exit_code == 3 and not bad.ok and bad.failures
+    with pytest.raises(kfmc.CheckFailedError):
+        bad.raise_for_status()
+
+
+SIGINT_SCRIPT = textwrap.dedent(
+    """
+    import sys, kfmc
+    spec = {spec!r}
+    print("started", flush=True)
+    kfmc.run(spec, out=sys.argv[1], quiet=True, checkpoint_every=0.0, threads=1)
+    print("finished", flush=True)
+    """
+)
+
+
+def test_sigint_during_run_leaves_a_resumable_folder(root, tmp_path):
+    spec = str(root / "experiments" / "ci_consistency.toml")
+    d = {"runs": 150}
+    script = tmp_path / "run.py"
+    # Many cells (noise scales), each checkpointed, so the interrupt lands between cells.
+    text = pathlib.Path(spec).read_text().replace("scales = [1.0]", "scales = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0]")
+    text = re.sub(r"^runs = \d+", f"runs = {d['runs']}", text, flags=re.M)
+    script.write_text(SIGINT_SCRIPT.format(spec=text))
+    out = tmp_path / "interrupted"
+    p = subprocess.Popen([sys.executable, str(script), str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    index = out / ".checkpoint" / "index.toml"
+    deadline = time.time() + 120
+    while not index.exists() and p.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    assert p.poll() is None, "the study ended before a checkpoint: make it longer"
+    os.kill(p.pid, signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=120)
+    assert p.returncode != 0
+    assert "KeyboardInterrupt" in stderr and "finished" not in stdout
+    assert not (out / "summary.parquet").exists(), "nothing is committed"
+    resumed = kfmc.run(text, out=out, quiet=True, resume=True)
+    assert resumed.report["cells_resumed"] > 0
+    whole = kfmc.run(text, out=tmp_path / "whole", quiet=True)
+    assert_same_tables(tmp_path / "whole", out)
+
+
+def test_the_wheel_installs_and_runs_without_a_compiler(tmp_path):
+    wheel = os.environ.get("KFMC_WHEEL")
+    if not wheel:
+        pytest.skip("KFMC_WHEEL names the wheel to install (set by .ci/run)")
+    venv = tmp_path / "venv"
+    # The system's site packages give polars (the wheel's dependency) without a download.
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
+    path = os.pathsep.join(
+        p for p in os.environ["PATH"].split(os.pathsep)
+        if not (pathlib.Path(p) / "cargo").exists() and not (pathlib.Path(p) / "rustc").exists()
+    )
+    env = dict(os.environ, PATH=f"{venv / 'bin'}{os.pathsep}{path}")
+    for tool in ("cargo", "rustc", "cc", "gcc"):
+        env.pop(tool.upper(), None)
+    check = subprocess.run(["sh", "-c", "command -v cargo || command -v rustc || true"], env=env, capture_output=True, text=True)
+    assert check.stdout.strip() == "", "cargo or rustc still on PATH"
+    subprocess.run([str(venv / "bin" / "python"), "-m", "pip", "install", "--no-index", "--no-deps", "--quiet", wheel], env=env, check=True)
+    r = subprocess.run(["kfmc", "--version"], env=env, capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.startswith("kfmc ")
+    r = subprocess.run([str(venv / "bin" / "python"), "-c", "import kfmc; print(kfmc.__version__)"], env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
