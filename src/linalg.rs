@@ -320,7 +320,7 @@ pub fn nonzero_pattern<const N: usize>(f: &Matrix<N, N>) -> Vec<(usize, usize)> 
         .collect()
 }
 
-/// The selection s with H[i, s[i]] = 1 and every other entry 0, when a constant H is one: the
+/// The selection s with H\[i, s\[i\]\] = 1 and every other entry 0, when a constant H is one: the
 /// [`crate::model::Model::measurement_selection`] of a model with a constant H.
 pub fn row_selection<const NZ: usize, const NX: usize>(h: &Matrix<NZ, NX>) -> Option<[usize; NZ]> {
     let mut sel = [0; NZ];
@@ -334,7 +334,7 @@ pub fn row_selection<const NZ: usize, const NX: usize>(h: &Matrix<NZ, NX>) -> Op
     Some(sel)
 }
 
-/// H P for H the row selection `sel` (H[l, sel[l]] = 1, every other entry 0): the rows of P.
+/// H P for H the row selection `sel` (H\[l, sel\[l\]\] = 1, every other entry 0): the rows of P.
 #[inline]
 pub fn select_rows<const NX: usize, const NZ: usize>(
     sel: &[usize; NZ],

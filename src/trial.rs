@@ -230,7 +230,7 @@ impl<const N: usize> Evaluate<N, N> for Identity {
     }
 }
 
-/// The evaluation that picks quantities out of a larger state: q = x[indices], its covariance
+/// The evaluation that picks quantities out of a larger state: q = x\[indices\], its covariance
 /// the marginal block.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Marginal<const NQ: usize> {

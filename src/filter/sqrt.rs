@@ -13,7 +13,7 @@
 //!
 //! # Reference
 //! Kaminski, Bryson & Schmidt, "Discrete square root filtering: a survey of current
-//! techniques", IEEE TAC 16(6), 1971; Verhaegen & Van Dooren (1986), the seed's [8].
+//! techniques", IEEE TAC 16(6), 1971; Verhaegen & Van Dooren (1986), the seed's reference \[8\].
 
 use super::{Filter, FilterError, Innovation, check_finite, mask_rows};
 use crate::linalg::{Matrix, PreArray, SmallCholesky, Vector, triangularize};

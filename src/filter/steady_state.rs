@@ -13,7 +13,7 @@
 //! A component that did not report has its column of K∞ zeroed.
 //!
 //! # Reference
-//! Anderson & Moore, *Optimal Filtering* (1979), §4.4 — the seed's [1].
+//! Anderson & Moore, *Optimal Filtering* (1979), §4.4 — the seed's reference \[1\].
 
 use super::{Filter, FilterError, Innovation, mask_rows};
 use crate::linalg::{Matrix, SmallCholesky, Vector};

@@ -157,7 +157,7 @@ impl Drop for StepValues {
     }
 }
 
-/// Bytes of per-step buffers kept for reuse ([`Recycled`]): more than two windows of runs
+/// Bytes of per-step buffers kept for reuse (`Recycled`): more than two windows of runs
 /// of a typical study need, far less than the windows themselves hold.
 pub const RECYCLED_BYTES: usize = 64 << 20;
 

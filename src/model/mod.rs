@@ -87,9 +87,9 @@ pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync 
         None
     }
     /// When H = [`Model::measurement_jacobian`] is a selection of states at every (x, u) —
-    /// H[i, s[i]] = 1 and every other entry 0 — the selection `s`. The EKF then reads H P⁻ as
+    /// H\[i, s\[i\]\] = 1 and every other entry 0 — the selection `s`. The EKF then reads H P⁻ as
     /// rows of P⁻ and forms (I − K H) P⁻ over its non-zero entries (the dense result, see
-    /// [`crate::linalg::select_update`]). `None` (the default): H is treated as dense.
+    /// [`crate::linalg::select_i_kh`]). `None` (the default): H is treated as dense.
     fn measurement_selection(&self) -> Option<[usize; NZ]> {
         None
     }

@@ -80,7 +80,7 @@ const WINDOW: usize = 256;
 pub const WINDOW_BYTES: u64 = 32 << 20;
 
 /// Units per window when each unit's result holds about `unit_bytes` bytes: at most
-/// [`WINDOW`], at most [`WINDOW_BYTES`] of results, and never fewer than the threads (0 =
+/// `WINDOW`, at most `WINDOW_BYTES` of results, and never fewer than the threads (0 =
 /// all cores) so that every core has a unit. The window does not change any result, only
 /// how many are held at once.
 pub fn window_for(unit_bytes: u64, threads: usize) -> usize {

@@ -1,6 +1,6 @@
 //! The full error-state filter (`kind = "error_state"`): a nominal navigation state with the
 //! attitude as a rotation matrix, and a 19-state error δ = [δp, δv, δφ, δb_a, δb_g, δd, δd_b]
-//! (δφ a small rotation on the NED side, C_true = exp([δφ]×) Ĉ): accelerometer and gyro
+//! (δφ a small rotation on the NED side, C_true = exp(\[δφ\]×) Ĉ): accelerometer and gyro
 //! biases as random walks with their turn-on spread as prior, the GPS drift as the world's
 //! first-order Gauss–Markov process, the barometer drift as a random walk.
 //!

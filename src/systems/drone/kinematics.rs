@@ -92,12 +92,12 @@ pub fn euler_of(r: &Matrix<3, 3>) -> Euler {
     )
 }
 
-/// The skew-symmetric matrix [v]× (v × w = [v]× w).
+/// The skew-symmetric matrix \[v\]× (v × w = \[v\]× w).
 pub fn skew(v: &Vector<3>) -> Matrix<3, 3> {
     Matrix::<3, 3>::new(0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0)
 }
 
-/// exp([φ]×): the rotation by the vector φ (Rodrigues).
+/// exp(\[φ\]×): the rotation by the vector φ (Rodrigues).
 pub fn exp_so3(phi: &Vector<3>) -> Matrix<3, 3> {
     let angle = phi.norm();
     let k = skew(phi);
@@ -109,7 +109,7 @@ pub fn exp_so3(phi: &Vector<3>) -> Matrix<3, 3> {
         + k * k * ((1.0 - angle.cos()) / (angle * angle))
 }
 
-/// E(Θ) with δΘ = E δφ for a small rotation δφ applied on the NED side (R ← exp([δφ]×) R):
+/// E(Θ) with δΘ = E δφ for a small rotation δφ applied on the NED side (R ← exp(\[δφ\]×) R):
 /// the Euler-angle change of a navigation-frame rotation error.
 pub fn euler_of_nav_rotation(e: &Euler) -> Matrix<3, 3> {
     // δφ_nav = R δφ_body, and δφ_body = T⁻¹ δΘ, so δΘ = T Rᵀ δφ_nav.

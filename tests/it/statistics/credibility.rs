@@ -1,7 +1,6 @@
 //! Credibility measures in the tables: per-block ANEES, Li and Zhao's NCI and inclination
 //! indicator, and the credible filter's reference values beside them.
 
-
 use crate::common;
 use crate::common::run_cli as run;
 use polars::prelude::DataFrame;
