@@ -36,7 +36,7 @@ fn merged_parts_are_byte_identical_to_one_process_for_any_part_count() {
     // The credibility columns (per-block ANEES, NCI) are part of what is compared: the
     // identity below covers them only if they hold values.
     for table in ["consistency.parquet", "steps.parquet"] {
-        let df = common::read(&single.join(table));
+        let df = crate::common::read(&single.join(table));
         for c in [
             "block_anees_position",
             "block_anees_rad_s",
