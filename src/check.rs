@@ -10,7 +10,7 @@ use crate::error::{KfmcError, OutputError};
 use std::collections::HashMap;
 
 use crate::experiment::Plan;
-use crate::experiment::plan::{Assertion, FilterPlan};
+use crate::experiment::plan::{Assertion, FilterPlan, Selection};
 use crate::metrics::consistency::{VERDICT, test_names};
 use crate::output::table::read;
 
@@ -363,224 +363,456 @@ fn consistency_blocks(
 /// incomplete.
 pub fn evaluate(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, OutputError> {
     crate::output::folder::verify(dir)?;
+    let judge = Judge::new(plan, dir)?;
     let mut out = Vec::new();
-    let needs = |a: &Assertion| matches!(a, Assertion::TestPasses { .. });
-    let cons = if plan.assertions.iter().any(needs) {
-        Some(Table::open(&dir.join("consistency.parquet"))?)
-    } else {
-        None
-    };
-    let summary = Table::open(&dir.join("summary.parquet"))?;
-    let order = test_names(&plan.system.layout().quantity_names());
-    // The whole cell, then each subset, as the study evaluates them.
-    let mut evaluations = vec![Evaluation {
-        runs: plan.runs,
-        alpha: plan.consistency.as_ref().map_or(plan.alpha, |c| c.alpha),
-    }];
-    if let Some(c) = &plan.consistency {
-        evaluations.extend(
-            c.subsets
-                .iter()
-                .map(|&(runs, alpha)| Evaluation { runs, alpha }),
-        );
+    for a in plan.assertions.iter().filter(|a| !a.needs_replications()) {
+        let before = out.len();
+        let kind = match a {
+            Assertion::RejectionRate { .. } => unreachable!("filtered above"),
+            Assertion::TestPasses { kind, tests, .. } => {
+                judge.tests(kind, tests, a.selection(), &mut out)?;
+                kind.as_str()
+            }
+            Assertion::RmseBelow { state, max, .. } => {
+                judge.rmse_below(state, *max, a.selection(), &mut out)?;
+                "rmse_below"
+            }
+            Assertion::NoWorseThan {
+                reference,
+                states,
+                margin,
+                ..
+            } => {
+                judge.no_worse_than(reference, states, *margin, a.selection(), &mut out)?;
+                "no_worse_than"
+            }
+        };
+        settle(a, kind, &mut out, before);
     }
-    let bounds: Vec<usize> = evaluations.iter().map(|e| e.runs).collect();
-    let counts = count_runs(&dir.join("runs.parquet"), &bounds)?;
-    let max_failed = plan.check_max_failed_runs;
-    let cells = planned_cells(plan);
-    let has_covariance = |f: &FilterPlan| {
+    Ok(out)
+}
+
+/// What every assertion of one study is judged with: the cells the spec declares, their run
+/// counts per evaluation, and the tables.
+struct Judge<'a> {
+    plan: &'a Plan,
+    dir: &'a Path,
+    cells: Vec<PlannedCell<'a>>,
+    /// The whole cell, then each subset, as the study evaluates them.
+    evaluations: Vec<Evaluation>,
+    counts: HashMap<CellKey, RunCounts>,
+}
+
+impl<'a> Judge<'a> {
+    fn new(plan: &'a Plan, dir: &'a Path) -> Result<Self, OutputError> {
+        let mut evaluations = vec![Evaluation {
+            runs: plan.runs,
+            alpha: plan.consistency.as_ref().map_or(plan.alpha, |c| c.alpha),
+        }];
+        if let Some(c) = &plan.consistency {
+            evaluations.extend(
+                c.subsets
+                    .iter()
+                    .map(|&(runs, alpha)| Evaluation { runs, alpha }),
+            );
+        }
+        let bounds: Vec<usize> = evaluations.iter().map(|e| e.runs).collect();
+        let counts = count_runs(&dir.join("runs.parquet"), &bounds)?;
+        Ok(Self {
+            plan,
+            dir,
+            cells: planned_cells(plan),
+            evaluations,
+            counts,
+        })
+    }
+
+    /// Why `cell` cannot be judged on the declared runs of evaluation `e`, if it cannot.
+    fn runs_problem(&self, c: &PlannedCell<'_>, e: usize, cell: &str) -> Option<String> {
+        runs_problem(
+            self.counts.get(&c.key),
+            e,
+            self.evaluations[e].runs,
+            self.plan.runs,
+            self.plan.check_max_failed_runs,
+            cell,
+        )
+    }
+
+    fn has_covariance(&self, f: &FilterPlan) -> bool {
         f.external
-            || plan
+            || self
+                .plan
                 .system
                 .filters()
                 .get(f.entry)
                 .is_none_or(|i| i.has_covariance)
-    };
-    for a in plan.assertions.iter().filter(|a| !a.needs_replications()) {
-        let before = out.len();
-        let (kind, filter, scenario) = match a {
-            Assertion::RejectionRate { .. } => unreachable!("filtered above"),
-            Assertion::TestPasses {
-                kind,
-                filter,
-                scenario,
-                ..
-            } => (kind.as_str(), filter, scenario),
-            Assertion::RmseBelow {
-                filter, scenario, ..
-            } => ("rmse_below", filter, scenario),
+    }
+
+    /// Consistency tests named by `tests` pass, in every evaluation of every covered cell.
+    fn tests(
+        &self,
+        kind: &str,
+        tests: &[String],
+        select: &Selection,
+        out: &mut Vec<CaseResult>,
+    ) -> Result<(), OutputError> {
+        let t = Table::open(&self.dir.join("consistency.parquet"))?;
+        let order = test_names(&self.plan.system.layout().quantity_names());
+        let evaluations = &self.evaluations;
+        let blocks = consistency_blocks(&t, &order, evaluations)?;
+        let test = t.str("test")?;
+        // With subsets, one cell holds the same test at several (runs, α): name them.
+        let subsets = evaluations.len() > 1;
+        let (stat, lo, hi, p, pass, dir) = (
+            t.f64("statistic")?,
+            t.f64("lower")?,
+            t.f64("upper")?,
+            t.f64("p_value")?,
+            t.bool("pass")?,
+            t.str("direction")?,
+        );
+        // Without a filter named, the assertion covers the filters that have tests (a
+        // filter without a covariance has none, by its kind).
+        let covered = |c: &&PlannedCell<'_>| {
+            select.covers_variant(c.scenario, c.filter)
+                && (select.filter.is_some() || self.has_covariance(c.filter))
         };
-        let matches = |c: &PlannedCell<'_>| {
-            scenario.as_ref().is_none_or(|s| s == c.scenario)
-                && filter.as_ref().is_none_or(|x| *x == c.filter.label)
-        };
-        match a {
-            Assertion::RejectionRate { .. } => {}
-            Assertion::TestPasses { tests, .. } => {
-                let t = cons.as_ref().expect("opened above");
-                let blocks = consistency_blocks(t, &order, &evaluations)?;
-                let test = t.str("test")?;
-                // With subsets, one cell holds the same test at several (runs, α): name them.
-                let subsets = evaluations.len() > 1;
-                let (stat, lo, hi, p, pass, dir) = (
-                    t.f64("statistic")?,
-                    t.f64("lower")?,
-                    t.f64("upper")?,
-                    t.f64("p_value")?,
-                    t.bool("pass")?,
-                    t.str("direction")?,
-                );
-                // Without a filter named, the assertion covers the filters that have tests
-                // (a filter without a covariance has none, by its kind).
-                let covered = |c: &PlannedCell<'_>| {
-                    matches(c) && (filter.is_some() || has_covariance(c.filter))
-                };
-                for c in cells.iter().filter(|c| covered(c)) {
-                    for (e, ev) in evaluations.iter().enumerate() {
-                        let mut cell = c.name.clone();
-                        if subsets {
-                            cell += &format!(" N={} α={}", ev.runs, ev.alpha);
-                        }
-                        let rows = blocks
-                            .get(&c.key)
-                            .and_then(|b| b[e].as_deref())
-                            .unwrap_or(&[]);
-                        for want in tests {
-                            // The per-step fractions are descriptive, kept for the whole
-                            // cell only.
-                            if e > 0 && want.ends_with("_steps_inside") {
-                                continue;
-                            }
-                            let label = if tests.len() > 1 || kind == "test_passes" {
-                                format!("{kind}[{cell} {want}]")
-                            } else {
-                                format!("{kind}[{cell}]")
-                            };
-                            if let Some(why) = runs_problem(
-                                counts.get(&c.key),
-                                e,
-                                ev.runs,
-                                plan.runs,
-                                max_failed,
-                                &cell,
-                            ) {
-                                out.push(CaseResult::incomplete(kind, label, why));
-                                continue;
-                            }
-                            let Some(&i) = rows.iter().find(|&&i| test[i] == *want) else {
-                                out.push(CaseResult::incomplete(
-                                    kind,
-                                    label,
-                                    not_computed(want, &cell, rows, &test),
-                                ));
-                                continue;
-                            };
-                            // A p-value is part of every test but the descriptive fractions.
-                            let needs_p = !want.ends_with("_steps_inside");
-                            let computed = stat[i].is_some_and(f64::is_finite)
-                                && pass[i].is_some()
-                                && (!needs_p || p[i].is_some_and(f64::is_finite));
-                            if !computed {
-                                out.push(CaseResult::incomplete(
-                                    kind,
-                                    label,
-                                    format!(
-                                        "{want} of {cell} could not be computed (statistic {}, p-value {})",
-                                        fmt(stat[i]),
-                                        fmt(p[i])
-                                    ),
-                                ));
-                                continue;
-                            }
-                            // "in" or "outside" by the row's own verdict, so the line never
-                            // reads "in" beside a failure.
-                            let ok = pass[i] == Some(true);
-                            let bounds = match (lo[i], hi[i]) {
-                                (Some(l), Some(h)) => format!(
-                                    "{} [{}, {}]",
-                                    if ok { "in" } else { "outside" },
-                                    fmt(Some(l)),
-                                    fmt(Some(h))
-                                ),
-                                (Some(l), None) => {
-                                    format!("{} {}", if ok { "≥" } else { "<" }, fmt(Some(l)))
-                                }
-                                _ => String::new(),
-                            };
-                            let d = if dir[i].is_empty() {
-                                String::new()
-                            } else {
-                                format!(", {}", dir[i])
-                            };
-                            let detail = if *want == VERDICT {
-                                format!(
-                                    "Bonferroni p-value 2·min(p_NEES, p_NIS) = {} (must exceed α = {}){d}",
-                                    fmt(stat[i]),
-                                    fmt(lo[i])
-                                )
-                            } else {
-                                format!("{want} = {} {bounds} (p = {}{d})", fmt(stat[i]), fmt(p[i]))
-                            };
-                            out.push(CaseResult::judged(
-                                kind,
-                                label,
-                                pass[i] == Some(true),
-                                detail,
-                            ));
-                        }
-                    }
+        for c in self.cells.iter().filter(covered) {
+            for (e, ev) in evaluations.iter().enumerate() {
+                let mut cell = c.name.clone();
+                if subsets {
+                    cell += &format!(" N={} α={}", ev.runs, ev.alpha);
                 }
-            }
-            Assertion::RmseBelow { state, max, .. } => {
-                let st = summary.str("state")?;
-                let mean = summary.f64("rmse_mean")?;
-                // The state's row of each cell.
-                let rows: HashMap<CellKey, usize> = summary
-                    .keys()?
-                    .into_iter()
-                    .enumerate()
-                    .filter(|(i, _)| st[*i] == *state)
-                    .map(|(i, k)| (k, i))
-                    .collect();
-                for c in cells.iter().filter(|c| matches(c)) {
-                    let label = format!("rmse_below[{} {state}]", c.name);
-                    if let Some(why) = runs_problem(
-                        counts.get(&c.key),
-                        0,
-                        plan.runs,
-                        plan.runs,
-                        max_failed,
-                        &c.name,
-                    ) {
+                let rows = blocks
+                    .get(&c.key)
+                    .and_then(|b| b[e].as_deref())
+                    .unwrap_or(&[]);
+                for want in tests {
+                    // The per-step fractions are descriptive, kept for the whole cell only.
+                    if e > 0 && want.ends_with("_steps_inside") {
+                        continue;
+                    }
+                    let label = if tests.len() > 1 || kind == "test_passes" {
+                        format!("{kind}[{cell} {want}]")
+                    } else {
+                        format!("{kind}[{cell}]")
+                    };
+                    if let Some(why) = self.runs_problem(c, e, &cell) {
                         out.push(CaseResult::incomplete(kind, label, why));
                         continue;
                     }
-                    match rows.get(&c.key).map(|&i| mean[i]) {
-                        Some(Some(m)) if m.is_finite() => out.push(CaseResult::judged(
+                    let Some(&i) = rows.iter().find(|&&i| test[i] == *want) else {
+                        out.push(CaseResult::incomplete(
                             kind,
                             label,
-                            m < *max,
-                            format!("rmse_mean = {} (must be < {max})", fmt(Some(m))),
-                        )),
-                        other => out.push(CaseResult::incomplete(
+                            not_computed(want, &cell, rows, &test),
+                        ));
+                        continue;
+                    };
+                    // A p-value is part of every test but the descriptive fractions.
+                    let needs_p = !want.ends_with("_steps_inside");
+                    let computed = stat[i].is_some_and(f64::is_finite)
+                        && pass[i].is_some()
+                        && (!needs_p || p[i].is_some_and(f64::is_finite));
+                    if !computed {
+                        out.push(CaseResult::incomplete(
                             kind,
                             label,
                             format!(
-                                "rmse_mean of {} {state} could not be computed ({})",
-                                c.name,
-                                match other {
-                                    None => "no row in summary.parquet".to_string(),
-                                    Some(v) => format!("rmse_mean = {}", fmt(v)),
-                                }
+                                "{want} of {cell} could not be computed (statistic {}, p-value {})",
+                                fmt(stat[i]),
+                                fmt(p[i])
                             ),
-                        )),
+                        ));
+                        continue;
+                    }
+                    // "in" or "outside" by the row's own verdict, so the line never reads
+                    // "in" beside a failure.
+                    let ok = pass[i] == Some(true);
+                    let bounds = match (lo[i], hi[i]) {
+                        (Some(l), Some(h)) => format!(
+                            "{} [{}, {}]",
+                            if ok { "in" } else { "outside" },
+                            fmt(Some(l)),
+                            fmt(Some(h))
+                        ),
+                        (Some(l), None) => {
+                            format!("{} {}", if ok { "≥" } else { "<" }, fmt(Some(l)))
+                        }
+                        _ => String::new(),
+                    };
+                    let d = if dir[i].is_empty() {
+                        String::new()
+                    } else {
+                        format!(", {}", dir[i])
+                    };
+                    let detail = if *want == VERDICT {
+                        format!(
+                            "Bonferroni p-value 2·min(p_NEES, p_NIS) = {} (must exceed α = {}){d}",
+                            fmt(stat[i]),
+                            fmt(lo[i])
+                        )
+                    } else {
+                        format!("{want} = {} {bounds} (p = {}{d})", fmt(stat[i]), fmt(p[i]))
+                    };
+                    out.push(CaseResult::judged(kind, label, ok, detail));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The mean RMSE over runs of `state` stays below `max` in every covered cell.
+    fn rmse_below(
+        &self,
+        state: &str,
+        max: f64,
+        select: &Selection,
+        out: &mut Vec<CaseResult>,
+    ) -> Result<(), OutputError> {
+        let kind = "rmse_below";
+        let summary = Table::open(&self.dir.join("summary.parquet"))?;
+        let st = summary.str("state")?;
+        let mean = summary.f64("rmse_mean")?;
+        // The state's row of each cell.
+        let rows: HashMap<CellKey, usize> = summary
+            .keys()?
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| st[*i] == state)
+            .map(|(i, k)| (k, i))
+            .collect();
+        for c in self
+            .cells
+            .iter()
+            .filter(|c| select.covers_variant(c.scenario, c.filter))
+        {
+            let label = format!("rmse_below[{} {state}]", c.name);
+            if let Some(why) = self.runs_problem(c, 0, &c.name) {
+                out.push(CaseResult::incomplete(kind, label, why));
+                continue;
+            }
+            match rows.get(&c.key).map(|&i| mean[i]) {
+                Some(Some(m)) if m.is_finite() => out.push(CaseResult::judged(
+                    kind,
+                    label,
+                    m < max,
+                    format!("rmse_mean = {} (must be < {max})", fmt(Some(m))),
+                )),
+                other => out.push(CaseResult::incomplete(
+                    kind,
+                    label,
+                    format!(
+                        "rmse_mean of {} {state} could not be computed ({})",
+                        c.name,
+                        match other {
+                            None => "no row in summary.parquet".to_string(),
+                            Some(v) => format!("rmse_mean = {}", fmt(v)),
+                        }
+                    ),
+                )),
+            }
+        }
+        Ok(())
+    }
+
+    /// Every covered filter variant is no worse than `reference` on the same runs, per state:
+    /// [`paired_excess_test`] of its per-run RMSE against (1 + margin) × the reference's, at α
+    /// shared by the states (Bonferroni), so one case's false-alarm rate is at most α.
+    fn no_worse_than(
+        &self,
+        reference: &str,
+        states: &[String],
+        margin: f64,
+        select: &Selection,
+        out: &mut Vec<CaseResult>,
+    ) -> Result<(), OutputError> {
+        let kind = "no_worse_than";
+        let judged = |c: &&PlannedCell<'_>| {
+            select.covers_variant(c.scenario, c.filter) && c.filter.label != reference
+        };
+        let pairs: Vec<(&PlannedCell<'_>, &PlannedCell<'_>)> = self
+            .cells
+            .iter()
+            .filter(judged)
+            .filter_map(|c| {
+                let r = self.cells.iter().find(|r| {
+                    r.filter.label == reference
+                        && r.key.scenario == c.key.scenario
+                        && r.key.noise == c.key.noise
+                })?;
+                Some((c, r))
+            })
+            .collect();
+        let mut wanted: Vec<CellKey> = Vec::new();
+        for (c, r) in &pairs {
+            wanted.extend([c.key.clone(), r.key.clone()]);
+        }
+        let rmse = run_rmse(
+            &self.dir.join("runs.parquet"),
+            &wanted,
+            states,
+            self.plan.runs,
+        )?;
+        let alpha = self.evaluations[0].alpha / states.len() as f64;
+        let share = if states.len() > 1 {
+            format!(" = α/{}, Bonferroni over the states", states.len())
+        } else {
+            String::new()
+        };
+        for (c, r) in pairs {
+            let problem = self
+                .runs_problem(c, 0, &c.name)
+                .or_else(|| self.runs_problem(r, 0, &r.name));
+            for (s, state) in states.iter().enumerate() {
+                let label = format!("no_worse_than[{} vs {reference} {state}]", c.name);
+                if let Some(why) = &problem {
+                    out.push(CaseResult::incomplete(kind, label, why.clone()));
+                    continue;
+                }
+                let (Some(mine), Some(theirs)) = (rmse.get(&c.key), rmse.get(&r.key)) else {
+                    out.push(CaseResult::incomplete(
+                        kind,
+                        label,
+                        format!("no per-run RMSE of {state} in runs.parquet"),
+                    ));
+                    continue;
+                };
+                let pairs: Vec<(f64, f64)> = mine[s]
+                    .iter()
+                    .zip(&theirs[s])
+                    .filter_map(|(a, b)| a.zip(*b))
+                    .filter(|(a, b)| a.is_finite() && b.is_finite())
+                    .collect();
+                match paired_excess_test(&pairs, margin) {
+                    None => out.push(CaseResult::incomplete(
+                        kind,
+                        label,
+                        format!(
+                            "{} runs have an RMSE of {state} for both filters; the paired test needs 2",
+                            pairs.len()
+                        ),
+                    )),
+                    Some(t) => {
+                        let pass = t.p_value > alpha;
+                        out.push(CaseResult::judged(
+                            kind,
+                            label,
+                            pass,
+                            format!(
+                                "rmse {} vs {} ({:+.1} %, margin {} %): paired t = {:.3} over {} runs, p = {} (fails at p ≤ {}{share})",
+                                fmt(Some(t.mean)),
+                                fmt(Some(t.reference_mean)),
+                                100.0 * (t.mean / t.reference_mean - 1.0),
+                                100.0 * margin,
+                                t.t,
+                                t.runs,
+                                fmt(Some(t.p_value)),
+                                fmt(Some(alpha)),
+                            ),
+                        ));
                     }
                 }
             }
         }
-        settle(a, kind, &mut out, before);
+        Ok(())
     }
+}
+
+/// Per state, each run's value (`None` where the run has none).
+type StateRuns = Vec<Vec<Option<f64>>>;
+
+/// Per cell in `wanted`: per state, each run's RMSE (by run index below `runs`; `None` for a
+/// run without one, e.g. a numerical failure).
+fn run_rmse(
+    path: &Path,
+    wanted: &[CellKey],
+    states: &[String],
+    runs: usize,
+) -> Result<HashMap<CellKey, StateRuns>, OutputError> {
+    let mut out: HashMap<CellKey, StateRuns> = wanted
+        .iter()
+        .map(|k| (k.clone(), vec![vec![None; runs]; states.len()]))
+        .collect();
+    if out.is_empty() {
+        return Ok(out);
+    }
+    crate::output::table::for_each_row_group(path, |df| {
+        let t = Table::of(df, path);
+        let keys = t.keys()?;
+        let run = t.i64("run")?;
+        let columns = states
+            .iter()
+            .map(|s| t.f64(&format!("rmse_{s}")))
+            .collect::<Result<Vec<_>, _>>()?;
+        for (i, key) in keys.iter().enumerate() {
+            let Some(cell) = out.get_mut(key) else {
+                continue;
+            };
+            let Some(r) = run[i]
+                .and_then(|r| usize::try_from(r).ok())
+                .filter(|&r| r < runs)
+            else {
+                continue;
+            };
+            for (s, col) in columns.iter().enumerate() {
+                cell[s][r] = col[i];
+            }
+        }
+        Ok(())
+    })?;
     Ok(out)
+}
+
+/// A paired one-sided t-test over runs of d_i = rmse_i − (1 + margin)·rmse_reference_i.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PairedExcess {
+    /// Runs paired.
+    pub runs: usize,
+    /// The filter's mean RMSE over them.
+    pub mean: f64,
+    /// The reference's mean RMSE over them.
+    pub reference_mean: f64,
+    /// t = d̄ / (s_d / √n).
+    pub t: f64,
+    /// P(T ≥ t) with n − 1 degrees of freedom: small when the filter is worse than
+    /// (1 + margin) × the reference.
+    pub p_value: f64,
+}
+
+/// Tests whether the filter's mean RMSE exceeds (1 + `margin`) × the reference's, from
+/// (filter, reference) RMSE pairs of the same runs; `None` with fewer than 2 pairs. Pairing
+/// removes the runs' common difficulty (the same truth and measurements), so a few runs
+/// separate filters whose RMSEs differ by much less than their spread over runs. With no
+/// spread in the differences the p-value is 0 or 1 by the sign of their mean.
+pub fn paired_excess_test(pairs: &[(f64, f64)], margin: f64) -> Option<PairedExcess> {
+    use statrs::distribution::{ContinuousCDF, StudentsT};
+    let n = pairs.len();
+    if n < 2 {
+        return None;
+    }
+    let nf = n as f64;
+    let d: Vec<f64> = pairs.iter().map(|(a, b)| a - (1.0 + margin) * b).collect();
+    let mean_d = d.iter().sum::<f64>() / nf;
+    let var = d.iter().map(|x| (x - mean_d).powi(2)).sum::<f64>() / (nf - 1.0);
+    let se = (var / nf).sqrt();
+    let (t, p_value) = if se > 0.0 {
+        let t = mean_d / se;
+        let dist = StudentsT::new(0.0, 1.0, nf - 1.0).expect("n ≥ 2 gives a valid t");
+        (t, dist.sf(t))
+    } else if mean_d > 0.0 {
+        (f64::INFINITY, 0.0)
+    } else {
+        (f64::NEG_INFINITY, 1.0)
+    };
+    Some(PairedExcess {
+        runs: n,
+        mean: pairs.iter().map(|p| p.0).sum::<f64>() / nf,
+        reference_mean: pairs.iter().map(|p| p.1).sum::<f64>() / nf,
+        t,
+        p_value,
+    })
 }
 
 /// Why test `want` of `cell` has no row: what the cell's evaluation did compute says which
@@ -655,10 +887,7 @@ pub fn evaluate_power(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, Output
     for a in &plan.assertions {
         let Assertion::RejectionRate {
             test: want,
-            filter,
-            scenario,
-            q_scale,
-            r_scale,
+            select,
             runs: want_runs,
             min,
             max,
@@ -671,10 +900,7 @@ pub fn evaluate_power(plan: &Plan, dir: &Path) -> Result<Vec<CaseResult>, Output
         let before = out.len();
         for i in 0..names.len() {
             let keep = &test[i] == want
-                && scenario.as_ref().is_none_or(|s| s == &sc[i])
-                && filter.as_ref().is_none_or(|x| x == &f[i])
-                && q_scale.is_none_or(|v| q[i] == Some(v))
-                && r_scale.is_none_or(|v| r[i] == Some(v))
+                && select.covers(&sc[i], &f[i], q[i], r[i])
                 && want_runs.is_none_or(|n| runs[i] == Some(n as i64));
             if !keep {
                 continue;
@@ -828,6 +1054,70 @@ pub fn junit(experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
 mod tests {
     use super::*;
 
+    #[test]
+    fn the_paired_excess_test_matches_a_hand_calculation() {
+        // d = (0, 1, 2): mean 1, s = 1, t = 1/(1/√3) = √3. With 2 degrees of freedom the
+        // t distribution's tail has the closed form ½(1 − t/√(t² + 2)).
+        let t = paired_excess_test(&[(1.0, 1.0), (2.0, 1.0), (3.0, 1.0)], 0.0).unwrap();
+        let root3 = 3f64.sqrt();
+        assert!((t.t - root3).abs() < 1e-12, "{t:?}");
+        let closed = 0.5 * (1.0 - root3 / (3.0f64 + 2.0).sqrt());
+        assert!(
+            (t.p_value - closed).abs() < 1e-9,
+            "{} vs {closed}",
+            t.p_value
+        );
+        assert_eq!((t.runs, t.mean, t.reference_mean), (3, 2.0, 1.0));
+        // The margin scales the reference: 2 = (1 + 1) × 1 makes the mean difference 0 − 1.
+        let m = paired_excess_test(&[(1.0, 1.0), (2.0, 1.0), (3.0, 1.0)], 1.0).unwrap();
+        assert!(
+            (m.t - 0.0).abs() < 1e-12 && (m.p_value - 0.5).abs() < 1e-12,
+            "{m:?}"
+        );
+        // Equal runs: no spread, not worse.
+        let same = paired_excess_test(&[(0.5, 0.5), (0.7, 0.7)], 0.0).unwrap();
+        assert_eq!(same.p_value, 1.0);
+        assert!(paired_excess_test(&[(1.0, 1.0)], 0.0).is_none());
+    }
+
+    #[test]
+    fn the_paired_excess_test_rejects_at_rate_alpha_on_its_boundary_and_catches_an_excess() {
+        // Runs share a difficulty c_i (lognormal, spread 30 %); the filter's RMSE is
+        // (1 + margin)·c_i·(1 + δ) + noise and the reference's c_i + noise. On the boundary
+        // (δ = 0) the rejection rate must be α within 3 binomial standard deviations; 5 % worse
+        // than the margin allows, with 30 runs, it must be caught in most replications.
+        use rand::{RngExt, SeedableRng};
+        let normal = |rng: &mut rand_pcg::Pcg64| {
+            let (u, v): (f64, f64) = (rng.random(), rng.random());
+            (-2.0 * (1.0 - u).ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let (alpha, margin, n, reps) = (0.05, 0.1, 30, 4000);
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(36);
+        let mut rate = |delta: f64| {
+            let mut rejected = 0;
+            for _ in 0..reps {
+                let pairs: Vec<(f64, f64)> = (0..n)
+                    .map(|_| {
+                        let c = (0.3 * normal(&mut rng)).exp();
+                        let a = (1.0 + margin) * c * (1.0 + delta) + 0.02 * normal(&mut rng);
+                        let b = c + 0.02 * normal(&mut rng);
+                        (a, b)
+                    })
+                    .collect();
+                let t = paired_excess_test(&pairs, margin).unwrap();
+                rejected += usize::from(t.p_value <= alpha);
+            }
+            rejected as f64 / reps as f64
+        };
+        let null = rate(0.0);
+        let sd = (alpha * (1.0 - alpha) / reps as f64).sqrt();
+        assert!((null - alpha).abs() <= 3.0 * sd, "false-alarm rate {null}");
+        let power = rate(0.05);
+        assert!(power > 0.8, "power {power}");
+        // Better than the reference by the margin: never failed.
+        assert!(rate(-0.2) < 0.001);
+    }
+
     fn counts(present: u64, failed: u64) -> RunCounts {
         RunCounts {
             present: vec![present],
@@ -894,8 +1184,7 @@ mod tests {
         let a = Assertion::TestPasses {
             kind: "consistent".into(),
             tests: vec![VERDICT.into()],
-            filter: None,
-            scenario: None,
+            select: Selection::default(),
             expect_fail: true,
         };
         let mut out = vec![CaseResult::incomplete(

@@ -45,6 +45,44 @@ pub struct FilterPlan {
     pub r_scale: f64,
 }
 
+/// Which cells an assertion covers: each key given narrows it, none covers every cell.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Selection {
+    /// Only the filter with this label.
+    pub filter: Option<String>,
+    /// Only this scenario.
+    pub scenario: Option<String>,
+    /// Only the filter variants with this Q multiplier (external filters have none).
+    pub q_scale: Option<f64>,
+    /// Only the filter variants with this R multiplier (external filters have none).
+    pub r_scale: Option<f64>,
+}
+
+impl Selection {
+    /// Whether the selection covers a cell of `scenario` and filter `label` with the
+    /// multipliers `q`, `r` (`None` for an external filter, as in the tables).
+    pub fn covers(&self, scenario: &str, label: &str, q: Option<f64>, r: Option<f64>) -> bool {
+        self.scenario.as_deref().is_none_or(|s| s == scenario)
+            && self.filter.as_deref().is_none_or(|f| f == label)
+            && self.q_scale.is_none_or(|v| q == Some(v))
+            && self.r_scale.is_none_or(|v| r == Some(v))
+    }
+
+    /// [`Selection::covers`] for a planned filter variant.
+    pub fn covers_variant(&self, scenario: &str, f: &FilterPlan) -> bool {
+        let (q, r) = f.multipliers().unzip();
+        self.covers(scenario, &f.label, q, r)
+    }
+}
+
+impl FilterPlan {
+    /// The variant's (q_scale, r_scale) as the tables key it: `None` for an external filter,
+    /// whose tuning is its own.
+    pub fn multipliers(&self) -> Option<(f64, f64)> {
+        (!self.external).then_some((self.q_scale, self.r_scale))
+    }
+}
+
 /// One validated `[[check.assert]]`.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Assertion {
@@ -55,10 +93,8 @@ pub enum Assertion {
         kind: String,
         /// Test names in consistency.parquet.
         tests: Vec<String>,
-        /// Filter label filter.
-        filter: Option<String>,
-        /// Scenario filter.
-        scenario: Option<String>,
+        /// The cells judged.
+        select: Selection,
         /// A negative control (`expect = "fail"`): every case must fail.
         expect_fail: bool,
     },
@@ -67,14 +103,8 @@ pub enum Assertion {
     RejectionRate {
         /// The test name in power.parquet (default `verdict`).
         test: String,
-        /// Filter label filter.
-        filter: Option<String>,
-        /// Scenario filter.
-        scenario: Option<String>,
-        /// Q-multiplier filter.
-        q_scale: Option<f64>,
-        /// R-multiplier filter.
-        r_scale: Option<f64>,
+        /// The cells judged.
+        select: Selection,
         /// Run-count filter.
         runs: Option<usize>,
         /// Smallest rate allowed.
@@ -88,14 +118,27 @@ pub enum Assertion {
     },
     /// The mean RMSE over runs of a state stays below a bound.
     RmseBelow {
-        /// Filter label filter.
-        filter: Option<String>,
-        /// Scenario filter.
-        scenario: Option<String>,
+        /// The cells judged.
+        select: Selection,
         /// The state.
         state: String,
         /// The bound.
         max: f64,
+        /// A negative control (`expect = "fail"`): every case must fail.
+        expect_fail: bool,
+    },
+    /// A filter is no worse than a reference filter on the same runs: per state, a paired
+    /// one-sided t-test over runs of rmse − (1 + margin)·rmse_reference fails the case when
+    /// the filter's mean RMSE is significantly above (1 + margin) × the reference's.
+    NoWorseThan {
+        /// The cells judged (the reference's own variant is never judged against itself).
+        select: Selection,
+        /// The reference filter's label (one variant).
+        reference: String,
+        /// The states compared (one, or every state).
+        states: Vec<String>,
+        /// The relative RMSE excess tolerated (0.1: 10 %).
+        margin: f64,
         /// A negative control (`expect = "fail"`): every case must fail.
         expect_fail: bool,
     },
@@ -107,7 +150,17 @@ impl Assertion {
         match self {
             Assertion::TestPasses { expect_fail, .. }
             | Assertion::RejectionRate { expect_fail, .. }
-            | Assertion::RmseBelow { expect_fail, .. } => *expect_fail,
+            | Assertion::RmseBelow { expect_fail, .. }
+            | Assertion::NoWorseThan { expect_fail, .. } => *expect_fail,
+        }
+    }
+    /// The cells the assertion covers.
+    pub fn selection(&self) -> &Selection {
+        match self {
+            Assertion::TestPasses { select, .. }
+            | Assertion::RejectionRate { select, .. }
+            | Assertion::RmseBelow { select, .. }
+            | Assertion::NoWorseThan { select, .. } => select,
         }
     }
     /// Whether the assertion is judged on `kfmc power`'s replications, not on one study.
@@ -804,6 +857,7 @@ pub(crate) fn validate_into(
         states: &states,
         system: configured.as_deref(),
         system_index: &system_index,
+        variants: &filters,
         whiteness_lags: consistency.whiteness_lags,
     };
     let assertions = check_asserts(&mut c, &targets);
@@ -1227,6 +1281,8 @@ struct Targets<'a> {
     /// The configured system; `None` when it was refused (checks that need it are skipped).
     system: Option<&'a dyn SystemPlan>,
     system_index: &'a [Option<usize>],
+    /// The filter variants (label × q_scale × r_scale).
+    variants: &'a [FilterPlan],
     /// `consistency.whiteness_lags` (its default without the table).
     whiteness_lags: usize,
 }
@@ -1324,6 +1380,52 @@ fn assert_targets(c: &mut Checker, t: &Targets, key: &str, a: &AssertSpec) {
             format!("unknown state `{st}`; states: {}", t.states.join(", ")),
         );
     }
+    variant_selection(c, t, key, a);
+}
+
+/// `q_scale` / `r_scale` of an assertion must select a variant of the filters it covers, so a
+/// typo is a spec error instead of a case that matches nothing after the whole study ran.
+fn variant_selection(c: &mut Checker, t: &Targets, key: &str, a: &AssertSpec) {
+    let named = |f: &&FilterPlan| a.filter.as_ref().is_none_or(|l| *l == f.label);
+    let of_filter: Vec<&FilterPlan> = t.variants.iter().filter(named).collect();
+    for (name, want, get) in [
+        (
+            "q_scale",
+            a.q_scale,
+            (|f: &FilterPlan| f.q_scale) as fn(&FilterPlan) -> f64,
+        ),
+        ("r_scale", a.r_scale, |f: &FilterPlan| f.r_scale),
+    ] {
+        let Some(v) = want else { continue };
+        if of_filter.is_empty() || of_filter.iter().any(|f| !f.external && get(f) == v) {
+            continue;
+        }
+        let mut have: Vec<f64> = of_filter
+            .iter()
+            .filter(|f| !f.external)
+            .map(|f| get(f))
+            .collect();
+        have.sort_by(f64::total_cmp);
+        have.dedup();
+        let have: Vec<String> = have.iter().map(|x| format!("{x}")).collect();
+        let message = match (&a.filter, have.is_empty()) {
+            (Some(l), true) => format!(
+                "filter `{l}` is external and carries no multipliers, so no variant of it has {name} = {v}"
+            ),
+            (Some(l), false) => format!(
+                "filter `{l}` has no variant with {name} = {v}; its variants have {name} = {}",
+                have.join(", ")
+            ),
+            (None, true) => {
+                format!("no filter variant has {name} = {v} (every filter is external)")
+            }
+            (None, false) => format!(
+                "no filter variant has {name} = {v}; the variants have {name} = {}",
+                have.join(", ")
+            ),
+        };
+        c.err(format!("{key}.{name}"), message);
+    }
 }
 
 /// One assertion of its kind, with the keys its kind does not use reported.
@@ -1341,10 +1443,17 @@ fn assertion(
             c,
             &[
                 ("min", a.min.is_some()),
-                ("q_scale", a.q_scale.is_some()),
-                ("r_scale", a.r_scale.is_some()),
                 ("runs", a.runs.is_some()),
                 ("bound", a.bound.is_some()),
+            ],
+        );
+    }
+    if a.kind != "no_worse_than" {
+        unused(
+            c,
+            &[
+                ("reference", a.reference.is_some()),
+                ("margin", a.margin.is_some()),
             ],
         );
     }
@@ -1354,11 +1463,16 @@ fn assertion(
         "pass",
         &["pass", "fail"],
     ) == "fail";
+    let select = Selection {
+        filter: a.filter.clone(),
+        scenario: a.scenario.clone(),
+        q_scale: a.q_scale,
+        r_scale: a.r_scale,
+    };
     let tests = |names: Vec<String>| Assertion::TestPasses {
         kind: a.kind.clone(),
         tests: names,
-        filter: a.filter.clone(),
-        scenario: a.scenario.clone(),
+        select: select.clone(),
         expect_fail,
     };
     match a.kind.as_str() {
@@ -1401,13 +1515,12 @@ fn assertion(
                 }
             }
         }
-        "rejection_rate" => rejection_rate(c, t, test_names, key, a, expect_fail),
+        "rejection_rate" => rejection_rate(c, t, test_names, key, a, select, expect_fail),
         "rmse_below" => {
             unused(c, &[("test", a.test.is_some())]);
             match (&a.state, a.max) {
                 (Some(state), Some(max)) if positive(max) => Some(Assertion::RmseBelow {
-                    filter: a.filter.clone(),
-                    scenario: a.scenario.clone(),
+                    select,
                     state: state.clone(),
                     max,
                     expect_fail,
@@ -1421,14 +1534,90 @@ fn assertion(
                 }
             }
         }
+        "no_worse_than" => {
+            unused(c, &[("test", a.test.is_some()), ("max", a.max.is_some())]);
+            no_worse_than(c, t, key, a, select, expect_fail)
+        }
         other => {
             c.err(
                 format!("{key}.kind"),
-                format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below, rejection_rate"),
+                format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below, no_worse_than, rejection_rate"),
             );
             None
         }
     }
+}
+
+/// `kind = "no_worse_than"`: a reference of one variant, other than the filter judged, and a
+/// finite margin ≥ 0.
+fn no_worse_than(
+    c: &mut Checker,
+    t: &Targets,
+    key: &str,
+    a: &AssertSpec,
+    select: Selection,
+    expect_fail: bool,
+) -> Option<Assertion> {
+    let reference = match &a.reference {
+        None => {
+            c.err(
+                format!("{key}.reference"),
+                "missing: kind = \"no_worse_than\" needs the label of the reference filter",
+            );
+            None
+        }
+        Some(r) if !t.labels.contains(r) => {
+            c.err(
+                format!("{key}.reference"),
+                format!("no filter labelled `{r}`"),
+            );
+            None
+        }
+        Some(r) => {
+            let variants = t.variants.iter().filter(|f| f.label == *r).count();
+            if variants > 1 {
+                c.err(
+                    format!("{key}.reference"),
+                    format!("`{r}` has {variants} variants (q_scale × r_scale values); a reference is one filter: give the reference variant its own label"),
+                );
+            }
+            if a.filter.as_ref() == Some(r) {
+                c.err(
+                    format!("{key}.filter"),
+                    format!("`{r}` is the reference itself; name the filter judged against it"),
+                );
+            }
+            (variants == 1 && a.filter.as_ref() != Some(r)).then(|| r.clone())
+        }
+    };
+    let margin = match a.margin {
+        Some(m) if m.is_finite() && m >= 0.0 => Some(m),
+        Some(m) => {
+            c.err(
+                format!("{key}.margin"),
+                format!("{m} is not a relative excess ≥ 0 (0.1 tolerates a mean RMSE 10 % above the reference's)"),
+            );
+            None
+        }
+        None => {
+            c.err(
+                format!("{key}.margin"),
+                "missing: the relative RMSE excess tolerated (0 for none, 0.1 for 10 %)",
+            );
+            None
+        }
+    };
+    let states = match &a.state {
+        Some(s) => vec![s.clone()],
+        None => t.states.to_vec(),
+    };
+    Some(Assertion::NoWorseThan {
+        select,
+        reference: reference?,
+        states,
+        margin: margin?,
+        expect_fail,
+    })
 }
 
 /// Reports `test` at `key.test` as none of the system's tests.
@@ -1450,6 +1639,7 @@ fn rejection_rate(
     test_names: &[String],
     key: &str,
     a: &AssertSpec,
+    select: Selection,
     expect_fail: bool,
 ) -> Option<Assertion> {
     let unused_msg = format!("not used by kind = \"{}\"", a.kind);
@@ -1481,12 +1671,9 @@ fn rejection_rate(
             "kind = \"rejection_rate\" needs min (a power) or max (a false-alarm rate)",
         );
     }
-    (a.min.is_some() || a.max.is_some()).then(|| Assertion::RejectionRate {
+    (a.min.is_some() || a.max.is_some()).then_some(Assertion::RejectionRate {
         test,
-        filter: a.filter.clone(),
-        scenario: a.scenario.clone(),
-        q_scale: a.q_scale,
-        r_scale: a.r_scale,
+        select,
         runs: a.runs,
         min,
         max,

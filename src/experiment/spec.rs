@@ -93,23 +93,28 @@ pub struct CheckSpec {
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct AssertSpec {
-    /// `consistent`, `white`, `unbiased`, `test_passes`, `rmse_below` or `rejection_rate`.
+    /// `consistent`, `white`, `unbiased`, `test_passes`, `rmse_below`, `no_worse_than` or
+    /// `rejection_rate`.
     pub kind: String,
     /// Only this filter label (default: every filter).
     pub filter: Option<String>,
     /// Only this scenario (default: every scenario).
     pub scenario: Option<String>,
-    /// The state (`rmse_below`; `unbiased` defaults to every state).
+    /// The state (`rmse_below`; `unbiased` and `no_worse_than` default to every state).
     pub state: Option<String>,
     /// The bound (`rmse_below`: on the mean RMSE over runs; `rejection_rate`: the largest
     /// rate allowed).
     pub max: Option<f64>,
     /// The smallest rejection rate allowed (`rejection_rate`).
     pub min: Option<f64>,
-    /// Only the filter variant with this Q multiplier (`rejection_rate`).
+    /// Only the filter variants with this Q multiplier.
     pub q_scale: Option<f64>,
-    /// Only the filter variant with this R multiplier (`rejection_rate`).
+    /// Only the filter variants with this R multiplier.
     pub r_scale: Option<f64>,
+    /// The reference filter's label (`no_worse_than`).
+    pub reference: Option<String>,
+    /// The relative RMSE excess tolerated against the reference (`no_worse_than`; 0.1 = 10 %).
+    pub margin: Option<f64>,
     /// Only the test at this run count (`rejection_rate`; the study's, or a subset's).
     pub runs: Option<usize>,
     /// What `min`/`max` bound (`rejection_rate`): `estimate` (default, the rate) or

@@ -32,6 +32,7 @@ mod fuzz {
 /// The study pipeline through the binary: commands, folders, writers, resume, shards,
 /// faults, memory, figures.
 mod pipeline {
+    mod check_assertions;
     mod cli;
     mod disk_full;
     mod memory;
