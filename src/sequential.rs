@@ -512,6 +512,29 @@ pub struct Gate {
     pub design: Boundaries,
 }
 
+/// Where a gate looks at a study of N runs per cell.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Looks {
+    /// This many even looks ([`default_looks`]).
+    Count(usize),
+    /// The run counts of the looks, increasing and ending at N.
+    RunCounts(Vec<usize>),
+}
+
+/// A gate's settings that cannot make a gate, naming the setting.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GateError {
+    /// The looks are not a count ≥ 1 or increasing run counts ≥ 2 ending at the study's runs.
+    #[error("{0}")]
+    Looks(String),
+    /// The futility β is outside (0, 1).
+    #[error("β must lie in (0, 1); got {0}")]
+    Futility(f64),
+    /// The design has no boundaries.
+    #[error(transparent)]
+    Design(#[from] SequentialError),
+}
+
 /// The default looks: `count` looks of N/count runs (rounded, distinct, at least 2 runs each).
 pub fn default_looks(runs: usize, count: usize) -> Vec<usize> {
     let mut looks: Vec<usize> = (1..=count)
@@ -526,6 +549,42 @@ pub fn default_looks(runs: usize, count: usize) -> Vec<usize> {
 }
 
 impl Gate {
+    /// The gate of `kfmc power --sequential` (and of the Python `power(sequential=True)`) for
+    /// a study of `runs` runs per cell at level `alpha`: `looks`, `spending` for α and, with
+    /// `futility_beta`, non-binding futility bounds spending β quadratically (t²).
+    pub fn for_study(
+        runs: usize,
+        alpha: f64,
+        looks: &Looks,
+        spending: &Spending,
+        futility_beta: Option<f64>,
+    ) -> Result<Gate, GateError> {
+        let looks = match looks {
+            Looks::Count(0) => {
+                return Err(GateError::Looks("the count of looks must be ≥ 1".into()));
+            }
+            Looks::Count(count) => default_looks(runs, *count),
+            Looks::RunCounts(given) => {
+                let ok = given.iter().all(|&n| n >= 2)
+                    && given.windows(2).all(|w| w[0] < w[1])
+                    && given.last() == Some(&runs);
+                if !ok {
+                    return Err(GateError::Looks(format!(
+                        "the run counts must be ≥ 2, increase and end at the study's {runs} runs per cell; got {given:?}"
+                    )));
+                }
+                given.clone()
+            }
+        };
+        let quadratic = Spending::Power(2.0);
+        let futility = match futility_beta {
+            Some(beta) if !(beta > 0.0 && beta < 1.0) => return Err(GateError::Futility(beta)),
+            Some(beta) => Some((beta, &quadratic)),
+            None => None,
+        };
+        Ok(Gate::new(looks, alpha, spending, futility)?)
+    }
+
     /// The gate of level `alpha` on `looks` (run counts, increasing), spending by `spending`,
     /// with non-binding futility spending `futility = (β, spending)` when given.
     pub fn new(

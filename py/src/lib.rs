@@ -801,7 +801,7 @@ impl RunObserver for SharedObserver<'_> {
 
 /// `kfmc power`: returns the folder holding power.parquet.
 #[pyfunction]
-#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
+#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending="obrien-fleming", futility=None))]
 #[allow(clippy::too_many_arguments)]
 fn power(
     py: Python<'_>,
@@ -814,14 +814,30 @@ fn power(
     quiet: bool,
     force: bool,
     allow_large: bool,
+    sequential: bool,
+    looks: Option<&Bound<'_, PyAny>>,
+    spending: &str,
+    futility: Option<f64>,
 ) -> PyResult<PathBuf> {
     guarded(|| {
         if replications == 0 {
             return Err(SpecError::new_err("replications: must be at least 1"));
         }
+        if !sequential && (looks.is_some() || futility.is_some()) {
+            return Err(PyValueError::new_err(
+                "looks and futility are settings of the sequential gate: pass sequential=True",
+            ));
+        }
         let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
         plan.check_replications(replications, allow_large)
             .map_err(|e| Failure::from(e).into_py())?;
+        let gate = if sequential {
+            Some(sequential_gate(
+                plan.runs, plan.alpha, looks, spending, futility,
+            )?)
+        } else {
+            None
+        };
         let out = out.unwrap_or_else(|| plan.output.join("power"));
         plan.output = out.clone();
         let exec = kfmc::study::ExecOptions {
@@ -831,11 +847,55 @@ fn power(
             checkpoints: None,
         };
         let report = run_study(py, quiet, move |obs| {
-            kfmc::power::power(&plan, replications, plan.master_seed, &out, &exec, obs)
-                .map_err(|e| Failure::from(e).context(format!("power of {}", path.display())))
+            let extras = kfmc::power::PowerExtras {
+                gate: gate.as_ref(),
+                curve: Vec::new(),
+            };
+            kfmc::power::power_with(
+                &plan,
+                replications,
+                plan.master_seed,
+                &out,
+                &exec,
+                obs,
+                &extras,
+            )
+            .map_err(|e| Failure::from(e).context(format!("power of {}", path.display())))
         })?;
         Ok(report.output)
     })
+}
+
+/// The sequential gate of `power(sequential=True, looks=…, spending=…, futility=…)`: `looks`
+/// is a count of even looks (default 10) or the looks' run counts.
+fn sequential_gate(
+    runs: usize,
+    alpha: f64,
+    looks: Option<&Bound<'_, PyAny>>,
+    spending: &str,
+    futility: Option<f64>,
+) -> PyResult<kfmc::sequential::Gate> {
+    use kfmc::sequential::{Gate, Looks, Spending};
+    let looks = match looks {
+        None => Looks::Count(10),
+        Some(v) => match v.extract::<usize>() {
+            Ok(count) => Looks::Count(count),
+            Err(_) => Looks::RunCounts(v.extract::<Vec<usize>>().map_err(|_| {
+                PyValueError::new_err("looks: a count of looks or a list of run counts")
+            })?),
+        },
+    };
+    let spending = match spending {
+        "obrien-fleming" => Spending::OBrienFleming,
+        "pocock" => Spending::Pocock,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "spending: `{other}` is not one of obrien-fleming, pocock"
+            )));
+        }
+    };
+    Gate::for_study(runs, alpha, &looks, &spending, futility)
+        .map_err(|e| PyValueError::new_err(format!("sequential gate: {e}")))
 }
 
 /// TOML text as Python values (tables as dicts).

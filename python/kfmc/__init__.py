@@ -385,10 +385,21 @@ def power(
     threads: Optional[int] = None,
     quiet: bool = False,
     force: bool = False,
+    sequential: bool = False,
+    looks: Union[int, Sequence[int], None] = None,
+    spending: str = "obrien-fleming",
+    futility: Optional[float] = None,
 ) -> pl.DataFrame:
     """Runs the study ``replications`` times with independent seeds (``kfmc power``) and
     returns power.parquet: per (cell, filter variant, test) the rejection rate with its 95 %
-    Clopper–Pearson interval."""
+    Clopper–Pearson interval.
+
+    With ``sequential=True`` it also measures the group-sequential gate (``kfmc power
+    --sequential``): rows with ``sequential`` true hold its rejection rate and the runs it used
+    (``runs_used_mean``, ``runs_used_p05``, ``runs_used_p95``). ``looks`` is a count of even
+    looks (default 10) or the looks' run counts ending at the study's runs per cell;
+    ``spending`` is ``"obrien-fleming"`` or ``"pocock"``; ``futility`` a β in (0, 1) for
+    non-binding futility stopping. Invalid settings raise ``ValueError``."""
     folder = _kfmc.power(
         _spec(spec),
         replications,
@@ -398,6 +409,10 @@ def power(
         threads=threads,
         quiet=quiet,
         force=force,
+        sequential=sequential,
+        looks=looks,
+        spending=spending,
+        futility=futility,
     )
     return pl.read_parquet(Path(folder) / "power.parquet")
 

@@ -96,6 +96,10 @@ def power(
     quiet: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    sequential: bool = False,
+    looks: Union[int, Sequence[int], None] = None,
+    spending: str = "obrien-fleming",
+    futility: Optional[float] = None,
 ) -> "os.PathLike[str]": ...
 def describe(spec: _Spec) -> Dict[str, Any]: ...
 def schema(kind: str, spec: _Spec) -> Dict[str, Any]: ...

@@ -289,59 +289,36 @@ impl SequentialArgs {
         runs: usize,
         alpha: f64,
     ) -> Result<Option<crate::sequential::Gate>, UsageError> {
-        use crate::sequential::{Gate, Spending, default_looks};
+        use crate::sequential::{Gate, GateError, Looks, Spending};
         if !self.sequential {
             return Ok(None);
         }
         let looks = match self.looks.as_deref().map(str::trim) {
-            None => default_looks(runs, 10),
+            None => Looks::Count(10),
             Some(text) if !text.contains(',') => {
-                let count = at_least_one(text).map_err(|e| usage("--looks", e))?;
-                default_looks(runs, count)
+                Looks::Count(at_least_one(text).map_err(|e| usage("--looks", e))?)
             }
-            Some(text) => {
-                let looks = text
-                    .split(',')
+            Some(text) => Looks::RunCounts(
+                text.split(',')
                     .map(|v| {
                         v.trim()
                             .parse::<usize>()
-                            .ok()
-                            .filter(|&n| n >= 2)
-                            .ok_or_else(|| {
-                                usage("--looks", format!("`{v}` is not a run count ≥ 2"))
-                            })
+                            .map_err(|_| usage("--looks", format!("`{v}` is not a run count ≥ 2")))
                     })
-                    .collect::<Result<Vec<_>, _>>()?;
-                if !looks.windows(2).all(|w| w[0] < w[1]) || looks.last() != Some(&runs) {
-                    return Err(usage(
-                        "--looks",
-                        format!(
-                            "the run counts must increase and end at the study's {runs} runs per \
-                             cell; got {text}"
-                        ),
-                    ));
-                }
-                looks
-            }
+                    .collect::<Result<Vec<_>, _>>()?,
+            ),
         };
         let spending = match self.spending {
             SpendingArg::ObrienFleming => Spending::OBrienFleming,
             SpendingArg::Pocock => Spending::Pocock,
         };
-        let quadratic = Spending::Power(2.0);
-        let futility = match self.futility {
-            Some(beta) if !(beta > 0.0 && beta < 1.0) => {
-                return Err(usage(
-                    "--futility",
-                    format!("β must lie in (0, 1); got {beta}"),
-                ));
-            }
-            Some(beta) => Some((beta, &quadratic)),
-            None => None,
-        };
-        Gate::new(looks, alpha, &spending, futility)
+        Gate::for_study(runs, alpha, &looks, &spending, self.futility)
             .map(Some)
-            .map_err(|e| usage("--sequential", e.to_string()))
+            .map_err(|e| match e {
+                GateError::Looks(m) => usage("--looks", m),
+                GateError::Futility(_) => usage("--futility", e.to_string()),
+                GateError::Design(_) => usage("--sequential", e.to_string()),
+            })
     }
 }
 

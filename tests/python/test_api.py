@@ -92,6 +92,31 @@ def test_run_writes_the_tables_the_command_writes(root, kfmc_bin, tmp_path):
     assert_same_tables(tmp_path / "cli", tmp_path / "text")
 
 
+def test_power_with_a_sequential_gate_writes_what_the_command_writes(root, kfmc_bin, tmp_path):
+    spec = root / "experiments" / "ci_consistency.toml"
+    subprocess.run(
+        [kfmc_bin, "power", str(spec), "--out", str(tmp_path / "cli"), "--runs", "20",
+         "--seed", "3", "-q", "--replications", "4", "--sequential", "--looks", "5,10,20",
+         "--futility", "0.2"],
+        check=True,
+    )
+    table = kfmc.power(spec, 4, out=tmp_path / "api", runs=20, seed=3, quiet=True,
+                       sequential=True, looks=[5, 10, 20], futility=0.2)
+    assert filecmp.cmp(tmp_path / "cli" / "power.parquet", tmp_path / "api" / "power.parquet",
+                       shallow=False)
+    gate = table.filter(pl.col("sequential"))
+    assert gate.height == 2  # two scenarios × one filter
+    assert ((gate["runs_used_mean"] >= 5) & (gate["runs_used_mean"] <= 20)).all()
+    with pytest.raises(ValueError, match="sequential=True"):
+        kfmc.power(spec, 2, looks=3, quiet=True)
+    with pytest.raises(ValueError, match="end at the study's 20 runs"):
+        kfmc.power(spec, 2, runs=20, sequential=True, looks=[5, 10], quiet=True,
+                   out=tmp_path / "bad")
+    with pytest.raises(ValueError, match="spending"):
+        kfmc.power(spec, 2, runs=20, sequential=True, spending="haybittle", quiet=True,
+                   out=tmp_path / "bad")
+
+
 def test_validate_describe_schema(root):
     spec = root / "experiments" / "linear_nees.toml"
     v = kfmc.validate(spec)
