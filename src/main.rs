@@ -1,3 +1,3 @@
 fn main() -> std::process::ExitCode {
-    kfmc::cli::main_with(kfmc::system::Registry::builtin())
+    kfmc::cli::main_with(kfmc::systems::builtin())
 }

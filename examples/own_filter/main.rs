@@ -20,12 +20,11 @@ mod user_ekf;
 
 use std::process::ExitCode;
 
-use kfmc::system::Registry;
 use kfmc::systems::planar::PlanarSystem;
 
 fn main() -> ExitCode {
     kfmc::cli::main_with(
-        Registry::builtin()
+        kfmc::systems::builtin()
             .with(system::TargetSystem::new())
             // Same kind as the built-in planar system, so this one replaces it.
             .with(PlanarSystem::new().with_p1_filter(sequential::SequentialKind)),

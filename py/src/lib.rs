@@ -377,7 +377,7 @@ fn prepared(
     allow_large: bool,
     trace_runs: Option<usize>,
 ) -> PyResult<(Plan, PathBuf)> {
-    let registry = Registry::builtin();
+    let registry = kfmc::systems::builtin();
     let (mut plan, path) = load_spec(spec, &registry)?;
     plan.apply(&Overrides {
         runs,
@@ -411,7 +411,7 @@ fn report_dict<'py>(py: Python<'py>, r: &kfmc::study::StudyReport) -> PyResult<B
 /// binary's exit code. This is the command, so it handles SIGINT as the binary does.
 #[pyfunction]
 fn cli_main(py: Python<'_>, argv: Vec<std::ffi::OsString>) -> PyResult<u8> {
-    guarded(|| Ok(py.detach(|| kfmc::cli::main_from_args(argv, &Registry::builtin()))))
+    guarded(|| Ok(py.detach(|| kfmc::cli::main_from_args(argv, &kfmc::systems::builtin()))))
 }
 
 /// The plan's size and resources, or SpecError.
@@ -423,7 +423,7 @@ fn validate<'py>(
     allow_large: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
-        let registry = Registry::builtin();
+        let registry = kfmc::systems::builtin();
         let (plan, _) = load_spec(spec, &registry)?;
         plan.check_limits(allow_large)
             .map_err(|e| Failure::from(e).into_py())?;
@@ -691,7 +691,7 @@ fn score<'py>(
     force: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
-        let registry = Registry::builtin();
+        let registry = kfmc::systems::builtin();
         let mut plan = kfmc::cli::score_plan(&simulation, out, &registry)
             .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
         let memory = attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
@@ -939,7 +939,7 @@ fn load_toml<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>>
 #[pyfunction]
 fn describe<'py>(py: Python<'py>, spec: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
     guarded(|| {
-        let registry = Registry::builtin();
+        let registry = kfmc::systems::builtin();
         let (plan, _) = load_spec(spec, &registry)?;
         let text = py.detach(|| plan.system.describe(&plan).to_toml());
         let table: toml::Table = toml::from_str(&text)
@@ -958,7 +958,7 @@ fn schema<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         use kfmc::output::schema::{self as s, Dtype};
-        let registry = Registry::builtin();
+        let registry = kfmc::systems::builtin();
         let (plan, _) = load_spec(spec, &registry)?;
         let l = plan.layout();
         let (q, z, u, w) = (

@@ -802,7 +802,7 @@ pub fn score_plan(
 
 /// The whole command line for the systems of `registry`: parses the process's arguments,
 /// runs the command and returns the exit code. A downstream crate's `main` is
-/// `kfmc::cli::main_with(Registry::builtin().with(MySystem))`.
+/// `kfmc::cli::main_with(kfmc::systems::builtin().with(MySystem))`.
 pub fn main_with(registry: Registry) -> ExitCode {
     crate::runner::stop_on_signals();
     run(Cli::parse(), &registry)

@@ -18,12 +18,12 @@ use crate::system::Registry;
 
 /// Reads, parses and validates a spec file against the built-in systems.
 pub fn load(path: &Path) -> Result<Plan, SpecErrors> {
-    load_with(path, &Registry::builtin())
+    load_with(path, &crate::systems::builtin())
 }
 
 /// Parses and validates spec text against the built-in systems; `path` names it in errors.
 pub fn parse(text: &str, path: &Path) -> Result<Plan, SpecErrors> {
-    parse_with(text, path, &Registry::builtin())
+    parse_with(text, path, &crate::systems::builtin())
 }
 
 /// Reads, parses and validates a spec file; `registry` supplies the systems.

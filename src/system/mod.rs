@@ -8,9 +8,9 @@
 //!
 //! Everything outside a system's own module — the executor, metrics, tables, check, tune,
 //! plot and CLI — sees only these traits and the [`Layout`] (quantity, input and measurement
-//! names). The built-in systems register through [`Registry::builtin`], which uses exactly the
+//! names). The built-in systems register through [`crate::systems::builtin`], which uses exactly the
 //! public API a downstream crate uses: a user's crate calls
-//! `kfmc::cli::main_with(Registry::builtin().with(MySystem))` and gets every subcommand with
+//! `kfmc::cli::main_with(kfmc::systems::builtin().with(MySystem))` and gets every subcommand with
 //! its own kinds in its specs.
 //!
 //! Most systems whose world is the filter's model plus additive Gaussian noise need not write
@@ -240,11 +240,6 @@ impl Registry {
     /// An empty registry.
     pub fn new() -> Self {
         Registry::default()
-    }
-
-    /// Every system kfmc ships.
-    pub fn builtin() -> Self {
-        crate::systems::register(Registry::new())
     }
 
     /// Adds a system; one of the same kind is replaced (so a user can extend a built-in

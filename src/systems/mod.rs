@@ -9,6 +9,12 @@ pub mod planar;
 
 use crate::system::Registry;
 
+/// Every system kfmc ships, registered through the plugin API exactly as a user's crate
+/// registers its own: `kfmc::cli::main_with(kfmc::systems::builtin().with(MySystem))`.
+pub fn builtin() -> Registry {
+    register(Registry::new())
+}
+
 /// The registration list: every system kfmc ships, in `kfmc list` order.
 pub fn register(registry: Registry) -> Registry {
     registry

@@ -8,7 +8,6 @@ use kfmc::experiment;
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
 use kfmc::study::{ExecOptions, run};
-use kfmc::system::Registry;
 use kfmc::system::world::World;
 use kfmc::systems::drone::world::{DroneParams, DroneScenario, DroneWorld, ImuOutput, Route};
 use kfmc::systems::drone::z;
@@ -16,7 +15,7 @@ use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 fn study(spec: &str, threads: usize) -> tempfile::TempDir {
     let tmp = tempfile::tempdir().unwrap();
-    let mut plan = experiment::parse_with(spec, Path::new("drone.toml"), &Registry::builtin())
+    let mut plan = experiment::parse_with(spec, Path::new("drone.toml"), &kfmc::systems::builtin())
         .unwrap_or_else(|e| panic!("{e:?}"));
     plan.output = tmp.path().to_path_buf();
     run(

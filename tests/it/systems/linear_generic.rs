@@ -12,7 +12,6 @@ use kfmc::model::Model;
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
 use kfmc::study::{ExecOptions, run};
-use kfmc::system::Registry;
 use kfmc::systems::linear::LinearPlan;
 use kfmc::systems::linear_quadrotor::model::{ContinuousLinear, Linear, LinearSensor};
 use polars::prelude::*;
@@ -699,7 +698,7 @@ fn shipped_linear_specs_load_and_list_shows_the_system() {
         "padding is zero"
     );
 
-    let registry = Registry::builtin();
+    let registry = kfmc::systems::builtin();
     let cat = registry.get("linear").expect("registered").catalogue();
     let text = format!("{cat:?}");
     for word in [

@@ -20,7 +20,7 @@ use kfmc::system::world::{
     ModelFilter, NoiseSettings, Realisation, World, WorldFilter, WorldFilterEntry, WorldPlan,
 };
 use kfmc::system::{
-    Catalogue, FilterInfo, Layout, Quantity, Registry, ScenarioInfo, System, SystemPlan, SystemSpec,
+    Catalogue, FilterInfo, Layout, Quantity, ScenarioInfo, System, SystemPlan, SystemSpec,
 };
 use kfmc::trial::{Identity, Marginal};
 use rand_distr::{Distribution, StandardNormal};
@@ -236,7 +236,7 @@ alpha = 0.01
 
 #[test]
 fn an_augmented_state_filter_is_scored_on_the_worlds_quantities() {
-    let registry = Registry::builtin().with(BiasedSystem);
+    let registry = kfmc::systems::builtin().with(BiasedSystem);
     let tmp = tempfile::tempdir().unwrap();
     let mut plan = experiment::parse_with(SPEC, Path::new("biased.toml"), &registry).unwrap();
     plan.output = tmp.path().to_path_buf();
