@@ -13,7 +13,6 @@
 
 pub mod progress;
 pub mod summary;
-
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -337,253 +336,51 @@ fn shard_count(text: &str) -> Result<usize, String> {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Run a Monte Carlo study and write its Parquet tables.
-    Run {
-        /// The spec and the overrides every study command shares.
-        #[command(flatten)]
-        study: StudyArgs,
-        /// Runs per (scenario, noise scale) whose full trajectories go to traces.parquet.
-        #[arg(long)]
-        trace_runs: Option<usize>,
-        /// Draw the figures (PNG) into `<out>/figures` when the run is done.
-        #[arg(long)]
-        plot: bool,
-        /// Run only part I of N (0-based) of the plan, into `<out>/parts/`; `kfmc merge`
-        /// combines the parts. Also read from a Slurm job array (SLURM_ARRAY_TASK_ID and
-        /// SLURM_ARRAY_TASK_COUNT) or, with --shards, a Kubernetes Indexed Job
-        /// (JOB_COMPLETION_INDEX).
-        #[arg(long, value_name = "I/N", conflicts_with = "shards")]
-        shard: Option<String>,
-        /// The number of parts when the index comes from the scheduler's environment.
-        #[arg(long, value_name = "N")]
-        shards: Option<usize>,
-        /// Continue the interrupted run whose checkpoint is in the output folder: its complete
-        /// cells are kept and the tables come out byte-identical to an uninterrupted run. A
-        /// checkpoint of a changed spec, seed or run count is refused, naming what changed.
-        /// Without a checkpoint, the study runs from the start.
-        #[arg(long, conflicts_with = "restart")]
-        resume: bool,
-        /// Discard the checkpoint of an interrupted run and start over.
-        #[arg(long)]
-        restart: bool,
-        /// Least seconds between two checkpoints (one follows each complete cell once this
-        /// much has passed); a kill loses at most this much work plus the cell in progress.
-        #[arg(long, value_name = "SECONDS", default_value_t = 10.0, value_parser = seconds)]
-        checkpoint_every: f64,
-        /// Keep no checkpoint (an interrupted run then starts over).
-        #[arg(long, conflicts_with_all = ["resume", "checkpoint_every"])]
-        no_checkpoint: bool,
-        /// Also write every run of kfmc's filters in the estimates exchange format
-        /// (`estimates.parquet`: est_*, P_*, nu_*, S_*, A_*), as `kfmc score` reads it.
-        #[arg(long)]
-        export_estimates: bool,
-    },
+    Run(run::Run),
     /// Write every run's world for an estimator outside kfmc: truth.parquet,
     /// measurements.parquet, initial.parquet and a manifest saying what they mean. The runs
     /// are those `kfmc run` gives its own filters.
-    Simulate {
-        /// The spec and the shared overrides.
-        #[command(flatten)]
-        study: StudyArgs,
-        /// Simulate only part I of N (0-based), into `<out>/parts/` (or from SLURM_ARRAY_TASK_ID,
-        /// or JOB_COMPLETION_INDEX with --shards).
-        #[arg(long, value_name = "I/N", conflicts_with = "shards")]
-        shard: Option<String>,
-        /// The number of parts when the index comes from the scheduler's environment.
-        #[arg(long, value_name = "N")]
-        shards: Option<usize>,
-    },
+    Simulate(simulate::Simulate),
     /// Score estimates made outside kfmc against a `kfmc simulate` folder: writes the tables
     /// `kfmc run` writes (runs, steps, summary, consistency, divergence), with kfmc's own
     /// filters of the spec run beside them on the same runs.
-    Score {
-        /// A folder written by `kfmc simulate`.
-        dir: PathBuf,
-        /// Estimates files (Parquet; `kfmc schema estimates SPEC` lists the columns).
-        #[arg(long, required = true, num_args = 1..)]
-        estimates: Vec<PathBuf>,
-        /// Output folder for the tables (default: DIR/score).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Worker threads; 0 = all cores.
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// No progress bar and no report.
-        #[arg(long, short)]
-        quiet: bool,
-        /// Write into a non-empty output folder that is not a kfmc result folder, or replace
-        /// a folder that holds another command's result.
-        #[arg(long)]
-        force: bool,
-    },
+    Score(score::Score),
     /// Run the study R times with independent master seeds and write power.parquet: per
     /// (cell, filter variant, test) the rejection rate with its 95 % interval and the
     /// statistic's distribution — the false-alarm rate at the true Q and R, the power against
     /// every q_scale/r_scale variant.
-    Power {
-        /// The spec and the shared overrides (`--seed` is the base seed of the replications;
-        /// `--out` the folder of power.parquet, default `<output>/power`).
-        #[command(flatten)]
-        study: StudyArgs,
-        /// Independent replications of the whole study.
-        #[arg(long, short = 'R')]
-        replications: usize,
-        /// Also measure a group-sequential gate: per cell and filter variant, the verdict's
-        /// tests looked at after each look's runs, stopping when settled (rows with
-        /// `sequential` true, with the runs each replication used).
-        #[command(flatten)]
-        sequential: SequentialArgs,
-        /// How many runs do I need: also evaluate the tests on the first N/10, 2N/10, … runs
-        /// of each cell and print the smallest run count whose verdict reaches this power
-        /// against the `--against` variant.
-        #[arg(long, requires = "against", value_name = "POWER")]
-        target_power: Option<f64>,
-        /// The mistuned variant the power is wanted against, e.g. `q_scale=0.9` or
-        /// `q_scale=1,r_scale=1.1`.
-        #[arg(long, requires = "target_power", value_name = "KEY=VALUE[,…]")]
-        against: Option<String>,
-    },
+    Power(power::Power),
     /// Print the columns of an exchange table for a spec.
-    Schema {
-        /// Which table.
-        #[arg(value_enum)]
-        table: SchemaTable,
-        /// The experiment spec (TOML).
-        spec: PathBuf,
-    },
+    Schema(schema::Schema),
     /// Combine the parts of a sharded study (`run --shard i/n`) into the tables one process
     /// would have written, byte for byte.
-    Merge {
-        /// The study's output folder (holding `parts/`).
-        dir: PathBuf,
-        /// Write into the folder although it holds files no kfmc study wrote, or another
-        /// kind of result than the parts'.
-        #[arg(long)]
-        force: bool,
-    },
+    Merge(merge::Merge),
     /// Write Slurm job scripts for a sharded study: an array job (one part per task), a merge
     /// job to run after it (`--dependency=afterok`), and `submit.sh` that submits both.
-    Slurm {
-        /// The experiment spec (TOML).
-        spec: PathBuf,
-        /// Number of array tasks (parts), 1 to 100,000.
-        #[arg(long, value_parser = shard_count)]
-        shards: usize,
-        /// Output folder (overrides the spec's `output`); the scripts go to `<out>/slurm/`.
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Slurm partition.
-        #[arg(long)]
-        partition: Option<String>,
-        /// Time limit per task, in Slurm's format (e.g. 01:00:00).
-        #[arg(long)]
-        time: Option<String>,
-        /// CPUs per task (kfmc uses them all), at least 1.
-        #[arg(long, default_value_t = 1, value_parser = at_least_one)]
-        cpus: usize,
-        /// Runs per cell (overrides `runs`) in every task.
-        #[arg(long)]
-        runs: Option<usize>,
-        /// Master seed (overrides `master_seed`) in every task.
-        #[arg(long)]
-        seed: Option<u64>,
-    },
+    Slurm(slurm::Slurm),
     /// Show which parts of a sharded study are complete.
-    Status {
-        /// The study's output folder (holding `parts/`).
-        dir: PathBuf,
-    },
+    Status(status::Status),
     /// Run a study and evaluate its `[check]` assertions (consistency verdicts, RMSE bounds,
     /// whiteness) for CI. Exit 0 when all hold, 3 when one fails, 4 when none fails but one
     /// could not be judged on the runs the spec declares (incomplete), 2 for an invalid spec.
-    Check {
-        /// The spec (with a `[check]` section) and the shared overrides.
-        #[command(flatten)]
-        study: StudyArgs,
-        /// Also write the results as JUnit XML to this file.
-        #[arg(long)]
-        junit: Option<PathBuf>,
-        /// Judge the spec's external filters from these estimates files (made from `kfmc
-        /// simulate`'s tables of the same spec, runs and seed).
-        #[arg(long, num_args = 1..)]
-        estimates: Vec<PathBuf>,
-        /// Judge estimates files that carry no world stamp (`kfmc.world_stamp`), with a
-        /// warning: nothing then ties them to this spec's runs.
-        #[arg(long, requires = "estimates")]
-        allow_unstamped: bool,
-        /// Replications for the `rejection_rate` assertions (overrides `check.replications`):
-        /// they are judged on `kfmc power`'s table, written to `<out>/power`.
-        #[arg(long, short = 'R', value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
-        replications: Option<usize>,
-    },
+    Check(check::Check),
     /// Search a filter's Q scale (and R scale with --tune-r) for consistency or minimum RMSE:
     /// a coarse log grid, then a refinement; writes tuning.parquet.
-    Tune {
-        /// The spec and the shared overrides.
-        #[command(flatten)]
-        study: StudyArgs,
-        /// What to optimise.
-        #[arg(long, value_enum, default_value_t = crate::tune::Objective::Consistency)]
-        objective: crate::tune::Objective,
-        /// Also search the R scale (2-D grid).
-        #[arg(long)]
-        tune_r: bool,
-        /// The filter label to tune (default: the first EKF).
-        #[arg(long)]
-        filter: Option<String>,
-    },
+    Tune(tune::Tune),
     /// Check a spec and print the plan size and its estimated memory and disk, without
     /// running it. Plans above the documented limits are refused (exit 2).
-    Validate {
-        /// The experiment spec (TOML).
-        spec: PathBuf,
-        /// Accept a plan above the memory, disk or step limits.
-        #[arg(long)]
-        allow_large: bool,
-    },
+    Validate(validate::Validate),
     /// Print a system's analysis for a spec and write it as TOML: per scenario F, G, H, Q
     /// and R along the clean trajectory, the observability ranks (whole sensor set, each
     /// component, each sensor group), the steady-state gain and its poles, and per filter the
     /// NEES variance inflation ρ and the tests' effective degrees of freedom.
-    Describe {
-        /// The experiment spec (TOML).
-        spec: PathBuf,
-        /// The TOML file to write (default: the spec's output folder / describe.toml).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Only print; write no file.
-        #[arg(long, conflicts_with = "out")]
-        no_write: bool,
-    },
+    Describe(describe::Describe),
     /// Print the RMSE summary (and divergence points) of a result folder.
-    Summary {
-        /// A folder written by `kfmc run`.
-        dir: PathBuf,
-        /// Only this truth-noise multiplier.
-        #[arg(long)]
-        noise_scale: Option<f64>,
-    },
+    Summary(summary::Summary),
     /// Draw every figure the tables of a result folder support (read from the Parquet files).
-    Plot {
-        /// A folder written by `kfmc run`.
-        dir: PathBuf,
-        /// Figure folder (default: DIR/figures).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Image format.
-        #[arg(long, value_enum, default_value_t = Format::Png)]
-        format: Format,
-        /// Only these figure kinds (repeatable); default: all the data supports.
-        #[arg(long, value_enum, num_args = 1..)]
-        only: Vec<FigureKind>,
-    },
+    Plot(plot::Plot),
     /// Write one self-contained HTML report (spec, provenance, tables, figures).
-    Report {
-        /// A folder written by `kfmc run`.
-        dir: PathBuf,
-        /// The HTML file (default: DIR/report.html).
-        #[arg(long)]
-        out: Option<PathBuf>,
-    },
+    Report(report::Report),
     /// List the registered systems with their sensors, scenarios and filter kinds.
     List,
 }
@@ -841,7 +638,7 @@ pub fn run(cli: Cli, registry: &Registry) -> ExitCode {
     ExitCode::from(run_code(cli, registry))
 }
 
-/// [`run`], returning the exit code as a number.
+/// [`run()`], returning the exit code as a number.
 pub fn run_code(cli: Cli, registry: &Registry) -> u8 {
     match dispatch(cli, registry) {
         Ok(()) => EXIT_OK,
@@ -884,6 +681,23 @@ macro_rules! outln {
     };
 }
 
+// One file per command: its arguments and what it does (parse → library call → print).
+pub mod check;
+pub mod describe;
+pub mod list;
+pub mod merge;
+pub mod plot;
+pub mod power;
+pub mod report;
+pub mod run;
+pub mod schema;
+pub mod score;
+pub mod simulate;
+pub mod slurm;
+pub mod status;
+pub mod tune;
+pub mod validate;
+
 /// Lists the tables a command wrote with their row counts.
 fn print_tables(tables: &[(String, u64)]) {
     for (name, rows) in tables {
@@ -899,518 +713,21 @@ fn plot_dir(dir: &std::path::Path, opts: &PlotOptions) -> anyhow::Result<Vec<Pat
 
 fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
     match cli.command {
-        Command::Run {
-            study,
-            trace_runs,
-            plot,
-            shard,
-            shards,
-            resume,
-            restart,
-            checkpoint_every,
-            no_checkpoint,
-            export_estimates,
-        } => {
-            let checkpoints = (!no_checkpoint).then(|| crate::study::Checkpoints {
-                every: std::time::Duration::from_secs_f64(checkpoint_every),
-                existing: if resume {
-                    crate::study::ExistingCheckpoint::Resume
-                } else if restart {
-                    crate::study::ExistingCheckpoint::Discard
-                } else {
-                    crate::study::ExistingCheckpoint::Refuse
-                },
-            });
-            let shard = shard_arg(&study.spec, shard.as_deref(), shards)?;
-            let mut plan = study.plan(registry, trace_runs)?;
-            plan.export_estimates = export_estimates;
-            let threads = study.threads(study.quiet);
-            let StudyArgs {
-                spec, quiet, force, ..
-            } = study;
-            let observer = ProgressObserver::new(!quiet);
-            let report = crate::study::run(
-                &plan,
-                &crate::study::ExecOptions {
-                    threads,
-                    force,
-                    shard,
-                    checkpoints,
-                },
-                &observer,
-            )
-            .map_err(anyhow::Error::from)
-            .map_err(|e| e.context(format!("running {}", spec.display())))?;
-            if !quiet {
-                if report.cells_resumed > 0 {
-                    outln!(
-                        "{} cells continued from the checkpoint, not recomputed",
-                        report.cells_resumed
-                    );
-                }
-                outln!(
-                    "{} runs in {:.1} s ({:.0} runs/s) → {}",
-                    report.runs,
-                    report.wall_s,
-                    report.runs as f64 / report.wall_s.max(1e-9),
-                    report.output.display()
-                );
-                print_tables(&report.tables);
-            }
-            if plot {
-                let files = plot_dir(&report.output, &PlotOptions::default())?;
-                if !quiet {
-                    outln!(
-                        "  {} figures in {}",
-                        files.len(),
-                        report.output.join("figures").display()
-                    );
-                }
-            }
-            Ok(())
-        }
-        Command::Plot {
-            dir,
-            out,
-            format,
-            only,
-        } => {
-            let files = plot_dir(&dir, &PlotOptions { out, format, only })?;
-            for f in &files {
-                outln!("{}", f.display());
-            }
-            Ok(())
-        }
-        Command::Report { dir, out } => {
-            let path = crate::plot::report::write_report(&dir, out.as_deref())
-                .map_err(KfmcError::from)
-                .map_err(|e| {
-                    anyhow::Error::from(e)
-                        .context(format!("writing the report of {}", dir.display()))
-                })?;
-            outln!("{}", path.display());
-            Ok(())
-        }
-        Command::Simulate {
-            study,
-            shard,
-            shards,
-        } => {
-            let shard = shard_arg(&study.spec, shard.as_deref(), shards)?;
-            let plan = study.plan(registry, None)?;
-            let threads = study.threads(study.quiet);
-            let observer = ProgressObserver::new(!study.quiet);
-            let report = crate::simulate::simulate(
-                &plan,
-                &crate::study::ExecOptions {
-                    threads,
-                    force: study.force,
-                    shard,
-                    checkpoints: None,
-                },
-                &observer,
-            )
-            .map_err(anyhow::Error::from)
-            .map_err(|e| e.context(format!("simulating {}", study.spec.display())))?;
-            if !study.quiet {
-                outln!(
-                    "{} runs simulated in {:.1} s → {}",
-                    report.runs,
-                    report.wall_s,
-                    report.output.display()
-                );
-                print_tables(&report.tables);
-            }
-            Ok(())
-        }
-        Command::Score {
-            dir,
-            estimates,
-            out,
-            threads,
-            quiet,
-            force,
-        } => {
-            let mut plan = score_plan(&dir, out, registry)?;
-            attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
-            let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let observer = ProgressObserver::new(!quiet);
-            let report = crate::study::run(
-                &plan,
-                &crate::study::ExecOptions {
-                    threads: if threads == 0 { 0 } else { threads.min(cpus) },
-                    force,
-                    shard: None,
-                    checkpoints: None,
-                },
-                &observer,
-            )
-            .map_err(anyhow::Error::from)
-            .map_err(|e| e.context(format!("scoring against {}", dir.display())))?;
-            if !quiet {
-                outln!(
-                    "{} runs scored in {:.1} s → {}",
-                    report.runs,
-                    report.wall_s,
-                    report.output.display()
-                );
-                print_tables(&report.tables);
-            }
-            Ok(())
-        }
-        Command::Power {
-            study,
-            replications,
-            sequential,
-            target_power,
-            against,
-        } => {
-            let target = match (target_power, against.as_deref()) {
-                (Some(p), Some(a)) => Some((power_target(p)?, against_variant(a)?)),
-                _ => None,
-            };
-            if replications == 0 {
-                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-                    crate::error::SpecError {
-                        file: study.spec.clone(),
-                        key_path: "--replications".into(),
-                        message: "must be at least 1".into(),
-                    },
-                ]))
-                .into());
-            }
-            let out_given = study.out.clone();
-            let mut plan = study.plan(registry, Some(0))?;
-            plan.check_replications(replications, study.allow_large)
-                .map_err(KfmcError::from)?;
-            let gate = sequential.gate(plan.runs, plan.alpha)?;
-            let curve = if target.is_some() {
-                crate::sequential::default_looks(plan.runs, 10)
-            } else {
-                Vec::new()
-            };
-            let out = out_given.unwrap_or_else(|| plan.output.join("power"));
-            plan.output = out.clone();
-            let threads = study.threads(study.quiet);
-            let observer = ProgressObserver::new(!study.quiet);
-            let report = crate::power::power_with(
-                &plan,
-                replications,
-                plan.master_seed,
-                &out,
-                &crate::study::ExecOptions {
-                    threads,
-                    force: study.force,
-                    shard: None,
-                    checkpoints: None,
-                },
-                &observer,
-                &crate::power::PowerExtras {
-                    gate: gate.as_ref(),
-                    curve,
-                },
-            )
-            .map_err(anyhow::Error::from)
-            .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
-            if !study.quiet {
-                outln!(
-                    "{replications} replications ({} runs) in {:.1} s → {}",
-                    report.runs,
-                    report.wall_s,
-                    report.output.display()
-                );
-                print_tables(&report.tables);
-            }
-            if let (Some((target, variant)), Some(text)) = (target, against.as_deref()) {
-                emit(&runs_needed(
-                    &report.output.join("power.parquet"),
-                    target,
-                    variant,
-                    text,
-                )?);
-            }
-            Ok(())
-        }
-        Command::Schema { table, spec } => {
-            let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-            emit(&schema_text(table, &plan));
-            Ok(())
-        }
-        Command::Check {
-            study,
-            junit,
-            estimates,
-            allow_unstamped,
-            replications,
-        } => {
-            let mut plan = study.plan(registry, None)?;
-            if !estimates.is_empty() {
-                let unstamped = if allow_unstamped {
-                    Unstamped::Warn
-                } else {
-                    Unstamped::Refuse
-                };
-                attach_estimates(&mut plan, &estimates, unstamped)?;
-            }
-            let threads = study.threads(study.quiet);
-            let StudyArgs {
-                spec,
-                quiet,
-                force,
-                allow_large,
-                ..
-            } = study;
-            let exec = crate::study::ExecOptions {
-                threads,
-                force,
-                shard: None,
-                checkpoints: None,
-            };
-            let outcome = crate::check::run(plan, &spec, replications, allow_large, &exec, || {
-                ProgressObserver::new(!quiet)
-            })
-            .map_err(|e| match e {
-                crate::check::RunError::Invalid(e) => anyhow::Error::from(e),
-                crate::check::RunError::Stage { context, source } => {
-                    anyhow::Error::from(*source).context(context)
-                }
-            })?;
-            emit(&outcome.render());
-            if let Some(path) = junit {
-                std::fs::write(&path, outcome.junit()).map_err(|e| {
-                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
-                })?;
-            }
-            let cases = &outcome.cases;
-            let (failed, incomplete) = crate::check::tally(cases);
-            if failed + incomplete > 0 {
-                return Err(CheckFailed {
-                    failed,
-                    incomplete,
-                    total: cases.len(),
-                }
-                .into());
-            }
-            Ok(())
-        }
-        Command::Tune {
-            study,
-            objective,
-            tune_r,
-            filter,
-        } => {
-            let plan = study.plan(registry, None)?;
-            let threads = study.threads(study.quiet);
-            let StudyArgs {
-                spec, quiet, force, ..
-            } = study;
-            let observer = ProgressObserver::new(!quiet);
-            let opts = crate::tune::TuneOptions {
-                objective,
-                tune_r,
-                filter,
-                threads,
-                force,
-            };
-            let report = crate::tune::tune(&plan, &opts, &observer)
-                .map_err(anyhow::Error::from)
-                .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
-            let (q, r, obj) = report.best;
-            let pts: Vec<_> = report
-                .points
-                .iter()
-                .filter(|p| p.q_scale == q && p.r_scale == r)
-                .collect();
-            let mean = |f: &dyn Fn(&crate::tune::TunePoint) -> Option<f64>| {
-                let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
-                (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-            };
-            let fmt = |v: Option<f64>| v.map_or("—".into(), |x| format!("{x:.4}"));
-            outln!(
-                "kfmc tune {}: filter {}, objective {:?}, {} candidates evaluated → {}",
-                plan.name,
-                report.filter,
-                objective,
-                report.points.len(),
-                report.table.display()
-            );
-            outln!(
-                "best q_scale = {q}, r_scale = {r}: objective {obj:.4}, ANEES {} (n = {}), ANIS {} (p = {})",
-                fmt(mean(&|p| p.anees)),
-                plan.layout().quantities.len(),
-                fmt(mean(&|p| p.anis)),
-                plan.layout().measurements.len()
-            );
-            if report.per_noise_scale.len() > 1 {
-                outln!("best per truth-noise scale (over the scenarios):");
-                for (s, q, r, o) in &report.per_noise_scale {
-                    let pts: Vec<_> = report
-                        .points
-                        .iter()
-                        .filter(|p| p.noise_scale == *s && p.q_scale == *q && p.r_scale == *r)
-                        .collect();
-                    let m = |f: &dyn Fn(&crate::tune::TunePoint) -> Option<f64>| {
-                        let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
-                        (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-                    };
-                    outln!(
-                        "  noise_scale {s:<6} q_scale {q:<10} r_scale {r:<10} objective {o:.4}  ANEES {}  ANIS {}",
-                        fmt(m(&|p| p.anees)),
-                        fmt(m(&|p| p.anis))
-                    );
-                }
-            }
-            Ok(())
-        }
-        Command::Validate { spec, allow_large } => {
-            let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-            plan.check_limits(allow_large).map_err(KfmcError::from)?;
-            outln!("{}", describe(&plan));
-            Ok(())
-        }
-        Command::Describe {
-            spec,
-            out,
-            no_write,
-        } => {
-            let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-            let description = plan.system.describe(&plan);
-            emit(&description.render());
-            if !no_write {
-                let path = out.unwrap_or_else(|| plan.output.join("describe.toml"));
-                let parent = path
-                    .parent()
-                    .filter(|p| !p.as_os_str().is_empty())
-                    .unwrap_or(std::path::Path::new("."));
-                // The folder's writers share one lock: a study being written there, or
-                // another describe, is never written beside.
-                let _held = crate::output::folder::FolderLock::acquire(parent)
-                    .map_err(KfmcError::from)
-                    .map_err(|e| {
-                        anyhow::Error::from(e).context(format!("writing {}", path.display()))
-                    })?;
-                crate::output::folder::write_atomic(&path, description.to_toml().as_bytes())
-                    .map_err(|e| {
-                        anyhow::Error::from(e).context(format!("writing {}", path.display()))
-                    })?;
-                outln!("wrote {}", path.display());
-            }
-            Ok(())
-        }
-        Command::Summary { dir, noise_scale } => {
-            if let Some(x) = noise_scale.filter(|x| !x.is_finite() || *x <= 0.0) {
-                return Err(UsageError {
-                    flag: "--noise-scale".into(),
-                    message: format!("{x} is not a truth-noise multiplier (a finite number > 0)"),
-                }
-                .into());
-            }
-            let text = summary::render(&dir, noise_scale)
-                .map_err(KfmcError::from)
-                .map_err(|e| {
-                    anyhow::Error::from(e).context(format!("reading results in {}", dir.display()))
-                })?;
-            emit(&text);
-            Ok(())
-        }
-        Command::Merge { dir, force } => {
-            let report = crate::merge::merge(&dir, force, registry)
-                .map_err(anyhow::Error::from)
-                .map_err(|e| e.context(format!("merging {}", dir.display())))?;
-            outln!(
-                "{} parts merged in {:.1} s → {}",
-                report.parts,
-                report.wall_s,
-                dir.display()
-            );
-            print_tables(&report.tables);
-            Ok(())
-        }
-        Command::Slurm {
-            spec,
-            shards,
-            out,
-            partition,
-            time,
-            cpus,
-            runs,
-            seed,
-        } => {
-            let mut plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-            plan.apply(&Overrides {
-                runs,
-                master_seed: seed,
-                output: out,
-                trace_runs: None,
-            })
-            .map_err(KfmcError::from)?;
-            plan.check_limits(false).map_err(KfmcError::from)?;
-            // An array task runs `kfmc run --shards`, which cannot compute a filter kfmc
-            // does not run: every task would fail on the cluster.
-            if let Some(f) = plan.filters.iter().find(|f| f.external) {
-                return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-                    crate::error::SpecError {
-                        file: spec.clone(),
-                        key_path: "filters".into(),
-                        message: format!(
-                            "filter `{}` is external (kind = \"external\"): the array tasks run `kfmc run`, which cannot compute it; shard `kfmc simulate --shard i/n` instead and score the merged simulation",
-                            f.label
-                        ),
-                    },
-                ]))
-                .into());
-            }
-            let abs =
-                |p: &std::path::Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
-            let output = abs(&plan.output);
-            let dir = output.join("slurm");
-            let exe = std::env::current_exe().map_err(anyhow::Error::from)?;
-            let files = crate::merge::slurm_scripts(
-                &exe,
-                &abs(&spec),
-                &output,
-                &plan.name,
-                &crate::merge::SlurmOptions {
-                    shards,
-                    partition,
-                    time,
-                    cpus,
-                    runs,
-                    seed,
-                },
-            )
-            .map_err(|(flag, message)| UsageError {
-                flag: flag.into(),
-                message,
-            })?;
-            std::fs::create_dir_all(&dir).map_err(|e| {
-                anyhow::Error::from(e).context(format!("creating {}", dir.display()))
-            })?;
-            for (name, text) in files {
-                let path = dir.join(&name);
-                crate::output::folder::write_atomic(&path, text.as_bytes()).map_err(|e| {
-                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
-                })?;
-                if name.ends_with(".sh") {
-                    use std::os::unix::fs::PermissionsExt;
-                    let _ = std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755));
-                }
-                outln!("{}", path.display());
-            }
-            Ok(())
-        }
-        Command::Status { dir } => {
-            let text = crate::merge::status(&dir)
-                .map_err(KfmcError::from)
-                .map_err(|e| {
-                    anyhow::Error::from(e).context(format!("reading {}", dir.display()))
-                })?;
-            emit(&text);
-            Ok(())
-        }
-        Command::List => {
-            emit(&list(registry));
-            Ok(())
-        }
+        Command::Run(c) => c.execute(registry),
+        Command::Simulate(c) => c.execute(registry),
+        Command::Score(c) => c.execute(registry),
+        Command::Power(c) => c.execute(registry),
+        Command::Schema(c) => c.execute(registry),
+        Command::Merge(c) => c.execute(registry),
+        Command::Slurm(c) => c.execute(registry),
+        Command::Status(c) => c.execute(),
+        Command::Check(c) => c.execute(registry),
+        Command::Tune(c) => c.execute(registry),
+        Command::Validate(c) => c.execute(registry),
+        Command::Describe(c) => c.execute(registry),
+        Command::Summary(c) => c.execute(),
+        Command::Plot(c) => c.execute(),
+        Command::Report(c) => c.execute(),
+        Command::List => list::execute(registry),
     }
 }

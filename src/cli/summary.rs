@@ -402,3 +402,34 @@ fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, 
     }
     Ok(out)
 }
+
+/// The arguments of `kfmc summary`.
+#[derive(Debug, clap::Args)]
+pub struct Summary {
+    /// A folder written by `kfmc run`.
+    pub dir: std::path::PathBuf,
+    /// Only this truth-noise multiplier.
+    #[arg(long)]
+    pub noise_scale: Option<f64>,
+}
+
+impl Summary {
+    /// Runs the command.
+    pub(super) fn execute(self) -> anyhow::Result<()> {
+        let Self { dir, noise_scale } = self;
+        if let Some(x) = noise_scale.filter(|x| !x.is_finite() || *x <= 0.0) {
+            return Err(super::UsageError {
+                flag: "--noise-scale".into(),
+                message: format!("{x} is not a truth-noise multiplier (a finite number > 0)"),
+            }
+            .into());
+        }
+        let text = render(&dir, noise_scale)
+            .map_err(crate::error::KfmcError::from)
+            .map_err(|e| {
+                anyhow::Error::from(e).context(format!("reading results in {}", dir.display()))
+            })?;
+        super::emit(&text);
+        Ok(())
+    }
+}

@@ -1,0 +1,68 @@
+//! `kfmc score`: score estimates made outside kfmc against a `kfmc simulate` folder: writes the
+//! tables `kfmc run` writes (runs, steps, summary, consistency, divergence), with kfmc's own
+//! filters of the spec run beside them on the same runs.
+
+use super::*;
+
+/// The arguments of `kfmc score`.
+#[derive(Debug, clap::Args)]
+pub struct Score {
+    /// A folder written by `kfmc simulate`.
+    pub dir: PathBuf,
+    /// Estimates files (Parquet; `kfmc schema estimates SPEC` lists the columns).
+    #[arg(long, required = true, num_args = 1..)]
+    pub estimates: Vec<PathBuf>,
+    /// Output folder for the tables (default: DIR/score).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Worker threads; 0 = all cores.
+    #[arg(long, default_value_t = 0)]
+    pub threads: usize,
+    /// No progress bar and no report.
+    #[arg(long, short)]
+    pub quiet: bool,
+    /// Write into a non-empty output folder that is not a kfmc result folder, or replace
+    /// a folder that holds another command's result.
+    #[arg(long)]
+    pub force: bool,
+}
+
+impl Score {
+    /// Runs the command.
+    pub(super) fn execute(self, registry: &Registry) -> anyhow::Result<()> {
+        let Self {
+            dir,
+            estimates,
+            out,
+            threads,
+            quiet,
+            force,
+        } = self;
+        let mut plan = score_plan(&dir, out, registry)?;
+        attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
+        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let observer = ProgressObserver::new(!quiet);
+        let report = crate::study::run(
+            &plan,
+            &crate::study::ExecOptions {
+                threads: if threads == 0 { 0 } else { threads.min(cpus) },
+                force,
+                shard: None,
+                checkpoints: None,
+            },
+            &observer,
+        )
+        .map_err(anyhow::Error::from)
+        .map_err(|e| e.context(format!("scoring against {}", dir.display())))?;
+        if !quiet {
+            outln!(
+                "{} runs scored in {:.1} s → {}",
+                report.runs,
+                report.wall_s,
+                report.output.display()
+            );
+            print_tables(&report.tables);
+        }
+        Ok(())
+    }
+}
