@@ -401,6 +401,8 @@ struct Judge<'a> {
     /// The whole cell, then each subset, as the study evaluates them.
     evaluations: Vec<Evaluation>,
     counts: HashMap<CellKey, RunCounts>,
+    /// The tables read so far, each read once however many assertions use it.
+    tables: std::cell::RefCell<HashMap<&'static str, std::rc::Rc<Table>>>,
 }
 
 impl<'a> Judge<'a> {
@@ -424,7 +426,18 @@ impl<'a> Judge<'a> {
             cells: planned_cells(plan),
             evaluations,
             counts,
+            tables: Default::default(),
         })
+    }
+
+    /// `name` of the study's folder, read on first use.
+    fn table(&self, name: &'static str) -> Result<std::rc::Rc<Table>, OutputError> {
+        if let Some(t) = self.tables.borrow().get(name) {
+            return Ok(t.clone());
+        }
+        let t = std::rc::Rc::new(Table::open(&self.dir.join(name))?);
+        self.tables.borrow_mut().insert(name, t.clone());
+        Ok(t)
     }
 
     /// Why `cell` cannot be judged on the declared runs of evaluation `e`, if it cannot.
@@ -457,7 +470,7 @@ impl<'a> Judge<'a> {
         select: &Selection,
         out: &mut Vec<CaseResult>,
     ) -> Result<(), OutputError> {
-        let t = Table::open(&self.dir.join("consistency.parquet"))?;
+        let t = self.table("consistency.parquet")?;
         let order = test_names(&self.plan.system.layout().quantity_names());
         let evaluations = &self.evaluations;
         let blocks = consistency_blocks(&t, &order, evaluations)?;
@@ -572,7 +585,7 @@ impl<'a> Judge<'a> {
         out: &mut Vec<CaseResult>,
     ) -> Result<(), OutputError> {
         let kind = "rmse_below";
-        let summary = Table::open(&self.dir.join("summary.parquet"))?;
+        let summary = self.table("summary.parquet")?;
         let st = summary.str("state")?;
         let mean = summary.f64("rmse_mean")?;
         // The state's row of each cell.

@@ -180,9 +180,8 @@ fn the_committed_golden_is_what_filterpy_computes() {
         }
     }
     // numpy's, LAPACK's and the machine's libm may round differently, and the rounding
-    // differences of the sigma points' Cholesky factor grow over the run's steps (numpy 2.4
-    // and scipy 1.17 put the golden 4e-11 away): agreement to the tolerance kfmc's UKF is held
-    // to against FilterPy, not identity.
+    // differences of the sigma points' Cholesky factor grow over the run's steps: agreement to
+    // the tolerance kfmc's UKF is held to against FilterPy, not identity.
     assert!(
         worst <= 1e-9,
         "FilterPy now gives {worst:e} away from the golden"
