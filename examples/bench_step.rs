@@ -30,7 +30,7 @@ use kfmc::sim::{NoiseDraws, TruthNoise, seed::run_seed, simulate};
 use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
 use kfmc::systems::planar::model::{PlanarP1, PlanarParams};
 use kfmc::systems::planar::scenario::builtin;
-use kfmc::trial::{Unit, build};
+use kfmc::trial::Unit;
 use nalgebra::DMatrix;
 
 /// The baseline: the seed's EKF step written out by hand for exactly this model, with
@@ -711,7 +711,7 @@ fn main() {
     // Whole Monte Carlo run: simulate + EKF + running mean + per-step metrics, one thread.
     let spec = Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/planar_robustness.toml");
     let plan = experiment::load(&spec).expect("bundled spec");
-    let trial = build(&plan);
+    let trial = plan.trial();
     let mut per_run = Vec::new();
     let mut base_run = Vec::new();
     for round in 0..9 {

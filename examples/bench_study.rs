@@ -46,7 +46,7 @@ use kfmc::systems::drone::filters::{Augmentation, Nav, Principled};
 use kfmc::systems::drone::world::DroneParams;
 use kfmc::systems::linear_quadrotor::model::Linear;
 use kfmc::systems::planar::model::PlanarP1;
-use kfmc::trial::{Unit, build};
+use kfmc::trial::Unit;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
@@ -746,7 +746,8 @@ fn main() {
         .expect("spec");
         let plan = experiment::load(&spec_path).expect("bench spec");
         // Same work: run 0's mean NEES by kfmc's trial and by the kernel.
-        let lib = build(&plan)
+        let lib = plan
+            .trial()
             .run(&Unit {
                 scenario: 0,
                 scale: 0,
@@ -769,7 +770,7 @@ fn main() {
             if only.as_deref() == Some("trial") {
                 // kfmc's runs alone (simulate, filter, per-run metrics), without folding,
                 // quantiles or tables: what a study adds on top is the difference.
-                let trial = build(&plan);
+                let trial = plan.trial();
                 let units: Vec<Unit> = (0..plan.scenarios.len())
                     .flat_map(|scenario| {
                         (0..plan.runs).map(move |run| Unit {
@@ -824,7 +825,7 @@ fn main() {
         let (w, w0, w1) = median_range(wall);
         let (c, c0, c1) = median_range(cpu);
         let units = plan.runs * plan.scenarios.len();
-        let steps: usize = plan.scenarios.len() * plan.runs * build(&plan).steps(0);
+        let steps: usize = plan.scenarios.len() * plan.runs * plan.trial().steps(0);
         let (tkm, _, _) = median_range(tk);
         let (tlm, _, _) = median_range(tl);
         let (ckm, _, _) = median_range(ck_all);

@@ -16,7 +16,7 @@
 use kfmc::experiment;
 use kfmc::metrics::RunConsistency;
 use kfmc::metrics::consistency::{VERDICT, cell_tests};
-use kfmc::trial::{Unit, build};
+use kfmc::trial::Unit;
 use rayon::prelude::*;
 use std::path::Path;
 
@@ -70,7 +70,7 @@ fn main() {
         .map(|seed| {
             let plan = experiment::parse(&spec(seed, steps, &kind), Path::new("calibration.toml"))
                 .expect("valid spec");
-            let trial = build(&plan);
+            let trial = plan.trial();
             let runs: Vec<_> = (0..plan.runs)
                 .map(|run| {
                     trial.run(&Unit {

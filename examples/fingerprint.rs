@@ -17,7 +17,7 @@ use std::hash::{DefaultHasher, Hasher};
 use std::path::PathBuf;
 
 use kfmc::experiment;
-use kfmc::trial::{Unit, build};
+use kfmc::trial::Unit;
 
 fn main() {
     let mut runs = 3usize;
@@ -42,7 +42,7 @@ fn main() {
                 continue;
             }
         };
-        let trial = build(&plan);
+        let trial = plan.trial();
         let mut h = DefaultHasher::new();
         let mut units = 0;
         for scenario in 0..plan.scenarios.len() {

@@ -20,18 +20,14 @@
 //!   data — and the effective degrees of freedom ν = N·K·n/ρ of the NEES test for the spec's
 //!   run counts, beside the exact χ² dof of the NIS test.
 //!
-//! A system that is not built on [`crate::model::Model`] may implement
+//! This module is the mathematics; [`crate::system::describe`] applies it to a study's scenarios
+//! and filter variants. A system that is not built on [`crate::model::Model`] may implement
 //! [`crate::system::SystemPlan::describe`] itself, or add its own sections.
 
 use serde::Serialize;
 
-use crate::experiment::Plan;
-use crate::filter::steady_state::solve_dare;
-use crate::linalg::{Matrix, Vector, diag_from_std};
-use crate::metrics::RunConsistency;
-use crate::model::{Availability, Model};
-use crate::scenario::Scenario;
-use crate::sim::TruthNoise;
+use crate::linalg::{Matrix, Vector};
+use crate::model::Availability;
 
 /// Relative singular-value threshold of the observability ranks (L1's sensor sets, the
 /// detectability check of `steady_state`, `kfmc describe`).
@@ -311,166 +307,8 @@ pub fn input_matrix<const NX: usize, const NU: usize>(
     (g, affine)
 }
 
-impl Description {
-    /// The layout part of a description: names, units and Δt.
-    pub fn header(plan: &Plan) -> Self {
-        let l = plan.layout();
-        Description {
-            kind: plan.kind.clone(),
-            experiment: plan.name.clone(),
-            dt_s: l.dt_s,
-            quantities: l
-                .quantities
-                .iter()
-                .map(|q| {
-                    if q.unit.is_empty() {
-                        q.name.clone()
-                    } else {
-                        format!("{} [{}]", q.name, q.unit)
-                    }
-                })
-                .collect(),
-            measurements: l.measurements.clone(),
-            inputs: l.inputs.clone(),
-            ..Default::default()
-        }
-    }
-}
-
-/// The analysis of an additive-noise system built on one [`Model`]: see the module docs.
-/// `clean` returns, for a plan scenario, every filter variant's consistency sums on the
-/// clean run (in plan order).
-pub fn describe_model<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>>(
-    plan: &Plan,
-    model: &M,
-    scenarios: &[Scenario<NX, NU>],
-    truth_noise: &TruthNoise<NX, NZ>,
-    clean: impl Fn(usize) -> Vec<Option<RunConsistency>>,
-) -> Description {
-    let mut d = Description::header(plan);
-    let q = model
-        .process_noise_covariance()
-        .unwrap_or_else(|| diag_from_std(&truth_noise.process_std));
-    let r = diag_from_std(&truth_noise.measurement_std);
-    let meas = plan.layout().measurement_names();
-    for (ps, sp) in plan.scenarios.iter().enumerate() {
-        let sc = &scenarios[sp.index];
-        let steps = sc.steps();
-        let mut a = ScenarioAnalysis {
-            scenario: sp.name.clone(),
-            steps,
-            process_noise: rows(&q),
-            measurement_noise: rows(&r),
-            ..Default::default()
-        };
-        // The clean trajectory x_0..x_K and its Jacobians F_1..F_K, H_1..H_K.
-        let mut x = sc.x0;
-        let mut fs = Vec::with_capacity(steps);
-        let mut hs = Vec::with_capacity(steps);
-        let mut avail = Vec::with_capacity(steps);
-        let mut first_x = sc.x0;
-        for k in 1..=steps {
-            let u = &sc.controls[k];
-            fs.push(model.transition_jacobian(&x, u));
-            if k == 1 {
-                first_x = x;
-            }
-            x = model.propagate(&x, u);
-            hs.push(model.measurement_jacobian(&x, u));
-            avail.push(model.availability(k));
-        }
-        if steps == 0 {
-            a.notes.push("no transitions: nothing to analyse".into());
-            d.scenarios.push(a);
-            continue;
-        }
-        a.time_invariant =
-            fs.iter().all(|f| same_matrix(f, &fs[0])) && hs.iter().all(|h| same_matrix(h, &hs[0]));
-        let all = Availability::all(NZ);
-        a.single_rate = avail.iter().all(|v| *v == all);
-        a.transition = rows(&fs[0]);
-        a.measurement_matrix = rows(&hs[0]);
-        let (g, affine) = input_matrix(|x, u| model.propagate(x, u), &first_x, &sc.controls[1]);
-        a.input_matrix = rows(&g);
-        a.input_matrix_method = if affine {
-            "exact: f is affine in u"
-        } else {
-            "central difference"
-        }
-        .into();
-        a.observability = observability(&fs, &hs, &avail, &meas, a.time_invariant);
-        if a.time_invariant && a.single_rate {
-            if a.observability
-                .unobservable_modes
-                .iter()
-                .any(|m| m[0].hypot(m[1]) >= 1.0 - 1e-6)
-            {
-                a.notes.push(
-                    "no steady state: an unobservable mode of F does not decay (|λ| ≥ 1), so (F, H) is not detectable"
-                        .into(),
-                );
-            } else {
-                match solve_dare(&fs[0], &hs[0], &q, &r) {
-                    Ok(dare) => {
-                        let closed = (Matrix::<NX, NX>::identity() - dare.gain * dare.h) * dare.f;
-                        let poles = eigenvalues(&closed);
-                        a.steady_state = Some(SteadyStateAnalysis {
-                            gain: rows(&dare.gain),
-                            prior_covariance: rows(&dare.p_prior),
-                            posterior_covariance: rows(&dare.p_post),
-                            spectral_radius: poles.first().map_or(0.0, |p| p[0].hypot(p[1])),
-                            poles,
-                            riccati_iterations: dare.iterations,
-                        });
-                    }
-                    Err(e) => a.notes.push(format!("no steady state: {e}")),
-                }
-            }
-        } else {
-            a.notes.push(
-                "no steady state: the model is time-varying or multi-rate, so the Kalman gain does not converge to one K∞"
-                    .into(),
-            );
-        }
-        let mut run_counts = vec![plan.runs];
-        if let Some(c) = &plan.consistency {
-            for (n, _) in &c.subsets {
-                if !run_counts.contains(n) {
-                    run_counts.push(*n);
-                }
-            }
-        }
-        for (f, sums) in plan.filters.iter().zip(clean(ps)) {
-            let Some(sums) = sums else { continue };
-            let n = NX as f64;
-            let k = sums.nees_n as f64;
-            let rho = sums.rho_sum.map(|s| 1.0 + 2.0 * s / (n * k));
-            a.filters.push(FilterAnalysis {
-                filter: f.label.clone(),
-                q_scale: f.q_scale,
-                r_scale: f.r_scale,
-                first_step: sums.first_step.unwrap_or(1),
-                nees_steps: sums.nees_n,
-                rho,
-                nis_dof_per_run: sums.nis_dof,
-                dof: run_counts
-                    .iter()
-                    .map(|&runs| TestDof {
-                        runs,
-                        nees_effective_dof: rho.map(|rho| runs as f64 * k * n / rho),
-                        nees_naive_dof: runs as f64 * k * n,
-                        nis_dof: runs as u64 * sums.nis_dof,
-                    })
-                    .collect(),
-            });
-        }
-        d.scenarios.push(a);
-    }
-    d
-}
-
 /// Observability of x_0 from z_1..z_W along Jacobians F_k, H_k (see the module docs).
-fn observability<const NX: usize, const NZ: usize>(
+pub fn observability<const NX: usize, const NZ: usize>(
     fs: &[Matrix<NX, NX>],
     hs: &[Matrix<NZ, NX>],
     avail: &[Availability],

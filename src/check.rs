@@ -1304,9 +1304,10 @@ pub fn run<O: crate::runner::RunObserver>(
         ]))));
     }
     // Consistency assertions need the tests even when the spec did not ask for them.
+    let alpha = plan.alpha;
     plan.consistency
         .get_or_insert(crate::experiment::plan::ConsistencyPlan {
-            alpha: plan.alpha,
+            alpha,
             whiteness_lags: 5,
             subsets: Vec::new(),
         });
@@ -1384,7 +1385,7 @@ pub fn attach_estimates(
     files: &[std::path::PathBuf],
     unstamped: Unstamped,
 ) -> Result<(), KfmcError> {
-    let set = crate::score::EstimateSet::load(plan, files)?;
+    let set = crate::score::EstimateSet::load(&plan.study_keys(), files)?;
     let stamp = format!(
         "{} = {}, {} = {}",
         crate::score::STAMP_KEY,

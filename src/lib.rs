@@ -56,6 +56,7 @@ pub mod sim;
 pub mod simulate;
 /// The spill of per-run values is part of [`metrics`]; this path stays for code that used it.
 pub use metrics::spill;
+pub mod step_loop;
 pub mod study;
 pub mod system;
 pub mod systems;

@@ -407,7 +407,7 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
                         dir,
                         name,
                         columns_of(&df, f)?,
-                        &crate::score::table_metadata(name, &plan),
+                        &plan.table_metadata(name),
                     )?),
                 };
                 w.append_frame(&df, f)

@@ -41,13 +41,12 @@ use std::path::{Path, PathBuf};
 use polars::prelude::*;
 
 use crate::error::OutputError;
-use crate::experiment::Plan;
 use crate::filter::{Filter, FilterError, Innovation};
 use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::metrics::StepValues;
 use crate::model::{Availability, Measurement, Model};
 use crate::output::schema::{ColumnDef, Dtype, covariance_columns};
-use crate::trial::{FilterOutput, Identity, Prior, RunContext, Unit, run_filter};
+use crate::step_loop::{FilterOutput, Identity, Prior, RunContext, Unit, run_filter};
 
 /// Version of the exchange format (`truth`, `measurements`, `initial`, estimates).
 pub const SCHEMA_VERSION: u32 = 1;
@@ -61,24 +60,37 @@ pub const STAMP_KEY: &str = "kfmc.world_stamp";
 /// The metadata key of the master seed the file's runs were simulated with.
 pub const SEED_KEY: &str = "kfmc.master_seed";
 
-/// The stamp an estimates file made from the runs of `plan` carries: its two metadata keys
-/// and their values.
-pub fn stamp_metadata(plan: &Plan) -> Vec<(String, String)> {
+/// The stamp an estimates file made from the runs of a study carries: its two metadata keys
+/// and their values, for the study's world stamp and master seed.
+pub fn stamp_metadata(world_stamp: &str, master_seed: u64) -> Vec<(String, String)> {
     vec![
-        (STAMP_KEY.into(), plan.world_stamp()),
-        (SEED_KEY.into(), plan.master_seed.to_string()),
+        (STAMP_KEY.into(), world_stamp.to_string()),
+        (SEED_KEY.into(), master_seed.to_string()),
     ]
 }
 
-/// The file-level metadata kfmc writes into its table `name` of a study of `plan`: the
-/// stamp on `estimates`, nothing on the others (their bytes do not depend on the world's
-/// description).
-pub fn table_metadata(name: &str, plan: &Plan) -> Vec<(String, String)> {
-    if name == "estimates" {
-        stamp_metadata(plan)
-    } else {
-        Vec::new()
-    }
+/// What reading estimates needs of the study they are scored in: the keys their rows may
+/// take and the world the files must belong to. The experiment layer makes it from a plan.
+#[derive(Clone, Debug)]
+pub struct StudyKeys<'a> {
+    /// The experiment's name (for messages).
+    pub experiment: &'a str,
+    /// The study's world stamp: a file stamped with another is refused.
+    pub world_stamp: String,
+    /// The study's master seed: a file recording another is refused.
+    pub master_seed: u64,
+    /// The evaluated quantities, in order.
+    pub quantities: Vec<&'a str>,
+    /// The measurement components, in order.
+    pub measurements: Vec<&'a str>,
+    /// (name, transitions K) of each scenario, in study order.
+    pub scenarios: Vec<(&'a str, usize)>,
+    /// The truth-noise multipliers, ascending.
+    pub noise_scales: &'a [f64],
+    /// Runs per cell.
+    pub runs: usize,
+    /// (label, whether outside kfmc) of each filter variant, in study order.
+    pub filters: Vec<(&'a str, bool)>,
 }
 
 /// How an estimates file gives the covariance.
@@ -222,6 +234,8 @@ pub struct EstimateSet {
     externals: Vec<External>,
     /// Per cell (scenario-major): the first row index and the samples K + 1 per run.
     cells: Vec<(u64, usize)>,
+    /// Noise multipliers per scenario (cells are scenario-major).
+    n_scales: usize,
     runs: usize,
     /// The files read that carry no world stamp.
     unstamped: Vec<PathBuf>,
@@ -339,39 +353,38 @@ fn detect_columns(
 }
 
 impl EstimateSet {
-    /// Reads `files` for the external filters of `plan`. File-level trouble (an undeclared
+    /// Reads `files` for the external filters of a study. File-level trouble (an undeclared
     /// label, a key outside the plan, a duplicate row, a wrong column, a foreign study) is an
     /// error naming the file, the column and the first offending key; missing rows and
     /// non-finite values are left for the runs' status.
-    pub fn load(plan: &Plan, files: &[PathBuf]) -> Result<Self, OutputError> {
-        let layout = plan.layout();
-        let quantities = layout.quantity_names();
-        let measurements = layout.measurement_names();
-        let n_scales = plan.noise_scales.len();
-        let mut cells = Vec::with_capacity(plan.scenarios.len() * n_scales);
+    pub fn load(study: &StudyKeys<'_>, files: &[PathBuf]) -> Result<Self, OutputError> {
+        let quantities = &study.quantities;
+        let measurements = &study.measurements;
+        let n_scales = study.noise_scales.len();
+        let mut cells = Vec::with_capacity(study.scenarios.len() * n_scales);
         let mut total = 0u64;
-        for s in &plan.scenarios {
+        for &(_, steps) in &study.scenarios {
             for _ in 0..n_scales {
-                cells.push((total, s.steps + 1));
-                total += (plan.runs * (s.steps + 1)) as u64;
+                cells.push((total, steps + 1));
+                total += (study.runs * (steps + 1)) as u64;
             }
         }
-        let mut by_filter = vec![None; plan.filters.len()];
+        let mut by_filter = vec![None; study.filters.len()];
         let mut externals: Vec<External> = Vec::new();
-        let label_of: HashMap<&str, usize> = plan
+        let label_of: HashMap<&str, usize> = study
             .filters
             .iter()
             .enumerate()
-            .filter(|(_, f)| f.external)
-            .map(|(i, f)| (f.label.as_str(), i))
+            .filter(|(_, (_, external))| *external)
+            .map(|(i, (label, _))| (*label, i))
             .collect();
-        let scenario_of: HashMap<&str, usize> = plan
+        let scenario_of: HashMap<&str, usize> = study
             .scenarios
             .iter()
             .enumerate()
-            .map(|(i, s)| (s.name.as_str(), i))
+            .map(|(i, (name, _))| (*name, i))
             .collect();
-        let scale_of: HashMap<u64, usize> = plan
+        let scale_of: HashMap<u64, usize> = study
             .noise_scales
             .iter()
             .enumerate()
@@ -381,7 +394,8 @@ impl EstimateSet {
             by_filter: Vec::new(),
             externals: Vec::new(),
             cells,
-            runs: plan.runs,
+            n_scales,
+            runs: study.runs,
             unstamped: Vec::new(),
         };
         let mut unstamped = Vec::new();
@@ -403,7 +417,7 @@ impl EstimateSet {
                 .get_metadata()
                 .map_err(|e| polars_err(path, e))?
                 .clone();
-            if !check_metadata(path, &meta, plan)? {
+            if !check_metadata(path, &meta, study)? {
                 unstamped.push(path.clone());
             }
             let names: Vec<String> = reader
@@ -488,7 +502,7 @@ impl EstimateSet {
                         )
                     })?;
                     let Some(&fi) = label_of.get(label) else {
-                        let declared = plan.filters.iter().any(|f| f.label == label);
+                        let declared = study.filters.iter().any(|(l, _)| *l == label);
                         return Err(format_err(
                             path,
                             if declared {
@@ -554,11 +568,11 @@ impl EstimateSet {
                     let (base, samples) = set.cells[si * n_scales + sj];
                     let r = run
                         .get(i)
-                        .filter(|r| (0..plan.runs as i64).contains(r))
+                        .filter(|r| (0..study.runs as i64).contains(r))
                         .ok_or_else(|| {
                             format_err(
                                 path,
-                                format!("column `run`: outside 0..{} at {}", plan.runs, key()),
+                                format!("column `run`: outside 0..{} at {}", study.runs, key()),
                             )
                         })?;
                     let k = step
@@ -635,22 +649,19 @@ impl EstimateSet {
             })?;
         }
         for e in &externals {
-            check_steps(e, plan, &set.cells)?;
+            check_steps(e, study, &set.cells)?;
         }
-        if let Some(f) = plan
+        if let Some((_, (label, _))) = study
             .filters
             .iter()
             .enumerate()
-            .find(|(i, f)| f.external && by_filter[*i].is_none())
+            .find(|(i, (_, external))| *external && by_filter[*i].is_none())
         {
             return Err(format_err(
                 files
                     .first()
                     .map_or(Path::new("--estimates"), |p| p.as_path()),
-                format!(
-                    "no rows for the external filter `{}` in any of the estimate files",
-                    f.1.label
-                ),
+                format!("no rows for the external filter `{label}` in any of the estimate files",),
             ));
         }
         Ok(EstimateSet {
@@ -674,9 +685,9 @@ impl EstimateSet {
             .collect()
     }
 
-    fn unit_rows(&self, filter: usize, unit: &Unit, n_scales: usize) -> Option<UnitRows<'_>> {
+    fn unit_rows(&self, filter: usize, unit: &Unit) -> Option<UnitRows<'_>> {
         let e = &self.externals[self.by_filter.get(filter).copied().flatten()?];
-        let (base, samples) = self.cells[unit.scenario * n_scales + unit.scale];
+        let (base, samples) = self.cells[unit.scenario * self.n_scales + unit.scale];
         let first = base + (unit.run * samples) as u64;
         let width = e.columns.width();
         let mut bytes = vec![0u8; samples * width * 8];
@@ -738,11 +749,15 @@ fn write_rows(e: &External, start: u64, data: &[f64], width: usize) -> Result<()
 /// Checks a run's rows of one external filter cover every step or none: a run with some
 /// steps missing is an error naming the file, the cell, the run and the first missing step.
 /// (A run with no rows at all is left for the runs' status: the study counts it missing.)
-fn check_steps(e: &External, plan: &Plan, cells: &[(u64, usize)]) -> Result<(), OutputError> {
-    let n_scales = plan.noise_scales.len();
+fn check_steps(
+    e: &External,
+    study: &StudyKeys<'_>,
+    cells: &[(u64, usize)],
+) -> Result<(), OutputError> {
+    let n_scales = study.noise_scales.len();
     let has = |row: u64| e.present[(row / 64) as usize] & (1 << (row % 64)) != 0;
     for (ci, &(base, samples)) in cells.iter().enumerate() {
-        for r in 0..plan.runs as u64 {
+        for r in 0..study.runs as u64 {
             let first = base + r * samples as u64;
             let given = (0..samples as u64).filter(|k| has(first + k)).count();
             if given == 0 || given == samples {
@@ -760,8 +775,8 @@ fn check_steps(e: &External, plan: &Plan, cells: &[(u64, usize)]) -> Result<(), 
                 format!(
                     "filter `{}`, scenario = {:?}, noise_scale = {}, run = {r}: no row for step {k} ({given} of its {samples} steps 0..={} are given); a run's rows cover every step from 0, the prior, or the run is left out whole{}",
                     e.label,
-                    plan.scenarios[ci / n_scales].name,
-                    plan.noise_scales[ci % n_scales],
+                    study.scenarios[ci / n_scales].0,
+                    study.noise_scales[ci % n_scales],
                     samples - 1,
                     if e.files.len() > 1 {
                         format!(" (rows of `{}` read from {} files)", e.label, e.files.len())
@@ -781,7 +796,7 @@ fn check_steps(e: &External, plan: &Plan, cells: &[(u64, usize)]) -> Result<(), 
 fn check_metadata(
     path: &Path,
     meta: &polars::io::parquet::read::FileMetadata,
-    plan: &Plan,
+    study: &StudyKeys<'_>,
 ) -> Result<bool, OutputError> {
     let get = |key: &str| {
         meta.key_value_metadata()
@@ -791,11 +806,11 @@ fn check_metadata(
             .map(|kv| kv.value.clone().unwrap_or_default())
     };
     let (stamp, seed) = (get(STAMP_KEY), get(SEED_KEY));
-    let ours = plan.world_stamp();
-    let foreign = stamp.as_ref().is_some_and(|s| *s != ours)
+    let ours = &study.world_stamp;
+    let foreign = stamp.as_ref().is_some_and(|s| s != ours)
         || seed
             .as_ref()
-            .is_some_and(|s| *s != plan.master_seed.to_string());
+            .is_some_and(|s| *s != study.master_seed.to_string());
     if foreign {
         let theirs: Vec<String> = [(STAMP_KEY, &stamp), (SEED_KEY, &seed)]
             .into_iter()
@@ -806,8 +821,8 @@ fn check_metadata(
             format!(
                 "these estimates were made on another simulation: the file belongs to the world {}, this study simulates world {ours} with master seed {} (experiment `{}`); score them against the simulation they were made from, or estimate again from this study's `kfmc simulate` tables",
                 theirs.join(", "),
-                plan.master_seed,
-                plan.name
+                study.master_seed,
+                study.experiment
             ),
         ));
     }
@@ -966,20 +981,18 @@ impl<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU, NZ>> Fi
     }
 }
 
-/// Scores plan filter `filter` (an external one) on one run from its rows: the same step
-/// loop, metrics and record as an in-process filter. `model` is only there to satisfy the
-/// step loop's types; the replay never evaluates it.
+/// Scores study filter `filter` (an external one, labelled `label`) on one run from its rows
+/// in `estimates`: the same step loop, metrics and record as an in-process filter. `model` is
+/// only there to satisfy the step loop's types; the replay never evaluates it.
 pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU, NZ>>(
-    plan: &Plan,
+    estimates: Option<&EstimateSet>,
     filter: usize,
+    label: &str,
     model: &M,
     ctx: &RunContext<'_, NQ, NU, NZ>,
 ) -> FilterOutput {
     let steps = ctx.truth.len() - 1;
-    let rows = plan
-        .estimates
-        .as_ref()
-        .and_then(|set| set.unit_rows(filter, &ctx.unit, plan.noise_scales.len()));
+    let rows = estimates.and_then(|set| set.unit_rows(filter, &ctx.unit));
     let fail = |why: String| FilterOutput {
         run: StepValues::new(NQ, steps).finish(
             Some((0, why)),
@@ -992,8 +1005,7 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
     };
     let Some(rows) = rows else {
         return fail(format!(
-            "no estimates were given for the external filter `{}`",
-            plan.filters[filter].label
+            "no estimates were given for the external filter `{label}`"
         ));
     };
     if let Some(why) = rows.problem::<NQ>(0) {

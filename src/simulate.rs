@@ -43,7 +43,7 @@ pub fn simulate(
     let folder = StudyFolder::open(dir, StudyKind::Simulate, opts.force)?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
     let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
-    let trial = world_only.system.trial(&world_only);
+    let trial = world_only.trial();
     let layout = plan.layout();
     let states = layout.quantity_names();
     let (inputs, meas, world) = (

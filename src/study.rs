@@ -15,7 +15,7 @@ use crate::output::folder::StudyFolder;
 use crate::output::manifest::{Manifest, QuantityEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute_windowed, window_for};
-use crate::trial::{Trial, Unit, UnitResult, build};
+use crate::trial::{Trial, Unit, UnitResult};
 
 /// Options of a study execution that do not change its results.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -633,7 +633,7 @@ fn run_in(
     started: Instant,
     started_unix_s: u64,
 ) -> Result<StudyReport, KfmcError> {
-    let trial = build(plan);
+    let trial = plan.trial();
     let layout = plan.layout();
     let states = layout.quantity_names();
     let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
@@ -644,7 +644,7 @@ fn run_in(
                 columns: Vec<crate::output::schema::ColumnDef>,
                 on_row: &mut dyn FnMut(&[Value<'_>]) -> Result<(), OutputError>|
      -> Result<TableWriter, OutputError> {
-        let metadata = crate::score::table_metadata(name, plan);
+        let metadata = plan.table_metadata(name);
         if !journaling {
             return TableWriter::create_with_metadata(dir, name, columns, &metadata);
         }
@@ -686,13 +686,12 @@ fn run_in(
     let divergence = feed.into_trackers();
     let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
     // The blocks the runs keep NEES for (none when they do not fit the runs' masks).
-    let blocks = if plan.consistency.is_some()
-        && !crate::trial::ConsistencyOptions::blocks_of(plan).is_empty()
-    {
-        crate::trial::layout_blocks(layout)
-    } else {
-        Vec::new()
-    };
+    let blocks =
+        if plan.consistency.is_some() && !crate::system::settings::block_masks(layout).is_empty() {
+            crate::trial::layout_blocks(layout)
+        } else {
+            Vec::new()
+        };
     let block_names: Vec<String> = blocks.iter().map(QuantityBlock::column_name).collect();
     let block_names: Vec<&str> = block_names.iter().map(String::as_str).collect();
     let mut agg = Aggregator {

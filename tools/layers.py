@@ -25,7 +25,7 @@ from collections import defaultdict
 
 LAYERS = [
     ("foundations", ["error", "hash", "linalg", "runner", "output"]),
-    ("one run's mathematics", ["model", "scenario", "sim", "filter", "metrics", "analysis", "sequential"]),
+    ("one run's mathematics", ["model", "scenario", "sim", "filter", "metrics", "analysis", "step_loop", "sequential"]),
     ("exchange", ["exchange", "score"]),
     ("plugin API", ["system", "trial"]),
     ("built-in systems", ["systems"]),

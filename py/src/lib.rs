@@ -620,7 +620,7 @@ fn import_streams(objects: &[Bound<'_, PyAny>], plan: &Plan) -> PyResult<InMemor
             let df = DataFrame::new(batch.len(), columns)
                 .map_err(|e| bad(format!("cannot form a table: {e}")))?;
             if writer.is_none() {
-                let metadata = kfmc::score::stamp_metadata(plan);
+                let metadata = plan.stamp_metadata();
                 // LZ4: cheap to write and read; the file is read once, right away.
                 let w = ParquetWriter::new(file.take().expect("taken once"))
                     .with_compression(ParquetCompression::Lz4Raw)
@@ -941,7 +941,7 @@ fn describe<'py>(py: Python<'py>, spec: &Bound<'py, PyAny>) -> PyResult<Bound<'p
     guarded(|| {
         let registry = kfmc::systems::builtin();
         let (plan, _) = load_spec(spec, &registry)?;
-        let text = py.detach(|| plan.system.describe(&plan).to_toml());
+        let text = py.detach(|| plan.describe().to_toml());
         let table: toml::Table = toml::from_str(&text)
             .map_err(|e| Error::new_err(format!("the description is not TOML: {e}")))?;
         toml_to_py(py, &toml::Value::Table(table))
@@ -993,7 +993,7 @@ fn schema<'py>(
         d.set_item("columns", columns)?;
         if kind == "estimates" {
             let meta = PyDict::new(py);
-            for (k, v) in kfmc::score::stamp_metadata(&plan) {
+            for (k, v) in plan.stamp_metadata() {
                 meta.set_item(k, v)?;
             }
             d.set_item("metadata", meta)?;

@@ -27,7 +27,7 @@ impl Describe {
             no_write,
         } = self;
         let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-        let description = plan.system.describe(&plan);
+        let description = plan.describe();
         emit(&description.render());
         if !no_write {
             let path = out.unwrap_or_else(|| plan.output.join("describe.toml"));

@@ -4,14 +4,16 @@
 //! (unknown keys are errors), [`plan`] validates them into typed values, reporting every
 //! problem at once with the file and the key path (`filters[1].q_std: …`).
 
-pub mod checker;
 pub mod plan;
 pub mod spec;
 
 use std::path::Path;
 
-pub use checker::{Checker, non_negative, positive};
-pub use plan::{FilterNoiseMode, FilterPlan, InitialMode, Overrides, Plan, PlanSize, ScenarioPlan};
+pub use crate::system::checker::{self, Checker, non_negative, positive};
+pub use crate::system::settings::{
+    ConsistencyPlan, Draws, FilterNoiseMode, FilterPlan, InitialMode, ScenarioPlan,
+};
+pub use plan::{Overrides, Plan, PlanSize};
 
 use crate::error::{SpecError, SpecErrors};
 use crate::system::Registry;

@@ -8,42 +8,15 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use super::checker::{Checker, non_negative, positive};
 use super::spec::{AssertSpec, Scales, Spec};
 
 use crate::error::{SpecError, SpecErrors};
 use crate::sim::seed::hash_str;
+use crate::system::checker::{Checker, non_negative, positive};
+pub use crate::system::settings::{
+    ConsistencyPlan, Draws, FilterNoiseMode, FilterPlan, InitialMode, RunSettings, ScenarioPlan,
+};
 use crate::system::{FilterTable, InitialSpec, Layout, Registry, System, SystemPlan, SystemSpec};
-
-/// A validated scenario.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct ScenarioPlan {
-    /// Name (the `scenario` column; it also selects the run seeds).
-    pub name: String,
-    /// Transitions K.
-    pub steps: usize,
-    /// Index into the system's scenarios ([`SystemPlan::scenarios`]).
-    pub index: usize,
-}
-
-/// A validated filter variant: one (entry, q_scale, r_scale) of the spec's filters.
-#[derive(Clone, Debug, PartialEq)]
-pub struct FilterPlan {
-    /// Label (the `filter` column).
-    pub label: String,
-    /// The kind tag.
-    pub kind: String,
-    /// Index into the system's filter entries ([`SystemPlan::filters`]); unused for an
-    /// external filter.
-    pub entry: usize,
-    /// Whether the filter is outside kfmc (`kind = "external"`): its estimates come from a
-    /// file (`kfmc score`, `kfmc check --estimates`), not from a system's filter kind.
-    pub external: bool,
-    /// Multiplier of the assumed Q (the `q_scale` column).
-    pub q_scale: f64,
-    /// Multiplier of the assumed R (the `r_scale` column).
-    pub r_scale: f64,
-}
 
 /// Which cells an assertion covers: each key given narrows it, none covers every cell.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -72,14 +45,6 @@ impl Selection {
     pub fn covers_variant(&self, scenario: &str, f: &FilterPlan) -> bool {
         let (q, r) = f.multipliers().unzip();
         self.covers(scenario, &f.label, q, r)
-    }
-}
-
-impl FilterPlan {
-    /// The variant's (q_scale, r_scale) as the tables key it: `None` for an external filter,
-    /// whose tuning is its own.
-    pub fn multipliers(&self) -> Option<(f64, f64)> {
-        (!self.external).then_some((self.q_scale, self.r_scale))
     }
 }
 
@@ -169,39 +134,9 @@ impl Assertion {
     }
 }
 
-/// The validated `[consistency]` section.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ConsistencyPlan {
-    /// Significance level of every test.
-    pub alpha: f64,
-    /// Whiteness lags 1..=L.
-    pub whiteness_lags: usize,
-    /// Extra (runs, α) evaluations of the same tests on the first `runs` runs of each cell.
-    pub subsets: Vec<(usize, f64)>,
-}
-
-/// What the filters assume when the truth noise is scaled.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum FilterNoiseMode {
-    /// Filters keep their Q/R (the seeds' robustness study).
-    Nominal,
-    /// Filters' assumed std scale with the truth's.
-    Matched,
-}
-
-/// How x̂_0 is formed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum InitialMode {
-    /// x̂_0 = x_0 (the seeds).
-    Truth,
-    /// x̂_0 ~ N(x_0, P_0), drawn once per run and shared by all filters.
-    Sampled,
-    /// x̂_0 and P_0 from the run's own measurements by the system's initialiser (batch least
-    /// squares on linear models with an observable sensor set).
-    BatchLs,
-}
-
-/// A validated, expanded experiment.
+/// A validated, expanded experiment: the [`RunSettings`] a system's trial runs with, the
+/// configured system, and what only the commands need (the spec, the output folder, the
+/// assertions). It dereferences to its settings, so `plan.runs` reads `plan.settings.runs`.
 #[derive(Clone, Debug)]
 pub struct Plan {
     /// Experiment name.
@@ -221,30 +156,12 @@ pub struct Plan {
     pub kind: String,
     /// The configured system (world, filters, evaluated quantities).
     pub system: Arc<dyn SystemPlan>,
-    /// Scenarios.
-    pub scenarios: Vec<ScenarioPlan>,
-    /// Filter variants.
-    pub filters: Vec<FilterPlan>,
-    /// Truth-noise multipliers, ascending.
-    pub noise_scales: Vec<f64>,
-    /// Filter noise mode.
-    pub filter_noise: FilterNoiseMode,
-    /// Initial-estimate mode.
-    pub initial: InitialMode,
-    /// Runs per cell.
-    pub runs: usize,
-    /// Master seed.
-    pub master_seed: u64,
-    /// Traced runs per (scenario, noise scale).
-    pub trace_runs: usize,
+    /// What the system's trial needs: cells, filter variants, seeds, what each run records.
+    pub settings: RunSettings,
     /// Output folder.
     pub output: PathBuf,
-    /// RMSE divergence thresholds per evaluated quantity.
-    pub rmse_thresholds: Option<Vec<f64>>,
     /// Significance level of the per-step ANEES/ANIS bands in steps.parquet.
     pub alpha: f64,
-    /// Consistency tests, when the spec asks for them.
-    pub consistency: Option<ConsistencyPlan>,
     /// `kfmc check` assertions.
     pub assertions: Vec<Assertion>,
     /// `check.replications`: the replications of the `rejection_rate` assertions.
@@ -252,62 +169,25 @@ pub struct Plan {
     /// `check.max_failed_runs`: the fraction of a cell's declared runs that may fail
     /// numerically before `kfmc check` calls its cases incomplete (default 0).
     pub check_max_failed_runs: f64,
-    /// Whether to write every run's estimates in the exchange format (`estimates.parquet`,
-    /// `kfmc run --export-estimates`).
-    pub export_estimates: bool,
-    /// The estimates of the external filters, once read (`kfmc score`, `kfmc check
-    /// --estimates`).
-    pub estimates: Option<Arc<crate::score::EstimateSet>>,
-    /// How the runs' random numbers relate across noise multipliers (`noise.draws`).
-    pub draws: Draws,
     /// Whether a run that never crosses its divergence threshold records the largest
     /// multiplier (`divergence.never_crossed = "largest_scale"`) instead of null.
     pub never_crossed_largest: bool,
 }
 
-/// How a run's random numbers relate across the noise multipliers (`[noise] draws`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Draws {
-    /// A run sees the same standard normals at every multiplier (common random numbers):
-    /// smooth, paired curves, and a run's divergence point is where its own errors, scaled,
-    /// cross the threshold.
-    Common,
-    /// Every (run, multiplier) has its own streams, as `robustness.m` draws fresh noise at
-    /// each multiplier: a run's first crossing is the first of many independent chances.
-    Fresh,
+impl std::ops::Deref for Plan {
+    type Target = RunSettings;
+    fn deref(&self) -> &RunSettings {
+        &self.settings
+    }
 }
 
-/// Documented caps on a plan. Beyond them a spec is refused before anything runs (the
-/// resource caps can be lifted with `--allow-large`; the count caps cannot).
-pub mod limits {
-    /// Runs per cell.
-    pub const MAX_RUNS: u64 = 1_000_000_000;
-    /// Transitions K of one scenario.
-    pub const MAX_STEPS: u64 = 10_000_000;
-    /// Truth-noise multipliers, and Q/R scales of one filter entry.
-    pub const MAX_SCALES: usize = 100_000;
-    /// Scenarios, and filter variants.
-    pub const MAX_ENTRIES: usize = 10_000;
-    /// Spec file size in bytes.
-    pub const MAX_SPEC_BYTES: u64 = 1 << 20;
-    /// Characters of a scenario name or a filter label (they are parts of figure file names,
-    /// which most file systems cap at 255 bytes).
-    pub const MAX_NAME_CHARS: usize = 64;
-    /// Samples (K + 1) of all scenarios of a spec together: systems expand the scenarios
-    /// (their inputs per step) while validating, before the resource estimate can refuse.
-    pub const MAX_TOTAL_SAMPLES: u64 = 20_000_000;
-    /// Measurement rows K·n_z of one batch least-squares fit: its covariance is a dense
-    /// matrix of that many rows squared, factorised while validating.
-    pub const MAX_BATCH_LS_ROWS: usize = 5_000;
-    /// Innovation-whiteness lags.
-    pub const MAX_WHITENESS_LAGS: u64 = 50;
-    /// Estimated peak memory, bytes (lifted by `--allow-large`).
-    pub const MAX_MEMORY_BYTES: u128 = 8 << 30;
-    /// Estimated disk use of the tables and scratch files, bytes (lifted by `--allow-large`).
-    pub const MAX_DISK_BYTES: u128 = 100 << 30;
-    /// Simulated filter steps in total (lifted by `--allow-large`).
-    pub const MAX_FILTER_STEPS: u128 = 100_000_000_000_000;
+impl std::ops::DerefMut for Plan {
+    fn deref_mut(&mut self) -> &mut RunSettings {
+        &mut self.settings
+    }
 }
+
+pub use crate::system::limits;
 
 /// World metrics assumed per run by the estimate (systems declare a handful at most); their
 /// spill is a small part of the total either way.
@@ -381,15 +261,65 @@ pub struct PlanSize {
 }
 
 impl Plan {
-    /// The seed of run `run` of scenario `scenario` at noise multiplier index `scale`: every
-    /// random stream of that run derives from it.
-    pub fn run_seed(&self, scenario: &str, scale: usize, run: usize) -> u64 {
-        let common = crate::sim::seed::run_seed(self.master_seed, scenario, run as u64);
-        match self.draws {
-            Draws::Common => common,
-            Draws::Fresh => crate::sim::seed::mix64(
-                common ^ crate::sim::seed::mix64(0x6672_6573_6800_0000 ^ scale as u64),
-            ),
+    /// The executor of this plan's runs: the system's trial for its settings.
+    pub fn trial(&self) -> Box<dyn crate::trial::Trial + '_> {
+        self.system.trial(&self.settings)
+    }
+
+    /// `kfmc describe`'s analysis: the system's, or its layout alone when it offers none.
+    pub fn describe(&self) -> crate::analysis::Description {
+        let mut d = self.system.describe(&self.settings).unwrap_or_else(|| {
+            let mut d = crate::system::describe::header(self.layout());
+            d.notes.push(format!(
+                "model.kind = \"{}\" offers no linearised analysis (its world is not one Model); \
+                 the layout above is all kfmc describe can show",
+                self.kind
+            ));
+            d
+        });
+        d.kind = self.kind.clone();
+        d.experiment = self.name.clone();
+        d
+    }
+
+    /// What reading estimates for this study needs: its keys and its world.
+    pub fn study_keys(&self) -> crate::score::StudyKeys<'_> {
+        let layout = self.layout();
+        crate::score::StudyKeys {
+            experiment: &self.name,
+            world_stamp: self.world_stamp(),
+            master_seed: self.master_seed,
+            quantities: layout.quantity_names(),
+            measurements: layout.measurement_names(),
+            scenarios: self
+                .scenarios
+                .iter()
+                .map(|s| (s.name.as_str(), s.steps))
+                .collect(),
+            noise_scales: &self.noise_scales,
+            runs: self.runs,
+            filters: self
+                .filters
+                .iter()
+                .map(|f| (f.label.as_str(), f.external))
+                .collect(),
+        }
+    }
+
+    /// The stamp an estimates file made from this plan's runs carries
+    /// ([`crate::score::stamp_metadata`]).
+    pub fn stamp_metadata(&self) -> Vec<(String, String)> {
+        crate::score::stamp_metadata(&self.world_stamp(), self.master_seed)
+    }
+
+    /// The file-level metadata kfmc writes into its table `name` of a study of this plan: the
+    /// stamp on `estimates`, nothing on the others (their bytes do not depend on the world's
+    /// description).
+    pub fn table_metadata(&self, name: &str) -> Vec<(String, String)> {
+        if name == "estimates" {
+            self.stamp_metadata()
+        } else {
+            Vec::new()
         }
     }
 
@@ -650,7 +580,7 @@ impl Plan {
     /// The stamp of the simulated world: FNV-1a 64 (hex) of [`Plan::world`] and the master
     /// seed. Run i of two plans with one stamp has the same truth, measurements and prior,
     /// whatever their filters, run counts, comments or key order; an estimates file carries
-    /// it as `kfmc.world_stamp` ([`crate::score::stamp_metadata`]).
+    /// it as `kfmc.world_stamp` ([`Plan::stamp_metadata`]).
     pub fn world_stamp(&self) -> String {
         format!(
             "{:016x}",
@@ -902,34 +832,36 @@ pub(crate) fn validate_into(
         spec_text: text,
         world,
         kind,
-        scenarios: system
-            .scenarios()
-            .iter()
-            .enumerate()
-            .map(|(index, s)| ScenarioPlan {
-                name: s.name.clone(),
-                steps: s.steps,
-                index,
-            })
-            .collect(),
+        settings: RunSettings {
+            scenarios: system
+                .scenarios()
+                .iter()
+                .enumerate()
+                .map(|(index, s)| ScenarioPlan {
+                    name: s.name.clone(),
+                    steps: s.steps,
+                    index,
+                })
+                .collect(),
+            filters,
+            noise_scales: noise.scales,
+            filter_noise: noise.filter_noise,
+            initial: initial.mode,
+            runs: runs as usize,
+            master_seed: spec.master_seed.unwrap_or(0),
+            draws: noise.draws,
+            trace_runs: spec.trace_runs.unwrap_or(0) as usize,
+            rmse_thresholds,
+            consistency: consistency.plan,
+            export_estimates: false,
+            estimates: None,
+        },
         system,
-        filters,
-        noise_scales: noise.scales,
-        filter_noise: noise.filter_noise,
-        initial: initial.mode,
-        runs: runs as usize,
-        master_seed: spec.master_seed.unwrap_or(0),
-        trace_runs: spec.trace_runs.unwrap_or(0) as usize,
         output,
-        rmse_thresholds,
         alpha: consistency.alpha,
-        consistency: consistency.plan,
         assertions,
         check_replications,
         check_max_failed_runs,
-        export_estimates: false,
-        estimates: None,
-        draws: noise.draws,
         never_crossed_largest,
     })
 }

@@ -17,9 +17,11 @@ use std::sync::{Arc, OnceLock};
 
 use serde::Deserialize;
 
+use super::checker::{Checker, non_negative, positive};
+use super::settings::{FilterNoiseMode, InitialMode, RunSettings};
+use super::spec_values::OneOrMany;
+use super::trial::Trial;
 use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
-use crate::experiment::spec::OneOrMany;
-use crate::experiment::{Checker, FilterNoiseMode, InitialMode, Plan, non_negative, positive};
 use crate::filter::luenberger::{SeedPoleReading, seed_poles};
 use crate::filter::sigma_point::SigmaPointError;
 use crate::filter::{
@@ -31,9 +33,9 @@ use crate::metrics::RunConsistency;
 use crate::model::Model;
 use crate::scenario::Scenario;
 use crate::sim::{NoiseDraws, TruthNoise, simulate};
-use crate::trial::{
-    ConsistencyOptions, FilterOutput, Identity, Prior, RunContext, RunTrace, Trial, Unit,
-    UnitResult, lower_triangle, run_filter,
+use crate::step_loop::{
+    FilterOutput, Identity, Prior, RunContext, RunTrace, Unit, UnitResult, lower_triangle,
+    run_filter,
 };
 
 /// The filter's assumed noise for one cell: Q and R after every scale is applied.
@@ -845,30 +847,31 @@ where
     fn filters(&self) -> &[FilterInfo] {
         &self.filter_info
     }
-    fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a> {
-        Box::new(AdditiveTrial::new(self, plan))
+    fn trial<'a>(&'a self, settings: &'a RunSettings) -> Box<dyn Trial + 'a> {
+        Box::new(AdditiveTrial::new(self, settings))
     }
     fn as_any(&self) -> &dyn Any {
         self
     }
-    fn describe(&self, plan: &Plan) -> crate::analysis::Description {
-        let trial = AdditiveTrial::new(self, plan);
-        let mut d = crate::analysis::describe_model(
-            plan,
+    fn describe(&self, settings: &RunSettings) -> Option<crate::analysis::Description> {
+        let trial = AdditiveTrial::new(self, settings);
+        let mut d = super::describe::describe_model(
+            settings,
+            &self.layout,
             &self.model,
             &self.scenarios,
             &self.truth_noise,
             |scenario| trial.clean_consistency(scenario),
         );
         d.sections.extend(self.analysis_sections.iter().cloned());
-        d
+        Some(d)
     }
 }
 
-/// The trial of an [`AdditivePlan`] for one plan.
+/// The trial of an [`AdditivePlan`] for one study's settings.
 struct AdditiveTrial<'a, const NX: usize, const NU: usize, const NZ: usize, M> {
     sys: &'a AdditivePlan<NX, NU, NZ, M>,
-    plan: &'a Plan,
+    settings: &'a RunSettings,
     p0: Matrix<NX, NX>,
     p0_factor: Option<Matrix<NX, NX>>,
     /// The model's full discrete Q, which filters assume (times q_scale) when it exists.
@@ -884,25 +887,25 @@ impl<'a, const NX: usize, const NU: usize, const NZ: usize, M> AdditiveTrial<'a,
 where
     M: Model<NX, NU, NZ>,
 {
-    fn new(sys: &'a AdditivePlan<NX, NU, NZ, M>, plan: &'a Plan) -> Self {
+    fn new(sys: &'a AdditivePlan<NX, NU, NZ, M>, settings: &'a RunSettings) -> Self {
         AdditiveTrial {
             p0: diag_from_std(&sys.p0_std),
-            p0_factor: (plan.initial == InitialMode::Sampled)
+            p0_factor: (settings.initial == InitialMode::Sampled)
                 .then(|| Matrix::<NX, NX>::from_diagonal(&sys.p0_std)),
             model_q: sys.model.process_noise_covariance(),
             names: sys.layout.quantity_names(),
             angles: sys.layout.angles(),
-            prepared: (0..plan.filters.len() * plan.noise_scales.len())
+            prepared: (0..settings.filters.len() * settings.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
             sys,
-            plan,
+            settings,
         }
     }
 
     /// The filter's Q and R for a variant at a truth-noise scale.
     fn assumed(&self, variant: usize, filter_scale: f64) -> AssumedNoise<NX, NZ> {
-        let f = &self.plan.filters[variant];
+        let f = &self.settings.filters[variant];
         let (q_std, r_std) = self.sys.entries[f.entry].assumed_std();
         let q = match &self.model_q {
             Some(q) => q * (filter_scale * filter_scale * f.q_scale),
@@ -938,12 +941,12 @@ where
         }
     }
 
-    /// The consistency sums of every filter variant on the clean (noise-free) run of plan
+    /// The consistency sums of every filter variant on the clean (noise-free) run of study
     /// scenario `scenario`, with the filters' Q and R at noise scale 1: what `kfmc describe`
     /// calibrates the tests with. `None` for a variant without a covariance or an external one.
     fn clean_consistency(&self, scenario: usize) -> Vec<Option<RunConsistency>> {
-        let (plan, sys) = (self.plan, self.sys);
-        let si = plan.scenarios[scenario].index;
+        let (settings, sys) = (self.settings, self.sys);
+        let si = settings.scenarios[scenario].index;
         let sc = &sys.scenarios[si];
         let draws = NoiseDraws::<NX, NZ>::draw(0, sc.steps());
         let mut trajectory = simulate(&sys.model, sc, &sys.truth_noise, 0.0, None, &draws);
@@ -961,19 +964,19 @@ where
             quantity_names: &self.names,
             trace: false,
             export: false,
-            consistency: Some(ConsistencyOptions::of(plan).unwrap_or(ConsistencyOptions {
-                lags: 0,
-                burn_in: plan.initial != InitialMode::Sampled,
-                initial_nees: plan.initial == InitialMode::BatchLs,
-                blocks: ConsistencyOptions::blocks_of(plan),
-            })),
+            consistency: Some(
+                settings
+                    .consistency_options(&sys.layout)
+                    .unwrap_or_else(|| settings.consistency_options_with_lags(&sys.layout, 0)),
+            ),
             unit: Unit {
                 scenario,
                 scale: 0,
                 run: 0,
             },
         };
-        plan.filters
+        settings
+            .filters
             .iter()
             .enumerate()
             .map(|(fi, f)| {
@@ -993,12 +996,12 @@ where
     M: Model<NX, NU, NZ>,
 {
     fn run(&self, unit: &Unit) -> UnitResult {
-        let plan = self.plan;
+        let settings = self.settings;
         let sys = self.sys;
-        let si = plan.scenarios[unit.scenario].index;
+        let si = settings.scenarios[unit.scenario].index;
         let scenario = &sys.scenarios[si];
-        let noise_scale = plan.noise_scales[unit.scale];
-        let seed = plan.run_seed(&scenario.name, unit.scale, unit.run);
+        let noise_scale = settings.noise_scales[unit.scale];
+        let seed = settings.run_seed(&scenario.name, unit.scale, unit.run);
         let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
         let mut trajectory = simulate(
             &sys.model,
@@ -1008,8 +1011,8 @@ where
             self.p0_factor.as_ref(),
             &draws,
         );
-        let traced = unit.run < plan.trace_runs;
-        let filter_scale = match plan.filter_noise {
+        let traced = unit.run < settings.trace_runs;
+        let filter_scale = match settings.filter_noise {
             FilterNoiseMode::Nominal => 1.0,
             FilterNoiseMode::Matched => noise_scale,
         };
@@ -1023,14 +1026,14 @@ where
             inputs: &scenario.controls,
             measurements: &trajectory.measurements,
             angles: &self.angles,
-            thresholds: plan.rmse_thresholds.as_deref(),
+            thresholds: settings.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,
-            export: plan.export_estimates,
-            consistency: ConsistencyOptions::of(plan),
+            export: settings.export_estimates,
+            consistency: settings.consistency_options(&sys.layout),
             unit: *unit,
         };
-        let keep = traced || plan.export_estimates;
+        let keep = traced || settings.export_estimates;
         let mut trace = keep.then(|| {
             let mut t = RunTrace::of_world(
                 &scenario.controls,
@@ -1041,12 +1044,18 @@ where
             t.initial = Some((trajectory.x0_hat.as_slice().to_vec(), lower_triangle(&p0)));
             t
         });
-        let mut filters = Vec::with_capacity(plan.filters.len());
-        for (fi, f) in plan.filters.iter().enumerate() {
+        let mut filters = Vec::with_capacity(settings.filters.len());
+        for (fi, f) in settings.filters.iter().enumerate() {
             let mut out = if f.external {
-                crate::score::replay(plan, fi, &sys.model, &ctx)
+                crate::score::replay(
+                    settings.estimates.as_deref(),
+                    fi,
+                    &f.label,
+                    &sys.model,
+                    &ctx,
+                )
             } else {
-                let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
+                let slot = &self.prepared[fi * settings.noise_scales.len() + unit.scale];
                 let filter = slot.get_or_init(|| {
                     sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, filter_scale))
                 });
@@ -1067,7 +1076,7 @@ where
     }
 
     fn steps(&self, scenario: usize) -> usize {
-        self.sys.scenarios[self.plan.scenarios[scenario].index].steps()
+        self.sys.scenarios[self.settings.scenarios[scenario].index].steps()
     }
 
     fn layout(&self) -> &Layout {

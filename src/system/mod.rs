@@ -18,6 +18,12 @@
 //! kinds that work on any [`crate::model::Model`].
 
 pub mod additive;
+pub mod checker;
+pub mod describe;
+pub mod limits;
+pub mod settings;
+pub mod spec_values;
+pub mod trial;
 pub mod world;
 
 use std::any::Any;
@@ -25,9 +31,11 @@ use std::fmt::Debug;
 use std::path::Path;
 use std::sync::Arc;
 
-use crate::experiment::spec::OneOrMany;
-use crate::experiment::{Checker, InitialMode, Plan};
-use crate::trial::Trial;
+use trial::Trial;
+
+pub use checker::Checker;
+pub use settings::{InitialMode, RunSettings};
+pub use spec_values::OneOrMany;
 
 /// One evaluated quantity: what is scored (RMSE, NEES, divergence, traces).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -205,22 +213,18 @@ pub trait SystemPlan: Send + Sync + Debug {
     fn scenarios(&self) -> &[ScenarioInfo];
     /// The filter entries, in spec order.
     fn filters(&self) -> &[FilterInfo];
-    /// The executor of one run, for `plan` (whose scenarios and filter variants index into
-    /// [`SystemPlan::scenarios`] and [`SystemPlan::filters`]).
-    fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a>;
+    /// The executor of one run, for a study's `settings` (whose scenarios and filter variants
+    /// index into [`SystemPlan::scenarios`] and [`SystemPlan::filters`]).
+    fn trial<'a>(&'a self, settings: &'a RunSettings) -> Box<dyn Trial + 'a>;
     /// For tests and tools that need the concrete plan back.
     fn as_any(&self) -> &dyn Any;
-    /// The system's analysis for `kfmc describe` ([`crate::analysis`]). Systems built on
-    /// [`additive::AdditivePlan`] get the linearised analysis of their model; the default
-    /// reports the layout and says that the system offers no analysis.
-    fn describe(&self, plan: &Plan) -> crate::analysis::Description {
-        let mut d = crate::analysis::Description::header(plan);
-        d.notes.push(format!(
-            "model.kind = \"{}\" offers no linearised analysis (its world is not one Model); \
-             the layout above is all kfmc describe can show",
-            plan.kind
-        ));
-        d
+    /// The system's analysis for `kfmc describe` ([`crate::analysis`]) of a study's
+    /// `settings`. Systems built on [`additive::AdditivePlan`] get the linearised analysis of
+    /// their model; the default, `None`, says that the system offers none, and `describe`
+    /// then shows the layout alone.
+    fn describe(&self, settings: &RunSettings) -> Option<crate::analysis::Description> {
+        let _ = settings;
+        None
     }
 }
 

@@ -6,7 +6,7 @@
 //! INS, the measured IMU samples). Each filter carries its own model and state, larger,
 //! smaller or differently parameterised than the world's, forms its own prior from the
 //! realisation, and is scored on the same quantities through an
-//! [`Evaluate`](crate::trial::Evaluate) map.
+//! [`Evaluate`](crate::step_loop::Evaluate) map.
 //!
 //! A system implements [`World`] and one [`WorldFilterEntry`] per filter kind, and
 //! [`WorldPlan`] is its [`SystemPlan`]: seeds, filter variants, caching per cell and traces
@@ -16,13 +16,12 @@ use std::any::Any;
 use std::fmt::Debug;
 use std::sync::{Arc, OnceLock};
 
+use super::settings::{FilterNoiseMode, RunSettings};
+use super::trial::Trial;
 use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
-use crate::experiment::{FilterNoiseMode, Plan};
 use crate::linalg::Vector;
 use crate::model::Measurement;
-use crate::trial::{
-    ConsistencyOptions, FilterOutput, RunContext, RunTrace, Trial, Unit, UnitResult,
-};
+use crate::step_loop::{FilterOutput, RunContext, RunTrace, Unit, UnitResult};
 
 /// One simulated run of a world.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -71,7 +70,7 @@ pub struct NoiseSettings {
 }
 
 /// A filter ready to run on realisations of a world: one virtual call per run, then the
-/// monomorphised step loop ([`crate::trial::run_filter`] with the filter's own prior and
+/// monomorphised step loop ([`crate::step_loop::run_filter`] with the filter's own prior and
 /// evaluation).
 pub trait WorldFilter<const NQ: usize, const NU: usize, const NZ: usize>: Send + Sync {
     /// Runs the filter on one realisation.
@@ -153,15 +152,15 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
     fn filters(&self) -> &[FilterInfo] {
         &self.filter_info
     }
-    fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a> {
+    fn trial<'a>(&'a self, settings: &'a RunSettings) -> Box<dyn Trial + 'a> {
         Box::new(WorldTrial {
             names: self.layout.quantity_names(),
             angles: self.layout.angles(),
-            prepared: (0..plan.filters.len() * plan.noise_scales.len())
+            prepared: (0..settings.filters.len() * settings.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
             sys: self,
-            plan,
+            settings,
         })
     }
     fn as_any(&self) -> &dyn Any {
@@ -171,7 +170,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
 
 struct WorldTrial<'a, const NQ: usize, const NU: usize, const NZ: usize> {
     sys: &'a WorldPlan<NQ, NU, NZ>,
-    plan: &'a Plan,
+    settings: &'a RunSettings,
     names: Vec<&'a str>,
     angles: Vec<(usize, bool)>,
     prepared: Vec<OnceLock<Box<dyn WorldFilter<NQ, NU, NZ>>>>,
@@ -179,35 +178,35 @@ struct WorldTrial<'a, const NQ: usize, const NU: usize, const NZ: usize> {
 
 impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_, NQ, NU, NZ> {
     fn run(&self, unit: &Unit) -> UnitResult {
-        let plan = self.plan;
-        let si = plan.scenarios[unit.scenario].index;
+        let settings = self.settings;
+        let si = settings.scenarios[unit.scenario].index;
         let name = &self.sys.scenario_info[si].name;
-        let noise_scale = plan.noise_scales[unit.scale];
-        let seed = plan.run_seed(name, unit.scale, unit.run);
+        let noise_scale = settings.noise_scales[unit.scale];
+        let seed = settings.run_seed(name, unit.scale, unit.run);
         let real = self.sys.world.simulate(si, noise_scale, seed);
-        let traced = unit.run < plan.trace_runs;
+        let traced = unit.run < settings.trace_runs;
         let ctx = RunContext {
             truth: &real.truth,
             inputs: &real.inputs,
             measurements: &real.measurements,
             angles: &self.angles,
-            thresholds: plan.rmse_thresholds.as_deref(),
+            thresholds: settings.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,
-            export: plan.export_estimates,
-            consistency: ConsistencyOptions::of(plan),
+            export: settings.export_estimates,
+            consistency: settings.consistency_options(&self.sys.layout),
             unit: *unit,
         };
-        let settings = NoiseSettings {
+        let noise = NoiseSettings {
             noise_scale,
-            filter_scale: match plan.filter_noise {
+            filter_scale: match settings.filter_noise {
                 FilterNoiseMode::Nominal => 1.0,
                 FilterNoiseMode::Matched => noise_scale,
             },
             q_scale: 1.0,
             r_scale: 1.0,
         };
-        let mut trace = (traced || plan.export_estimates).then(|| {
+        let mut trace = (traced || settings.export_estimates).then(|| {
             RunTrace::of_world(
                 &real.inputs,
                 &real.truth,
@@ -215,20 +214,26 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
                 real.world.clone(),
             )
         });
-        let mut filters = Vec::with_capacity(plan.filters.len());
+        let mut filters = Vec::with_capacity(settings.filters.len());
         let unmodelled = crate::score::Unmodelled {
             dt_s: self.sys.layout.dt_s,
         };
-        for (fi, f) in plan.filters.iter().enumerate() {
+        for (fi, f) in settings.filters.iter().enumerate() {
             let mut out = if f.external {
-                crate::score::replay(plan, fi, &unmodelled, &ctx)
+                crate::score::replay(
+                    settings.estimates.as_deref(),
+                    fi,
+                    &f.label,
+                    &unmodelled,
+                    &ctx,
+                )
             } else {
-                let slot = &self.prepared[fi * plan.noise_scales.len() + unit.scale];
+                let slot = &self.prepared[fi * settings.noise_scales.len() + unit.scale];
                 let filter = slot.get_or_init(|| {
                     self.sys.entries[f.entry].prepare(&NoiseSettings {
                         q_scale: f.q_scale,
                         r_scale: f.r_scale,
-                        ..settings
+                        ..noise
                     })
                 });
                 filter.run(&real, &ctx)
@@ -248,7 +253,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
     }
 
     fn steps(&self, scenario: usize) -> usize {
-        self.sys.scenario_info[self.plan.scenarios[scenario].index].steps
+        self.sys.scenario_info[self.settings.scenarios[scenario].index].steps
     }
 
     fn layout(&self) -> &Layout {
@@ -280,7 +285,7 @@ impl<const NX: usize, const NQ: usize, const NU: usize, const NZ: usize, M, F, E
 where
     M: crate::model::Model<NX, NU, NZ>,
     F: crate::filter::Filter<NX, NU, NZ, M> + Send,
-    E: crate::trial::Evaluate<NX, NQ> + Send,
+    E: crate::step_loop::Evaluate<NX, NQ> + Send,
     P: Fn(&Realisation<NQ, NU, NZ>) -> (Vector<NX>, crate::linalg::Matrix<NX, NX>) + Send + Sync,
 {
     fn run(
@@ -289,11 +294,11 @@ where
         ctx: &RunContext<'_, NQ, NU, NZ>,
     ) -> FilterOutput {
         let (x0_hat, p0) = (self.prior)(realisation);
-        crate::trial::run_filter(
+        crate::step_loop::run_filter(
             &self.model,
             &self.filter,
             &self.eval,
-            &crate::trial::Prior {
+            &crate::step_loop::Prior {
                 x0_hat: &x0_hat,
                 p0: &p0,
             },

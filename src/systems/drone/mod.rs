@@ -21,10 +21,11 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 
-use crate::experiment::spec::OneOrMany;
-use crate::experiment::{Checker, InitialMode, non_negative, positive};
 use crate::linalg::{Matrix, Vector};
 use crate::model::Measurement;
+use crate::system::checker::{Checker, non_negative, positive};
+use crate::system::settings::InitialMode;
+use crate::system::spec_values::OneOrMany;
 use crate::system::world::{NoiseSettings, Realisation, WorldFilter, WorldFilterEntry, WorldPlan};
 use crate::system::{
     Catalogue, FilterInfo, Layout, Quantity, ScenarioInfo, System, SystemPlan, SystemSpec,

@@ -28,12 +28,13 @@ use std::sync::Arc;
 
 use nalgebra::DMatrix;
 
-use crate::experiment::{Checker, InitialMode, Plan, positive};
 use crate::filter::BatchInitial;
 use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::scenario::Scenario;
 use crate::sim::TruthNoise;
 use crate::system::additive::{AdditivePlan, linear_kinds};
+use crate::system::checker::{Checker, positive};
+use crate::system::settings::{InitialMode, RunSettings};
 use crate::system::{
     Catalogue, FilterInfo, Layout, Quantity, ScenarioInfo, System, SystemPlan, SystemSpec,
 };
@@ -346,24 +347,24 @@ impl<const NX: usize, const NZ: usize> SystemPlan for LinearPlan<NX, NZ> {
     fn filters(&self) -> &[FilterInfo] {
         self.additive.filters()
     }
-    fn trial<'a>(&'a self, plan: &'a Plan) -> Box<dyn Trial + 'a> {
+    fn trial<'a>(&'a self, settings: &'a RunSettings) -> Box<dyn Trial + 'a> {
         Box::new(LinearTrial {
-            inner: self.additive.trial(plan),
+            inner: self.additive.trial(settings),
             inputs: self.inputs,
         })
     }
     fn as_any(&self) -> &dyn Any {
         self
     }
-    fn describe(&self, plan: &Plan) -> crate::analysis::Description {
-        let mut d = self.additive.describe(plan);
+    fn describe(&self, settings: &RunSettings) -> Option<crate::analysis::Description> {
+        let mut d = self.additive.describe(settings)?;
         // G's padding columns are not inputs of the spec.
         for s in &mut d.scenarios {
             for row in &mut s.input_matrix {
                 row.truncate(self.inputs);
             }
         }
-        d
+        Some(d)
     }
 }
 

@@ -4,8 +4,8 @@
 use nalgebra::DMatrix;
 use serde::Deserialize;
 
-use crate::experiment::{Checker, positive};
 use crate::model::Availability;
+use crate::system::checker::{Checker, positive};
 
 use super::model::SensorGroup;
 

@@ -13,13 +13,14 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 
-use crate::experiment::spec::OneOrMany;
-use crate::experiment::{Checker, InitialMode, non_negative, positive};
 use crate::filter::BatchInitial;
 use crate::linalg::{Matrix, Vector};
 use crate::scenario::Scenario;
 use crate::sim::TruthNoise;
 use crate::system::additive::{AdditivePlan, FilterKinds, linear_kinds};
+use crate::system::checker::{Checker, non_negative, positive};
+use crate::system::settings::InitialMode;
+use crate::system::spec_values::OneOrMany;
 use crate::system::{Catalogue, Layout, Quantity, System, SystemPlan, SystemSpec};
 use model::{ContinuousLinear, LINEAR_DT_S, LINEAR_R_DIAG, LINEAR_STATES, Linear, LinearSensor};
 
@@ -252,7 +253,7 @@ impl LinearQuadrotorSystem {
                 }
             });
             let mut all = Vec::new();
-            let max_rows = crate::experiment::plan::limits::MAX_BATCH_LS_ROWS;
+            let max_rows = crate::system::limits::MAX_BATCH_LS_ROWS;
             for (i, sc) in scenarios.iter().enumerate() {
                 let rows = sc.steps() * NZ;
                 if rows > max_rows {

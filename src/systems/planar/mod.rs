@@ -15,14 +15,15 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 
-use crate::experiment::spec::{OneOrMany, TableOf};
-use crate::experiment::{Checker, InitialMode, non_negative, positive};
 use crate::linalg::Vector;
 use crate::sim::TruthNoise;
 use crate::system::additive::{
     AdditivePlan, AssumedNoise, FilterContext, FilterEntry, FilterKind, FilterKinds, RunFilter,
     check_scenarios, common_kinds,
 };
+use crate::system::checker::{Checker, non_negative, positive};
+use crate::system::settings::InitialMode;
+use crate::system::spec_values::{OneOrMany, TableOf};
 use crate::system::{Catalogue, FilterInfo, Layout, Quantity, System, SystemPlan, SystemSpec};
 use model::PlanarParams;
 use model::{IMU_MEASUREMENTS, P1_MEASUREMENTS, PLANAR_STATES, Planar, PlanarImu, PlanarP1};

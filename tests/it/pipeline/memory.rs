@@ -555,7 +555,7 @@ fn a_spilled_cell_gives_the_consistency_table_of_the_kept_sums() {
     assert_eq!(code, 0, "{err}");
 
     let plan = kfmc::experiment::load(&path).unwrap();
-    let trial = kfmc::trial::build(&plan);
+    let trial = plan.trial();
     let states = trial.layout().quantity_names();
     let nf = plan.filters.len();
     let mut kept: Vec<Vec<RunConsistency>> = vec![Vec::new(); nf];

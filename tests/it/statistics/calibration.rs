@@ -6,7 +6,7 @@
 use kfmc::experiment;
 use kfmc::metrics::RunConsistency;
 use kfmc::metrics::consistency::{VERDICT, average_chi2_band, cell_tests};
-use kfmc::trial::{Unit, build};
+use kfmc::trial::Unit;
 use rand::SeedableRng;
 use rand_distr::{ChiSquared, Distribution, StandardNormal};
 use rand_pcg::Pcg64;
@@ -194,7 +194,7 @@ fn tuned_planar_ekf_false_alarm_rate_over_200_master_seeds() {
                 "master_seed = {seed}\nruns = 50\n[model]\nkind = \"planar_quadrotor\"\n[[scenarios]]\nname = \"roll\"\nduration_s = 2.0\n[[filters]]\nlabel = \"ekf\"\nkind = \"ekf\"\n[noise]\nfilter_noise = \"matched\"\n[initial_estimate]\nmode = \"sampled\"\np0_std = 0.01\n[consistency]\nalpha = 0.05\n"
             );
             let plan = experiment::parse(&text, Path::new("fa.toml")).unwrap();
-            let trial = build(&plan);
+            let trial = plan.trial();
             let cons: Vec<RunConsistency> = (0..plan.runs)
                 .filter_map(|run| trial.run(&Unit { scenario: 0, scale: 0, run }).filters[0].consistency.clone())
                 .collect();

@@ -13,7 +13,7 @@ use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
 use kfmc::study::{ExecOptions, run};
 use kfmc::systems::linear_quadrotor::model::{Linear3, LinearSensor};
-use kfmc::trial::{Unit, build};
+use kfmc::trial::Unit;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 fn shipped(name: &str, out: &Path, overrides: Overrides) -> Plan {
@@ -106,7 +106,7 @@ impl Consistency {
 
 /// Every run of the plan's first cell, traced: (truth, first filter's x̂) at the given steps.
 fn traced(plan: &Plan, steps: &[usize]) -> Vec<Vec<(Vector<6>, Vector<6>)>> {
-    let trial = build(plan);
+    let trial = plan.trial();
     (0..plan.runs)
         .map(|run| {
             let tr = trial

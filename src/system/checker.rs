@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use serde::de::DeserializeOwned;
 
-use super::spec::OneOrMany;
+use super::spec_values::OneOrMany;
 use crate::error::SpecError;
 
 /// Collects validation errors with the file name attached.
@@ -255,16 +255,16 @@ impl Checker {
     }
 
     /// The transitions K = round(duration / Δt) of a scenario at key path `key` (reported at
-    /// `key.duration_s`): at least one sample, at most [`super::plan::limits::MAX_STEPS`], and
+    /// `key.duration_s`): at least one sample, at most [`super::limits::MAX_STEPS`], and
     /// with the scenarios counted before it at most
-    /// [`super::plan::limits::MAX_TOTAL_SAMPLES`] samples, as systems expand them in memory.
+    /// [`super::limits::MAX_TOTAL_SAMPLES`] samples, as systems expand them in memory.
     /// Systems call this before expanding a scenario, so an absurd duration is an error,
     /// never an allocation failure.
     ///
     /// When the scenario has no `duration_s` of its own, `duration_s` is its default and a
     /// problem is reported at `key` (the scenario), saying so.
     pub fn scenario_steps(&mut self, key: &str, duration_s: f64, dt_s: f64) -> Option<usize> {
-        let max = super::plan::limits::MAX_STEPS;
+        let max = super::limits::MAX_STEPS;
         let own = format!("{key}.duration_s");
         let (at, what) = if self.has(&own) {
             (own, format!("{duration_s}"))
@@ -297,7 +297,7 @@ impl Checker {
             );
             return None;
         }
-        let total = super::plan::limits::MAX_TOTAL_SAMPLES;
+        let total = super::limits::MAX_TOTAL_SAMPLES;
         self.samples += steps as u64 + 1;
         if self.samples > total {
             self.err(
