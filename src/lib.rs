@@ -18,7 +18,7 @@
 //! [`metrics`] (errors, NEES, NIS, accumulators, divergence), [`experiment`] (spec →
 //! plan), [`runner`] (executor), [`trial`] (one run), [`study`] (a whole study),
 //! [`output`] (schema, Parquet, manifest), [`plot`] (figures and the HTML report, from the
-//! written tables only), [`cli`].
+//! written tables only), [`cli`]. A plugin crate starts from [`prelude`].
 //!
 //! ## Notation
 //! | symbol | meaning |
@@ -48,6 +48,7 @@ pub mod model;
 pub mod output;
 pub mod plot;
 pub mod power;
+pub mod prelude;
 pub mod runner;
 pub mod scenario;
 pub mod score;
@@ -66,3 +67,8 @@ pub mod tune;
 /// The TOML crate kfmc parses specs with: a system's own tables arrive as [`toml::Table`],
 /// so a downstream crate can use this one instead of pinning its own.
 pub use toml;
+
+/// The serde kfmc derives its spec types with. A plugin's own spec tables derive through it
+/// (`#[derive(kfmc::prelude::Deserialize)] #[serde(crate = "kfmc::serde")]`), so a downstream
+/// crate needs no serde dependency of its own and cannot pin a second one.
+pub use serde;

@@ -426,7 +426,7 @@ impl EstimateSet {
                 .iter_names()
                 .map(|n| n.to_string())
                 .collect();
-            let cols = detect_columns(path, &names, &quantities, &measurements)?;
+            let cols = detect_columns(path, &names, quantities, measurements)?;
             let value_names = cols.value_columns();
             let width = cols.width();
             // Where null means "not given" and a non-finite number is an error: the

@@ -27,7 +27,7 @@ LAYERS = [
     ("foundations", ["error", "hash", "linalg", "runner", "output"]),
     ("one run's mathematics", ["model", "scenario", "sim", "filter", "metrics", "analysis", "step_loop", "sequential"]),
     ("exchange", ["exchange", "score"]),
-    ("plugin API", ["system", "trial"]),
+    ("plugin API", ["system", "trial", "prelude"]),
     ("built-in systems", ["systems"]),
     ("experiment", ["experiment"]),
     ("commands", ["study", "simulate", "merge", "power", "tune", "check"]),

@@ -7,6 +7,10 @@
 //! * `model.kind = "planar_quadrotor"` — kfmc's built-in system, registered again with the
 //!   user's sequential-update EKF for sensor P1, `kind = "user_filter"` ([`sequential`]).
 //!
+//! Every import of the user's files is `use kfmc::prelude::*;`, and their spec tables derive
+//! through kfmc's serde (`#[serde(crate = "kfmc::serde")]`), so the crate needs no other
+//! dependency. `own_filter --version` prints its own name and version.
+//!
 //! ```sh
 //! cargo build --release --example own_filter
 //! target/release/examples/own_filter list
@@ -20,10 +24,18 @@ mod user_ekf;
 
 use std::process::ExitCode;
 
+use kfmc::cli::Program;
 use kfmc::systems::planar::PlanarSystem;
 
 fn main() -> ExitCode {
-    kfmc::cli::main_with(
+    // A downstream crate writes `version: env!("CARGO_PKG_VERSION")`; inside kfmc's own
+    // repository that would be kfmc's version, so the example names one of its own.
+    let program = Program {
+        name: "own_filter",
+        version: "0.1.0",
+    };
+    kfmc::cli::main_as(
+        program,
         kfmc::systems::builtin()
             .with(system::TargetSystem::new())
             // Same kind as the built-in planar system, so this one replaces it.

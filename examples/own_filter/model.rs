@@ -7,8 +7,7 @@
 
 use std::f64::consts::PI;
 
-use kfmc::linalg::{Matrix, Vector};
-use kfmc::model::Model;
+use kfmc::prelude::*;
 
 /// State names, in order (the tables' `rmse_<state>` columns).
 pub const STATES: [&str; 4] = ["px", "vx", "py", "vy"];

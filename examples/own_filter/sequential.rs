@@ -10,14 +10,7 @@
 
 use std::sync::Arc;
 
-use kfmc::experiment::Checker;
-use kfmc::filter::{Filter, FilterError, Innovation};
-use kfmc::linalg::{Matrix, Vector};
-use kfmc::model::{Measurement, Model};
-use kfmc::system::FilterInfo;
-use kfmc::system::additive::{
-    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, RunFilter,
-};
+use kfmc::prelude::*;
 
 use super::user_ekf::{Belief, NoiseKeys};
 

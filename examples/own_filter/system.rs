@@ -6,14 +6,7 @@
 
 use std::sync::Arc;
 
-use serde::Deserialize;
-
-use kfmc::experiment::{Checker, InitialMode, non_negative, positive};
-use kfmc::linalg::Vector;
-use kfmc::scenario::Scenario;
-use kfmc::sim::TruthNoise;
-use kfmc::system::additive::{AdditivePlan, FilterKinds, common_kinds};
-use kfmc::system::{Catalogue, Layout, Quantity, System, SystemPlan, SystemSpec};
+use kfmc::prelude::*;
 
 use super::model::{CvRangeBearing, MEASUREMENTS, STATES, UNITS};
 use super::user_ekf::UserEkfKind;
@@ -23,7 +16,7 @@ pub const KIND: &str = "cv_range_bearing";
 
 /// `[model]` (without `kind`).
 #[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(crate = "kfmc::serde", deny_unknown_fields)]
 struct ModelKeys {
     dt_s: Option<f64>,
     accel_psd: Option<f64>,
@@ -34,7 +27,7 @@ struct ModelKeys {
 
 /// `[[scenarios]]`.
 #[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(crate = "kfmc::serde", deny_unknown_fields)]
 struct ScenarioKeys {
     name: String,
     x0: Vec<f64>,

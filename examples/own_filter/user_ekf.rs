@@ -6,17 +6,7 @@
 
 use std::sync::Arc;
 
-use serde::Deserialize;
-
-use kfmc::experiment::Checker;
-use kfmc::experiment::spec::OneOrMany;
-use kfmc::filter::{Filter, FilterError, Innovation};
-use kfmc::linalg::{Matrix, Vector};
-use kfmc::model::{Availability, Measurement, Model};
-use kfmc::system::FilterInfo;
-use kfmc::system::additive::{
-    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, RunFilter,
-};
+use kfmc::prelude::*;
 
 /// Mean, covariance and the last step's error transition.
 #[derive(Clone, Debug, PartialEq)]
@@ -158,7 +148,7 @@ where
 
 /// The entry keys of a `user_ekf` (every other key is an error at its key path).
 #[derive(Debug, Default, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(crate = "kfmc::serde", deny_unknown_fields)]
 pub struct NoiseKeys {
     /// Assumed process-noise std per state (refused when the model has its own full Q).
     pub q_std: Option<OneOrMany>,

@@ -605,6 +605,44 @@ pub fn main_with(registry: Registry) -> ExitCode {
     run(Cli::parse(), &registry)
 }
 
+/// A downstream binary's own name and version, which its `--help` and `--version` show
+/// instead of kfmc's (kfmc's version follows in parentheses).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Program {
+    /// The binary's name (`env!("CARGO_BIN_NAME")` or the crate's name).
+    pub name: &'static str,
+    /// The binary's version (`env!("CARGO_PKG_VERSION")`).
+    pub version: &'static str,
+}
+
+impl Program {
+    /// The clap command of kfmc's command line under this program's name and version.
+    pub fn command(&self) -> clap::Command {
+        use clap::CommandFactory;
+        // clap keeps borrowed strings for the program's lifetime; this runs once per process.
+        let version: &'static str = Box::leak(
+            format!("{} (kfmc {})", self.version, env!("CARGO_PKG_VERSION")).into_boxed_str(),
+        );
+        Cli::command()
+            .name(self.name)
+            .bin_name(self.name)
+            .display_name(self.name)
+            .version(version)
+    }
+}
+
+/// [`main_with`] for a downstream binary with its own name and version:
+/// `kfmc::cli::main_as(Program { name: "mytool", version: env!("CARGO_PKG_VERSION") }, registry)`.
+pub fn main_as(program: Program, registry: Registry) -> ExitCode {
+    use clap::FromArgMatches;
+    let cli = match Cli::from_arg_matches(&program.command().get_matches()) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
+    crate::runner::stop_on_signals();
+    run(cli, &registry)
+}
+
 /// The whole command line from `args` (the program name first, as `std::env::args`), for an
 /// embedding that is not `main` (the Python module's `kfmc` script): parses with clap's
 /// `try_parse_from`, so help, version and usage errors are printed exactly as the binary

@@ -57,6 +57,23 @@ fn path_str(p: &Path) -> &str {
 }
 
 #[test]
+fn the_users_binary_has_its_own_name_and_version() {
+    let (code, out, err) = own_filter(&["--version"]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(
+        out.trim(),
+        format!("own_filter 0.1.0 (kfmc {})", env!("CARGO_PKG_VERSION"))
+    );
+    let (code, out, err) = own_filter(&["--help"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("Usage: own_filter <COMMAND>"), "{out}");
+    // A usage error names the user's binary too, and exits 2 as kfmc's does.
+    let (code, _, err) = own_filter(&["no-such-command"]);
+    assert_eq!(code, 2);
+    assert!(err.contains("Usage: own_filter"), "{err}");
+}
+
+#[test]
 fn both_specs_validate_run_and_pass_their_checks() {
     for name in ["cv_range_bearing", "planar_user_filter"] {
         let s = spec(name);
