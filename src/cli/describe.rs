@@ -27,7 +27,8 @@ impl Describe {
             no_write,
         } = self;
         let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-        let description = plan.system.describe(&plan);
+        let mut description = plan.system.describe(&plan);
+        description.filter_model = plan.system.filter_model().map(|m| m.record(plan.layout()));
         emit(&description.render());
         if !no_write {
             let path = out.unwrap_or_else(|| plan.output.join("describe.toml"));

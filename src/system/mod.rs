@@ -18,6 +18,7 @@
 //! kinds that work on any [`crate::model::Model`].
 
 pub mod additive;
+pub mod filter_model;
 pub mod world;
 
 use std::any::Any;
@@ -221,6 +222,13 @@ pub trait SystemPlan: Send + Sync + Debug {
             plan.kind
         ));
         d
+    }
+    /// The model kfmc's filters use, with the world's noise and prior, for filters written
+    /// outside kfmc ([`filter_model`]: the Python package's `Simulation.f/h/jacobians`,
+    /// `kfmc describe`'s `[filter_model]`). `None` (the default): the system's world is not
+    /// one [`crate::model::Model`] plus additive noise.
+    fn filter_model(&self) -> Option<filter_model::FilterModel<'_>> {
+        None
     }
 }
 
