@@ -361,3 +361,17 @@ def test_the_example_judges_filterpy_on_the_simulations_model(model, root, tmp_p
     assert len(mine) == len(ref) > 0 and np.allclose(mine, ref, rtol=1e-9, atol=0)
     # A figure, or a message saying why there is none.
     assert (tmp_path / "anees.png").is_file() or "matplotlib is not installed" in r.stdout
+
+
+def test_schema_and_describe_state_the_convention_and_the_model(root):
+    p1 = root / "experiments" / "external_filterpy_p1.toml"
+    c = kfmc.schema("measurements", p1)["step_convention"]
+    assert (c["wrapped_errors"], c["continuous_angles"], c["wrapped_innovations"]) == (
+        [], ["theta"], ["theta"])
+    d = kfmc.describe(p1)["filter_model"]
+    assert d["form"] == "nonlinear" and "f" not in d
+    assert np.array_equal(np.array(d["q"]), kfmc.model(p1).Q)
+    assert d["convention"] == c
+    drone = root / "experiments" / "drone_consistency.toml"
+    c = kfmc.schema("estimates", drone)["step_convention"]
+    assert c["wrapped_errors"] == ["roll", "pitch", "yaw"] and c["wrapped_innovations"] == []
