@@ -54,6 +54,10 @@ pub struct Description {
     pub sections: Vec<Section>,
     /// What could not be analysed, and why.
     pub notes: Vec<String>,
+    /// The model kfmc's filters use, at full precision, for filters written elsewhere
+    /// ([`crate::system::SystemPlan::filter_model`]); absent for a system without one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub filter_model: Option<crate::model::exposed::FilterModelRecord>,
 }
 
 /// A titled list of named values a system adds to its description.
@@ -583,6 +587,38 @@ impl Description {
                 .unwrap_or(0);
             for r in &sec.rows {
                 let _ = writeln!(s, "  {:w$}  {}", r.name, r.value);
+            }
+        }
+        if let Some(m) = &self.filter_model {
+            let c = &m.convention;
+            let _ = writeln!(
+                s,
+                "\nfilter-side model ({}; [filter_model] of the TOML file at full precision):",
+                m.form
+            );
+            let _ = writeln!(s, "  {}", c.transition);
+            let _ = writeln!(s, "  {}", c.measurement);
+            let list = |v: &[String]| {
+                if v.is_empty() {
+                    "none".to_string()
+                } else {
+                    v.join(", ")
+                }
+            };
+            let _ = writeln!(s, "  errors wrapped: {}", list(&c.wrapped_errors));
+            if !c.continuous_angles.is_empty() {
+                let _ = writeln!(
+                    s,
+                    "  continuous angles (truth, z and error not wrapped): {}",
+                    list(&c.continuous_angles)
+                );
+            }
+            if !c.wrapped_innovations.is_empty() {
+                let _ = writeln!(
+                    s,
+                    "  innovations kfmc's filters wrap to [−π, π): {}",
+                    list(&c.wrapped_innovations)
+                );
             }
         }
         for n in &self.notes {

@@ -144,6 +144,9 @@ pub fn simulate(
             crate::score::STAMP_KEY.into(),
             crate::score::SEED_KEY.into(),
         ],
+        step_convention: Some(crate::system::filter_model::convention_of(
+            plan.system.as_ref(),
+        )),
     });
     let tables = folder.commit(finished, manifest)?;
     Ok(StudyReport {

@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
+import numpy as np
 import polars as pl
 
 from kfmc import _kfmc
@@ -36,12 +37,14 @@ __all__ = [
     "Error",
     "EstimatesError",
     "IncompleteError",
+    "Model",
     "Simulation",
     "SpecError",
     "Study",
     "StudyError",
     "check",
     "describe",
+    "model",
     "power",
     "run",
     "schema",
@@ -116,12 +119,225 @@ class Study:
         return self.table("consistency").filter(pl.col("test") == _VERDICT)
 
 
+Vector = Any
+"""A vector: a 1-D numpy array or a sequence of floats."""
+
+Sensor = Union[None, str, Sequence[str]]
+"""Measurement components by name: ``None`` (all of them), one name, or a list of names."""
+
+
+class Model:
+    """The model kfmc's filters use — the world's own, for a filter written outside kfmc.
+
+    Every call runs kfmc's Rust model (the f, h and Jacobians its truth simulator and filters
+    call), so a filter built on it needs no transcription of the model. The step convention
+    (:attr:`step_convention`): ``x_k = f(x_{k-1}, u_k) + w_k`` — the input on row ``k``
+    drives the step from ``k-1`` to ``k`` — and ``z_k = h(x_k, u_k) + v_k``; step 0 has no
+    measurement (its ``z`` is null) and starts from the run's prior (``initial``). Vectors
+    and matrices are float64 numpy arrays, bit for bit the values Rust uses.
+
+    Made by :attr:`Simulation.model` or :func:`model`; not constructed directly.
+    """
+
+    def __init__(self, raw: Any) -> None:
+        self._raw = raw
+
+    def __repr__(self) -> str:
+        return (
+            f"kfmc.Model(kind={self.kind!r}, states={self.states}, inputs={self.inputs}, "
+            f"measurements={self.measurements}, linear={self.linear})"
+        )
+
+    @property
+    def kind(self) -> str:
+        """``model.kind`` of the spec."""
+        return str(self._raw.kind)
+
+    @property
+    def states(self) -> List[str]:
+        """The state names, in the order of every vector and matrix."""
+        return list(self._raw.states)
+
+    @property
+    def inputs(self) -> List[str]:
+        """The input names (the ``u_*`` columns of ``measurements``)."""
+        return list(self._raw.inputs)
+
+    @property
+    def measurements(self) -> List[str]:
+        """The measurement component names (the ``z_*`` columns)."""
+        return list(self._raw.measurements)
+
+    @property
+    def dt_s(self) -> float:
+        """The sample time Δt in seconds."""
+        return float(self._raw.dt_s)
+
+    @property
+    def linear(self) -> bool:
+        """Whether the model is linear, so that :attr:`F`, :attr:`G` and :attr:`H` exist."""
+        return self._raw.linear() is not None
+
+    def _linear(self, which: int) -> np.ndarray:
+        parts = self._raw.linear()
+        if parts is None:
+            raise Error(
+                f"model.kind = {self.kind!r} is not linear: it has no F, G, H; use f, h and "
+                "jacobians (which run its model)"
+            )
+        n, nu, nz = len(self.states), len(self.inputs), len(self.measurements)
+        rows, cols = ((n, n), (n, nu), (nz, n))[which]
+        return _matrix(parts[which], rows, cols)
+
+    @property
+    def F(self) -> np.ndarray:
+        """F of ``x_k = F x_{k-1} + G u_k + w_k`` (linear models; else :class:`Error`)."""
+        return self._linear(0)
+
+    @property
+    def G(self) -> np.ndarray:
+        """G of ``x_k = F x_{k-1} + G u_k + w_k`` (linear models; else :class:`Error`)."""
+        return self._linear(1)
+
+    @property
+    def H(self) -> np.ndarray:
+        """H of ``z_k = H x_k + v_k`` (linear models; else :class:`Error`)."""
+        return self._linear(2)
+
+    @property
+    def Q(self) -> np.ndarray:
+        """The truth's process-noise covariance at noise scale 1 (a cell with
+        ``noise_scale`` s draws ``w_k ~ N(0, s² Q)``)."""
+        n = len(self.states)
+        return _matrix(self._raw.q, n, n)
+
+    @property
+    def R(self) -> np.ndarray:
+        """The truth's measurement-noise covariance at noise scale 1 (``s² R`` at scale s)."""
+        n = len(self.measurements)
+        return _matrix(self._raw.r, n, n)
+
+    @property
+    def P0(self) -> np.ndarray:
+        """``diag(p0_std²)``: the prior's covariance in the ``truth`` and ``sampled`` modes
+        (each run's prior, also with ``batch_ls``, is its row of ``Simulation.initial``)."""
+        n = len(self.states)
+        return _matrix(self._raw.p0, n, n)
+
+    @property
+    def x0(self) -> Dict[str, np.ndarray]:
+        """Each scenario's true initial state x_0, by scenario name."""
+        return {name: np.array(x, dtype=np.float64) for name, x in self._raw.x0}
+
+    @property
+    def step_convention(self) -> Dict[str, Any]:
+        """Which input drives a step, what row 0 is, and what wraps (as ``manifest.toml``'s
+        ``[exchange.step_convention]`` and ``kfmc schema`` state it): ``transition``,
+        ``measurement``, ``row_0`` (sentences), ``wrapped_errors`` (quantities whose error
+        kfmc wraps), ``continuous_angles`` (angles kept continuous: truth, z and error not
+        wrapped), ``wrapped_innovations`` (components whose innovation kfmc's filters wrap
+        to [−π, π); :meth:`residual` does it)."""
+        return dict(self._raw.step_convention)
+
+    def _rows(self, sensor: Sensor) -> List[int]:
+        names = self.measurements
+        if sensor is None:
+            return list(range(len(names)))
+        wanted = [sensor] if isinstance(sensor, str) else list(sensor)
+        rows = []
+        for s in wanted:
+            if s not in names:
+                raise Error(f"unknown sensor component {s!r}; the model measures: {', '.join(names)}")
+            rows.append(names.index(s))
+        return rows
+
+    def _u_for_h(self, u: Optional[Vector]) -> List[float]:
+        if u is None:
+            if self._raw.measurement_uses_input:
+                raise Error(
+                    f"h of model.kind = {self.kind!r} reads the input: pass u (the input on the "
+                    "same row as z)"
+                )
+            return []
+        return _vector(u, len(self.inputs), "u")
+
+    def f(self, x: Vector, u: Vector) -> np.ndarray:
+        """``f(x_{k-1}, u_k)``: the noise-free transition into step k, with the input of
+        step k (row k of ``measurements``)."""
+        return np.array(
+            self._raw.f(_vector(x, len(self.states), "x"), _vector(u, len(self.inputs), "u")),
+            dtype=np.float64,
+        )
+
+    def h(self, x: Vector, sensor: Sensor = None, *, u: Optional[Vector] = None) -> np.ndarray:
+        """``h(x_k, u_k)``: the noise-free measurement, all components or those named by
+        ``sensor``. ``u`` is needed only when h reads the input (the planar IMU set)."""
+        rows = self._rows(sensor)
+        z = self._raw.h(_vector(x, len(self.states), "x"), self._u_for_h(u))
+        return np.array([z[i] for i in rows], dtype=np.float64)
+
+    def jacobians(
+        self, x: Vector, u: Vector, sensor: Sensor = None
+    ) -> Tuple[np.ndarray, np.ndarray]:
+        """``(F, H)`` at ``(x, u)``: ``F = ∂f/∂x`` (an EKF takes it at the previous estimate
+        ``x̂_{k-1}`` with ``u_k``) and ``H = ∂h/∂x`` (taken at the predicted ``x̂⁻_k``: call
+        again there), H's rows those of ``sensor``."""
+        xs = _vector(x, len(self.states), "x")
+        us = _vector(u, len(self.inputs), "u")
+        n = len(self.states)
+        f = _matrix(self._raw.transition_jacobian(xs, us), n, n)
+        rows = self._rows(sensor)
+        h_u = us if self._raw.measurement_uses_input else []
+        h = _matrix(self._raw.measurement_jacobian(xs, h_u), len(self.measurements), n)
+        return f, h[rows, :]
+
+    def residual(self, z: Vector, z_pred: Vector, sensor: Sensor = None) -> np.ndarray:
+        """The innovation ``z - ẑ`` as kfmc's filters form it: the components in
+        ``step_convention["wrapped_innovations"]`` wrapped to [−π, π)."""
+        rows = self._rows(sensor)
+        nz = len(self.measurements)
+        full_z, full_p = [0.0] * nz, [0.0] * nz
+        zs = _vector(z, len(rows), "z")
+        ps = _vector(z_pred, len(rows), "z_pred")
+        for i, r in enumerate(rows):
+            full_z[r], full_p[r] = zs[i], ps[i]
+        d = self._raw.residual(full_z, full_p)
+        return np.array([d[r] for r in rows], dtype=np.float64)
+
+    def available(self, step: int) -> List[str]:
+        """The measurement components that report at ``step`` (all of them at every step
+        unless the model is multi-rate; none has a measurement at step 0)."""
+        mask = self._raw.availability(step)
+        return [n for n, a in zip(self.measurements, mask) if a]
+
+
+def _vector(v: Vector, n: int, what: str) -> List[float]:
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim != 1 or a.shape[0] != n:
+        raise Error(f"{what} must be a vector of {n} numbers; got shape {a.shape}")
+    return a.tolist()
+
+
+def _matrix(rows: Sequence[Sequence[float]], r: int, c: int) -> np.ndarray:
+    # Python floats are f64: the list round trip keeps every bit.
+    return np.array(rows, dtype=np.float64).reshape(r, c)
+
+
+def model(spec: Spec) -> Model:
+    """The model kfmc's filters use for a spec (see :class:`Model`), without simulating.
+    Raises :class:`Error` for a system whose world is not one model plus additive noise (the
+    drone)."""
+    return Model(_kfmc.filter_model(_spec(spec)))
+
+
 class Simulation:
     """A folder written by :func:`simulate`: every run's world for a filter outside kfmc.
 
     ``truth``, ``measurements`` and ``initial`` are the whole tables (the columns ``kfmc
     simulate`` writes); :meth:`runs` yields one run at a time, so a loop over many runs never
-    holds all of them.
+    holds all of them. :attr:`model` is the world's model for the filter (F, G, H, Q, R,
+    P0 of a linear system; f, h and their Jacobians of every system it exists for), and the
+    same names are available on the simulation itself (``sim.F``, ``sim.f(x, u)``, …).
     """
 
     def __init__(self, folder: PathLike, report: Optional[Mapping[str, Any]] = None) -> None:
@@ -129,6 +345,68 @@ class Simulation:
         self.folder: Path = Path(folder)
         #: What the command reported: runs, wall_s, tables (name, rows).
         self.report: Dict[str, Any] = dict(report or {})
+        self._model: Optional[Model] = None
+
+    @property
+    def model(self) -> Model:
+        """The model kfmc's filters use in this simulation's world (the spec its manifest
+        records); :class:`Error` for a system without one (the drone)."""
+        if self._model is None:
+            self._model = Model(_kfmc.simulation_model(os.fspath(self.folder)))
+        return self._model
+
+    @property
+    def F(self) -> np.ndarray:
+        """:attr:`Model.F` of :attr:`model`."""
+        return self.model.F
+
+    @property
+    def G(self) -> np.ndarray:
+        """:attr:`Model.G` of :attr:`model`."""
+        return self.model.G
+
+    @property
+    def H(self) -> np.ndarray:
+        """:attr:`Model.H` of :attr:`model`."""
+        return self.model.H
+
+    @property
+    def Q(self) -> np.ndarray:
+        """:attr:`Model.Q` of :attr:`model` (the truth's, at noise scale 1)."""
+        return self.model.Q
+
+    @property
+    def R(self) -> np.ndarray:
+        """:attr:`Model.R` of :attr:`model` (the truth's, at noise scale 1)."""
+        return self.model.R
+
+    @property
+    def P0(self) -> np.ndarray:
+        """:attr:`Model.P0` of :attr:`model`."""
+        return self.model.P0
+
+    @property
+    def step_convention(self) -> Dict[str, Any]:
+        """:attr:`Model.step_convention` of :attr:`model`."""
+        return self.model.step_convention
+
+    def f(self, x: Vector, u: Vector) -> np.ndarray:
+        """:meth:`Model.f`: ``f(x_{k-1}, u_k)``, running kfmc's model."""
+        return self.model.f(x, u)
+
+    def h(self, x: Vector, sensor: Sensor = None, *, u: Optional[Vector] = None) -> np.ndarray:
+        """:meth:`Model.h`: ``h(x_k)`` (all components, or those of ``sensor``)."""
+        return self.model.h(x, sensor, u=u)
+
+    def jacobians(
+        self, x: Vector, u: Vector, sensor: Sensor = None
+    ) -> Tuple[np.ndarray, np.ndarray]:
+        """:meth:`Model.jacobians`: ``(∂f/∂x, ∂h/∂x)`` at ``(x, u)``."""
+        return self.model.jacobians(x, u, sensor)
+
+    def residual(self, z: Vector, z_pred: Vector, sensor: Sensor = None) -> np.ndarray:
+        """:meth:`Model.residual`: the innovation, wrapped as kfmc's filters wrap it."""
+        return self.model.residual(z, z_pred, sensor)
 
     def __repr__(self) -> str:
         return f"kfmc.Simulation({str(self.folder)!r})"

@@ -445,10 +445,17 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             (SchemaTable::Measurements, "z") => {
                 "  null where the sensor did not report; null at step 0 (a run starts from its prior, with no measurement)"
             }
+            (SchemaTable::Measurements, "u") => {
+                "  u_k drives the step from k-1 to k (u_0 drives nothing)"
+            }
             _ => "",
         };
         s.push_str(&format!("{:<24} {ty}{note}\n", c.name));
     }
+    // The estimates' stamp stays last: a writer reads it off the last two lines.
+    s.push_str(&convention_text(
+        &crate::system::filter_model::convention_of(plan.system.as_ref()),
+    ));
     if table == SchemaTable::Estimates {
         s.push_str(&format!(
             "\nerror convention: {}\nfile metadata (the stamp; kfmc score warns and kfmc check refuses without it): {} = {}, {} = {}\n",
@@ -457,6 +464,37 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             plan.world_stamp(),
             crate::score::SEED_KEY,
             plan.master_seed
+        ));
+    }
+    s
+}
+
+/// The step convention as `kfmc schema` prints it (and `manifest.toml` records it).
+fn convention_text(c: &crate::output::manifest::StepConvention) -> String {
+    let list = |v: &[String]| {
+        if v.is_empty() {
+            "none".to_string()
+        } else {
+            v.join(", ")
+        }
+    };
+    let mut s = format!(
+        "\nstep convention:\n  {}\n  {}\n  {}\n  errors wrapped (angle quantities): {}\n",
+        c.transition,
+        c.measurement,
+        c.row_0,
+        list(&c.wrapped_errors)
+    );
+    if !c.continuous_angles.is_empty() {
+        s.push_str(&format!(
+            "  continuous angles (truth, z and error not wrapped): {}\n",
+            list(&c.continuous_angles)
+        ));
+    }
+    if !c.wrapped_innovations.is_empty() {
+        s.push_str(&format!(
+            "  innovations kfmc's filters wrap to [-pi, pi) (nu_<z> of an estimates file is taken as given): {}\n",
+            list(&c.wrapped_innovations)
         ));
     }
     s

@@ -279,6 +279,7 @@ impl Plan {
         });
         d.kind = self.kind.clone();
         d.experiment = self.name.clone();
+        d.filter_model = self.system.filter_model().map(|m| m.record(self.layout()));
         d
     }
 

@@ -7,6 +7,8 @@
 //! Dimensions are compile-time constants (`NX` states, `NU` inputs, `NZ` measurement
 //! components) so the per-step algebra is stack-allocated and monomorphised.
 
+pub mod exposed;
+
 use crate::linalg::{Matrix, Vector};
 
 /// Which measurement components report at a step, as a bit mask (bit `i` ⇔ component `i`).
@@ -57,6 +59,18 @@ pub struct Measurement<const NZ: usize> {
     pub z: Vector<NZ>,
     /// The components that reported.
     pub available: Availability,
+}
+
+/// The matrices of a linear model, x_k = F x_{k−1} + G u_k and z_k = H x_k: the very values
+/// its [`Model::propagate`] and [`Model::measure`] multiply with.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LinearMatrices<const NX: usize, const NU: usize, const NZ: usize> {
+    /// F.
+    pub f: Matrix<NX, NX>,
+    /// G.
+    pub g: Matrix<NX, NU>,
+    /// H.
+    pub h: Matrix<NZ, NX>,
 }
 
 /// A discrete-time nonlinear state-space model with additive Gaussian noise:
@@ -136,6 +150,18 @@ pub trait Model<const NX: usize, const NU: usize, const NZ: usize>: Send + Sync 
     /// `None` (the default) keeps the spec's per-state standard deviations.
     fn process_noise_covariance(&self) -> Option<Matrix<NX, NX>> {
         None
+    }
+    /// F, G and H when the model is linear (f(x, u) = F x + G u, h(x, u) = H x), so that a
+    /// filter written elsewhere can use the model's own matrices at full precision. `None`
+    /// (the default): the model is not known to be linear.
+    fn linear(&self) -> Option<LinearMatrices<NX, NU, NZ>> {
+        None
+    }
+    /// Whether h(x, u) depends on u (an accelerometer measures the input's effect). `true`
+    /// (the default) makes callers outside kfmc pass u to h; a model whose h reads only x
+    /// says `false`.
+    fn measurement_uses_input(&self) -> bool {
+        true
     }
 }
 

@@ -54,6 +54,33 @@ pub struct ExchangeEntry {
     pub run_seeds: String,
     /// The metadata keys an estimates file may carry to be checked against this folder.
     pub estimates_metadata: Vec<String>,
+    /// Which input drives a step, what row 0 holds, and which quantities wrap (absent in
+    /// folders written before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_convention: Option<StepConvention>,
+}
+
+/// How the rows of the exchange tables line up with the model's steps, and what wraps: what
+/// a filter written outside kfmc must follow to estimate the runs kfmc simulated. The
+/// sentences are the same for every system (they describe kfmc's step loop); the lists are
+/// the system's.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepConvention {
+    /// Which input drives the transition into step k.
+    pub transition: String,
+    /// Which measurement step k holds, and step 0's.
+    pub measurement: String,
+    /// What row 0 (step 0) of each table holds.
+    pub row_0: String,
+    /// The quantities whose error e = truth − estimate is wrapped (to [−π, π), or
+    /// [−180°, 180°) in degrees) before it is scored.
+    pub wrapped_errors: Vec<String>,
+    /// Angle states that are continuous: their truth, their measurements and their errors
+    /// are not wrapped (a roll passes ±π without a jump).
+    pub continuous_angles: Vec<String>,
+    /// The measurement components whose innovation z − h(x̂⁻) kfmc's filters wrap to
+    /// [−π, π) (the measurement itself is not wrapped).
+    pub wrapped_innovations: Vec<String>,
 }
 
 /// What kind of result a folder holds: a writing command replaces only a folder of its own

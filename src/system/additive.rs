@@ -866,6 +866,15 @@ where
         d.sections.extend(self.analysis_sections.iter().cloned());
         Some(d)
     }
+    fn filter_model(&self) -> Option<super::filter_model::FilterModel<'_>> {
+        Some(super::filter_model::FilterModel::of_additive(
+            &self.model,
+            NU,
+            &self.truth_noise,
+            &self.p0_std,
+            &self.scenarios,
+        ))
+    }
 }
 
 /// The trial of an [`AdditivePlan`] for one study's settings.

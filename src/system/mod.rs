@@ -20,6 +20,7 @@
 pub mod additive;
 pub mod checker;
 pub mod describe;
+pub mod filter_model;
 pub mod limits;
 pub mod settings;
 pub mod spec_values;
@@ -224,6 +225,13 @@ pub trait SystemPlan: Send + Sync + Debug {
     /// then shows the layout alone.
     fn describe(&self, settings: &RunSettings) -> Option<crate::analysis::Description> {
         let _ = settings;
+        None
+    }
+    /// The model kfmc's filters use, with the world's noise and prior, for filters written
+    /// outside kfmc ([`filter_model`]: the Python package's `Simulation.f/h/jacobians`,
+    /// `kfmc describe`'s `[filter_model]`). `None` (the default): the system's world is not
+    /// one [`crate::model::Model`] plus additive noise.
+    fn filter_model(&self) -> Option<filter_model::FilterModel<'_>> {
         None
     }
 }

@@ -80,6 +80,7 @@ mod systems {
 mod exchange {
     #[allow(clippy::module_inception)]
     mod exchange;
+    mod filter_model;
     mod interop;
 }
 

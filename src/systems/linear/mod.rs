@@ -366,6 +366,17 @@ impl<const NX: usize, const NZ: usize> SystemPlan for LinearPlan<NX, NZ> {
         }
         Some(d)
     }
+    fn filter_model(&self) -> Option<crate::system::filter_model::FilterModel<'_>> {
+        let a = &self.additive;
+        // The padding inputs are not the spec's: callers pass only its inputs.
+        Some(crate::system::filter_model::FilterModel::of_additive(
+            &a.model,
+            self.inputs,
+            &a.truth_noise,
+            &a.p0_std,
+            &a.scenarios,
+        ))
+    }
 }
 
 /// The additive trial with the padded inputs removed from its traces.

@@ -7,7 +7,7 @@
 use std::any::Any;
 
 use crate::linalg::{Matrix, Vector};
-use crate::model::{Availability, Model};
+use crate::model::{Availability, LinearMatrices, Model};
 
 /// A measurement group that reports every `period` steps (k ≡ 0 mod period, z_0 included).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -198,6 +198,18 @@ impl<const NX: usize, const NU: usize, const NZ: usize> Model<NX, NU, NZ>
 
     fn process_noise_covariance(&self) -> Option<Matrix<NX, NX>> {
         self.full_q.then_some(self.q)
+    }
+
+    fn linear(&self) -> Option<LinearMatrices<NX, NU, NZ>> {
+        Some(LinearMatrices {
+            f: self.f,
+            g: self.g,
+            h: self.h,
+        })
+    }
+
+    fn measurement_uses_input(&self) -> bool {
+        false
     }
 }
 

@@ -22,7 +22,7 @@
 //! exercise. F and G are still exact, so a control profile can be added later.
 
 use crate::linalg::{Matrix, Vector};
-use crate::model::Model;
+use crate::model::{LinearMatrices, Model};
 use crate::systems::linear::discretise::zoh_van_loan;
 
 /// State names (`rmse_<state>` columns).
@@ -272,6 +272,18 @@ impl<const NZ: usize> Model<6, 4, NZ> for Linear<NZ> {
 
     fn process_noise_covariance(&self) -> Option<Matrix<6, 6>> {
         Some(self.disc.q)
+    }
+
+    fn linear(&self) -> Option<LinearMatrices<6, 4, NZ>> {
+        Some(LinearMatrices {
+            f: self.disc.f,
+            g: self.disc.g,
+            h: self.h,
+        })
+    }
+
+    fn measurement_uses_input(&self) -> bool {
+        false
     }
 }
 

@@ -177,6 +177,9 @@ impl Model<6, 2, 3> for PlanarP1 {
     fn angle_measurements(&self) -> &[usize] {
         &P1_ANGLE_MEASUREMENTS
     }
+    fn measurement_uses_input(&self) -> bool {
+        false
+    }
 }
 
 impl Model<6, 2, 4> for PlanarImu {
