@@ -1314,7 +1314,7 @@ pub fn run<O: crate::runner::RunObserver>(
     let needs_power = plan.assertions.iter().any(|a| a.needs_replications());
     let replications = replications.or(plan.check_replications);
     if let Some(r) = replications.filter(|_| needs_power) {
-        plan.check_replications(r, allow_large)
+        crate::study::check_replications(&plan, r, allow_large)
             .map_err(|e| RunError::Invalid(e.into()))?;
     }
     if needs_power && replications.is_none_or(|r| r == 0) {

@@ -386,8 +386,7 @@ fn prepared(
         trace_runs,
     })
     .map_err(|e| Failure::from(e).into_py())?;
-    plan.check_limits(allow_large)
-        .map_err(|e| Failure::from(e).into_py())?;
+    kfmc::study::check_limits(&plan, allow_large).map_err(|e| Failure::from(e).into_py())?;
     Ok((plan, path))
 }
 
@@ -425,10 +424,9 @@ fn validate<'py>(
     guarded(|| {
         let registry = kfmc::systems::builtin();
         let (plan, _) = load_spec(spec, &registry)?;
-        plan.check_limits(allow_large)
-            .map_err(|e| Failure::from(e).into_py())?;
+        kfmc::study::check_limits(&plan, allow_large).map_err(|e| Failure::from(e).into_py())?;
         let size = plan.size();
-        let res = plan.resources();
+        let res = kfmc::study::resources(&plan);
         let d = PyDict::new(py);
         d.set_item("experiment", &plan.name)?;
         d.set_item("cells", size.cells)?;
@@ -456,7 +454,7 @@ fn validate<'py>(
                 .collect::<Vec<_>>(),
         )?;
         d.set_item("noise_scales", plan.noise_scales.clone())?;
-        d.set_item("summary", plan.resources().describe())?;
+        d.set_item("summary", kfmc::study::resources(&plan).describe())?;
         Ok(d)
     })
 }
@@ -829,7 +827,7 @@ fn power(
             ));
         }
         let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
-        plan.check_replications(replications, allow_large)
+        kfmc::study::check_replications(&plan, replications, allow_large)
             .map_err(|e| Failure::from(e).into_py())?;
         let gate = if sequential {
             Some(sequential_gate(

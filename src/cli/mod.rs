@@ -106,7 +106,7 @@ impl StudyArgs {
             output: self.out.clone(),
             trace_runs,
         })?;
-        plan.check_limits(self.allow_large)?;
+        crate::study::check_limits(&plan, self.allow_large)?;
         Ok(plan)
     }
 
@@ -541,7 +541,7 @@ fn describe(plan: &Plan) -> String {
     };
     format!(
         "{name}: {cells} cells × {runs} runs = {total} runs, {fr} filter runs, {steps} filter steps\n  {resources}\n  scenarios: {scen}\n  filters: {filters}\n  noise scales: {scales}\n  master seed: {seed}\n  output: {out}",
-        resources = plan.resources().describe(),
+        resources = crate::study::resources(plan).describe(),
         name = plan.name,
         cells = size.cells,
         runs = plan.runs,

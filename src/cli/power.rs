@@ -57,7 +57,7 @@ impl Power {
         }
         let out_given = study.out.clone();
         let mut plan = study.plan(registry, Some(0))?;
-        plan.check_replications(replications, study.allow_large)
+        crate::study::check_replications(&plan, replications, study.allow_large)
             .map_err(KfmcError::from)?;
         let gate = sequential.gate(plan.runs, plan.alpha)?;
         let curve = if target.is_some() {

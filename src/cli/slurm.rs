@@ -52,7 +52,7 @@ impl Slurm {
             trace_runs: None,
         })
         .map_err(KfmcError::from)?;
-        plan.check_limits(false).map_err(KfmcError::from)?;
+        crate::study::check_limits(&plan, false).map_err(KfmcError::from)?;
         // An array task runs `kfmc run --shards`, which cannot compute a filter kfmc
         // does not run: every task would fail on the cluster.
         if let Some(f) = plan.filters.iter().find(|f| f.external) {

@@ -18,7 +18,7 @@ impl Validate {
     pub(super) fn execute(self, registry: &Registry) -> anyhow::Result<()> {
         let Self { spec, allow_large } = self;
         let plan = experiment::load_with(&spec, registry).map_err(KfmcError::from)?;
-        plan.check_limits(allow_large).map_err(KfmcError::from)?;
+        crate::study::check_limits(&plan, allow_large).map_err(KfmcError::from)?;
         outln!("{}", describe(&plan));
         Ok(())
     }

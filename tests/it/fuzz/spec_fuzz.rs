@@ -495,7 +495,7 @@ fn violation(text: &str) -> Option<String> {
     let result = catch_unwind(AssertUnwindSafe(|| {
         kfmc::experiment::parse(text, Path::new(FILE)).map(|plan| {
             // What `validate` and `run` do next with a plan must not panic either.
-            let _ = plan.check_limits(false);
+            let _ = kfmc::study::check_limits(&plan, false);
             let _ = plan.size();
         })
     }));

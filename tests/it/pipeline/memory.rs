@@ -134,7 +134,7 @@ fn the_estimate_bounds_the_tables_on_disk() {
     );
     std::fs::write(&path, &text).unwrap();
     let plan = kfmc::experiment::load(&path).unwrap();
-    let estimate = plan.resources();
+    let estimate = kfmc::study::resources(&plan);
     let (code, stdout, err) = run(&["validate", path.to_str().unwrap()]);
     assert_eq!(code, 0, "{err}");
     assert!(stdout.contains("estimated peak memory"), "{stdout}");
@@ -164,9 +164,7 @@ fn the_memory_estimate_does_not_grow_with_the_runs() {
     let estimate = |runs: usize| {
         let text = spec(&out, runs)
             + "[noise]\nscales = [1.0, 2.0]\n[divergence]\nrmse_thresholds = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]\n[consistency]\nalpha = 0.05\n[[consistency.subsets]]\nruns = 50\nalpha = 0.01\n";
-        kfmc::experiment::parse(&text, Path::new("e.toml"))
-            .unwrap()
-            .resources()
+        kfmc::study::resources(&kfmc::experiment::parse(&text, Path::new("e.toml")).unwrap())
     };
     let (small, large) = (estimate(100_000), estimate(100_000_000));
     assert_eq!(small.memory_bytes, large.memory_bytes);

@@ -1,0 +1,542 @@
+//! The in-order fold: each unit's result into its cell's accumulators, and a finished cell
+//! into the rows of the runs, steps, summary, consistency, sensors, traces and estimates
+//! tables.
+
+use super::resume::*;
+use super::rows::*;
+use crate::error::OutputError;
+use crate::experiment::Plan;
+use crate::metrics::blocks::QuantityBlock;
+use crate::metrics::consistency::{BandCache, ConsistencyFold, average_chi2_band};
+use crate::metrics::credibility::{CredibilityFold, CredibilityStep, credible_reference};
+use crate::metrics::divergence::DivergenceTracker;
+use crate::metrics::spill::Spill;
+use crate::metrics::{RunStatus, StepAccumulator};
+use crate::output::{TableWriter, Value};
+use crate::trial::{Trial, Unit, UnitResult};
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// The per-cell state while its runs are being folded.
+pub(super) struct CellState {
+    pub(super) acc: Vec<StepAccumulator>,
+    /// Per filter: the runs' consistency sums folded for the whole cell and each subset
+    /// (when the study asks for the tests), in bounded memory.
+    pub(super) consistency: Vec<ConsistencyFold>,
+    /// Per filter (when the study asks for the tests): block NEES sums and each run's errors
+    /// for the credibility measures.
+    pub(super) credibility: Vec<CredibilityFold>,
+    /// Per filter: RMSE rows of the runs that completed (failures excluded), in bounded
+    /// memory for the exact quantiles of the summary.
+    pub(super) rmse: Vec<Spill>,
+    pub(super) failed: Vec<u64>,
+    /// One row per run: each world metric's value.
+    pub(super) world: Spill,
+}
+
+pub(super) struct Aggregator<'a> {
+    pub(super) plan: &'a Plan,
+    pub(super) trial: &'a dyn Trial,
+    pub(super) states: Vec<&'a str>,
+    pub(super) runs: TableWriter,
+    pub(super) steps: TableWriter,
+    pub(super) summary: TableWriter,
+    pub(super) traces: Option<TableWriter>,
+    /// `estimates.parquet` (`--export-estimates`): every run in the exchange format.
+    pub(super) estimates: Option<TableWriter>,
+    pub(super) consistency: Option<TableWriter>,
+    pub(super) sensors: Option<TableWriter>,
+    pub(super) bands: BandCache,
+    /// The layout's blocks of quantities, when the study asks for the consistency tests.
+    pub(super) blocks: Vec<QuantityBlock>,
+    /// Per (scenario, filter).
+    pub(super) divergence: Vec<DivergenceTracker>,
+    pub(super) cell: Option<(usize, usize, CellState)>,
+    /// Where the cells' spills put their scratch files (the folder being written).
+    pub(super) scratch: PathBuf,
+    /// The checkpoint being kept, when the study is resumable.
+    pub(super) checkpoint: Option<Checkpointer>,
+}
+
+impl Aggregator<'_> {
+    pub(super) fn fold(&mut self, r: UnitResult) -> Result<(), OutputError> {
+        let plan = self.plan;
+        let Unit {
+            scenario,
+            scale,
+            run,
+        } = r.unit;
+        let nx = self.states.len();
+        let nf = plan.filters.len();
+        if self
+            .cell
+            .as_ref()
+            .is_none_or(|(s, j, _)| (*s, *j) != (scenario, scale))
+        {
+            let steps = self.trial.steps(scenario);
+            // The whole cell, then each subset: its first N runs.
+            let consistency_bounds: Vec<usize> = std::iter::once(usize::MAX)
+                .chain(
+                    plan.consistency
+                        .iter()
+                        .flat_map(|c| c.subsets.iter().map(|s| s.0)),
+                )
+                .collect();
+            self.cell = Some((
+                scenario,
+                scale,
+                CellState {
+                    // Every run of the cell comes here (shards split by cells).
+                    acc: (0..nf)
+                        .map(|_| {
+                            let mut a = StepAccumulator::with_exact_cap(
+                                nx,
+                                steps,
+                                crate::metrics::abs_err_exact_cap(nf, nx, steps + 1),
+                            );
+                            a.reserve_runs(plan.runs);
+                            a
+                        })
+                        .collect(),
+                    rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
+                    consistency: (0..nf)
+                        .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))
+                        .collect(),
+                    credibility: if plan.consistency.is_some() {
+                        (0..nf)
+                            .map(|_| {
+                                CredibilityFold::new(&self.scratch, nx, self.blocks.len(), steps)
+                            })
+                            .collect()
+                    } else {
+                        Vec::new()
+                    },
+                    failed: vec![0; nf],
+                    world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
+                },
+            ));
+        }
+        let sname = plan.scenarios[scenario].name.as_str();
+        let noise = plan.noise_scales[scale];
+        let (_, _, cell) = self.cell.as_mut().expect("set above");
+        if !r.world_metrics.is_empty() {
+            cell.world.push(&r.world_metrics)?;
+        }
+        for (fi, fr) in r.filters.iter().enumerate() {
+            let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
+            let mut row = cell_key(sname, noise, &plan.filters[fi]).to_vec();
+            row.extend([
+                Value::I64(Some(run as i64)),
+                Value::U64(r.seed),
+                Value::Str(fr.status.label()),
+                Value::I64(fr.status.step().map(|s| s as i64)),
+                Value::Str(fr.status.detail().unwrap_or("")),
+            ]);
+            row.extend(fr.rmse.iter().map(|v| Value::F64((!failed).then_some(*v))));
+            row.extend([
+                Value::F64(fr.nees_mean),
+                Value::F64(fr.nis_mean),
+                Value::I64(Some(fr.covariance_repairs as i64)),
+            ]);
+            self.runs.push(&row)?;
+            cell.acc[fi].fold(&fr.steps);
+            if let Some(c) = &fr.consistency {
+                cell.consistency[fi].push(run, c)?;
+            }
+            if let Some(c) = cell.credibility.get_mut(fi) {
+                c.push(&fr.steps)?;
+            }
+            if failed {
+                cell.failed[fi] += 1;
+            } else {
+                cell.rmse[fi].push(&fr.rmse)?;
+            }
+            if let Some(thr) = &plan.rmse_thresholds {
+                let rmse: Vec<f64> = if failed {
+                    vec![f64::NAN; nx]
+                } else {
+                    fr.rmse.clone()
+                };
+                self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr)?;
+            }
+        }
+        if let (Some(tr), Some(w)) = (&r.trace, self.estimates.as_mut()) {
+            write_estimates(w, plan, sname, noise, run, tr, nx)?;
+        }
+        if let (Some(tr), Some(w), true) = (&r.trace, self.traces.as_mut(), run < plan.trace_runs) {
+            let layout = self.trial.layout();
+            let (nu, nz) = (layout.inputs.len(), layout.measurements.len());
+            let nw = layout.world_states.len();
+            let ntri = nx * (nx + 1) / 2;
+            let dt = plan.dt_s();
+            for (fi, f) in plan.filters.iter().enumerate() {
+                for k in 0..tr.truth.len() / nx {
+                    let mut row = cell_key(sname, noise, f).to_vec();
+                    row.extend([
+                        Value::I64(Some(run as i64)),
+                        Value::I64(Some(k as i64)),
+                        Value::F64(Some(k as f64 * dt)),
+                    ]);
+                    let f64s =
+                        |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+                    row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
+                    row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
+                    row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                    row.extend(f64s(tr.world.get(k * nw..(k + 1) * nw).unwrap_or(&[])));
+                    row.extend(f64s(&tr.est[fi][k * nx..(k + 1) * nx]));
+                    let cov = &tr.cov[fi][k * ntri..(k + 1) * ntri];
+                    // var_<q> is the diagonal, kept for readers of the diagonal alone; the
+                    // P_<qi>_<qj> columns follow with the whole lower triangle.
+                    row.extend((0..nx).map(|i| Value::F64(Some(cov[i * (i + 1) / 2 + i]))));
+                    row.extend(f64s(cov));
+                    w.push(&row)?;
+                }
+            }
+        }
+        if run + 1 == plan.runs {
+            self.finish_cell()?;
+            self.cell_boundary(scenario * plan.noise_scales.len() + scale + 1)?;
+        }
+        Ok(())
+    }
+
+    /// The journaled tables, in a fixed order.
+    pub(super) fn journaled_tables(&mut self) -> impl Iterator<Item = &mut TableWriter> {
+        [&mut self.runs, &mut self.steps, &mut self.summary]
+            .into_iter()
+            .chain(self.traces.as_mut())
+            .chain(self.estimates.as_mut())
+            .chain(self.consistency.as_mut())
+            .chain(self.sensors.as_mut())
+    }
+
+    /// After the last row of cell `end_cell − 1`: notes the boundary, and checkpoints when it
+    /// is time.
+    pub(super) fn cell_boundary(&mut self, end_cell: usize) -> Result<(), OutputError> {
+        let Some(first_cell) = self.checkpoint.as_ref().map(|c| c.first_cell) else {
+            return Ok(());
+        };
+        let mut tables = Vec::new();
+        let cells = (end_cell - first_cell) as u64;
+        for w in self.journaled_tables() {
+            if let Some((bytes, rows)) = w.end_journal_cell(cells)? {
+                tables.push(crate::output::checkpoint::JournalEntry {
+                    name: w.name().to_string(),
+                    bytes,
+                    rows,
+                });
+            }
+        }
+        let c = self.checkpoint.as_mut().expect("checked above");
+        c.boundary = Some((cells, tables));
+        if c.last.elapsed() >= c.every {
+            self.write_checkpoint()?;
+        }
+        Ok(())
+    }
+
+    /// Makes the journals durable and writes the index of the last cell boundary; returns the
+    /// cells it holds.
+    pub(super) fn write_checkpoint(&mut self) -> Result<Option<u64>, OutputError> {
+        let Some(boundary) = self.checkpoint.as_mut().and_then(|c| c.boundary.take()) else {
+            return Ok(self
+                .checkpoint
+                .as_ref()
+                .map(|c| c.index.cells_done)
+                .filter(|d| *d > 0));
+        };
+        for w in self.journaled_tables() {
+            w.sync_journal()?;
+        }
+        let c = self.checkpoint.as_mut().expect("a boundary was noted");
+        (c.index.cells_done, c.index.tables) = boundary;
+        c.index.write(&c.dir)?;
+        c.last = Instant::now();
+        Ok(Some(c.index.cells_done))
+    }
+
+    pub(super) fn finish_cell(&mut self) -> Result<(), OutputError> {
+        let plan = self.plan;
+        let Some((scenario, scale, mut cell)) = self.cell.take() else {
+            return Ok(());
+        };
+        let sname = plan.scenarios[scenario].name.as_str();
+        let noise = plan.noise_scales[scale];
+        let dt = plan.dt_s();
+        let nf = plan.filters.len();
+        let n = self.states.len() as u64;
+        if let Some(w) = self.sensors.as_mut() {
+            let sums = cell.world.summarise(|_, x| x.is_finite(), &LEVELS)?;
+            for (name, s) in self.trial.world_metrics().iter().zip(&sums) {
+                w.push(&[
+                    Value::Str(sname),
+                    Value::F64(Some(noise)),
+                    Value::Str(name),
+                    Value::I64(Some(s.n as i64)),
+                    Value::F64(s.mean),
+                    Value::F64(s.std),
+                    Value::F64(s.quantiles[0]),
+                    Value::F64(s.quantiles[1]),
+                    Value::F64(s.quantiles[2]),
+                ])?;
+            }
+        }
+        for (fi, f) in plan.filters.iter().enumerate() {
+            let credibility = match cell.credibility.get_mut(fi) {
+                Some(c) => Some(c.finish()?),
+                None => None,
+            };
+            let acc = &cell.acc[fi];
+            let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
+            for k in 0..acc.len() {
+                let s = acc.row(k);
+                let nees_band = s
+                    .anees
+                    .and_then(|_| self.bands.band(s.nees_runs as u64 * n, s.nees_runs as u64));
+                let nis_band = s
+                    .anis
+                    .and_then(|_| self.bands.band(s.nis_dof, s.nis_runs as u64));
+                let nees_inside = s.anees.zip(nees_band).map(|(a, b)| b.contains(a));
+                let nis_inside = s.anis.zip(nis_band).map(|(a, b)| b.contains(a));
+                // Step 0 is the prior, not a filter output: the descriptive fractions skip it.
+                if k > 0 {
+                    if let Some(i) = nees_inside {
+                        nees_steps += 1;
+                        nees_in += i as u64;
+                    }
+                    if let Some(i) = nis_inside {
+                        nis_steps += 1;
+                        nis_in += i as u64;
+                    }
+                }
+                let mut row = cell_key(sname, noise, f).to_vec();
+                row.extend([
+                    Value::I64(Some(k as i64)),
+                    Value::F64(Some(k as f64 * dt)),
+                    Value::I64(Some(s.runs as i64)),
+                    Value::F64(s.anees),
+                    Value::F64(nees_band.map(|b| b.lo)),
+                    Value::F64(nees_band.map(|b| b.hi)),
+                    Value::Bool(nees_inside),
+                    Value::F64(s.anis),
+                    Value::F64(nis_band.map(|b| b.lo)),
+                    Value::F64(nis_band.map(|b| b.hi)),
+                    Value::Bool(nis_inside),
+                ]);
+                row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
+                for q in 0..3 {
+                    row.extend(s.abs_err.iter().map(|a| Value::F64(a[q])));
+                }
+                if let Some(c) = &credibility {
+                    row.extend(credibility_step_values(
+                        &c[k],
+                        &self.blocks,
+                        &mut self.bands,
+                        self.states.len(),
+                    ));
+                }
+                self.steps.push(&row)?;
+            }
+            if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency.as_ref()) {
+                let frac = |i: u64, n: u64| (n > 0).then(|| i as f64 / n as f64);
+                // The whole cell at the study's α, then each subset: its first N runs at its α
+                // (the per-step fractions are descriptive and kept for the whole cell only).
+                let mut evaluations = vec![(
+                    cp.alpha,
+                    (frac(nees_in, nees_steps), frac(nis_in, nis_steps)),
+                )];
+                evaluations.extend(cp.subsets.iter().map(|&(_, alpha)| (alpha, (None, None))));
+                let folded = cell.consistency[fi].finish()?;
+                for (ev, (sums, (alpha, inside))) in folded.into_iter().zip(evaluations).enumerate()
+                {
+                    let burn_in = sums.burn_in();
+                    // The credibility columns describe the whole cell; a subset's rows leave
+                    // them null.
+                    let cred: Vec<Value<'static>> = match &credibility {
+                        Some(c) if ev == 0 => credibility_averages(
+                            c,
+                            &self.blocks,
+                            alpha,
+                            burn_in.map_or(1, |b| b + 1).max(1),
+                            self.states.len(),
+                        ),
+                        Some(_) => {
+                            vec![Value::F64(None); 4 * self.blocks.len() + 4]
+                        }
+                        None => Vec::new(),
+                    };
+                    for t in sums.tests(&self.states, alpha, inside) {
+                        let mut row = cell_key(sname, noise, f).to_vec();
+                        row.extend([
+                            Value::Str(&t.test),
+                            Value::F64(Some(t.statistic)),
+                            Value::F64(t.lower),
+                            Value::F64(t.upper),
+                            Value::F64(t.dof),
+                            Value::F64(t.p_value),
+                            Value::Bool(Some(t.pass)),
+                            Value::Str(t.direction.map_or("", |d| d.label())),
+                            Value::F64(Some(alpha)),
+                            Value::I64(Some(sums.runs() as i64)),
+                            Value::I64(burn_in.map(|b| b as i64)),
+                        ]);
+                        row.extend(cred.iter().cloned());
+                        w.push(&row)?;
+                    }
+                }
+            }
+            let mut means = Vec::with_capacity(self.states.len());
+            let sums = cell.rmse[fi].summarise(|_, _| true, &LEVELS)?;
+            for (state, s) in self.states.iter().zip(&sums) {
+                means.push(s.mean.unwrap_or(f64::NAN));
+                let mut row = cell_key(sname, noise, f).to_vec();
+                row.extend([
+                    Value::Str(state),
+                    Value::I64(Some(s.n as i64)),
+                    Value::I64(Some(cell.failed[fi] as i64)),
+                    Value::F64(s.mean),
+                    Value::F64(s.std),
+                    Value::F64(s.quantiles[0]),
+                    Value::F64(s.quantiles[1]),
+                    Value::F64(s.quantiles[2]),
+                ]);
+                self.summary.push(&row)?;
+            }
+            if let Some(thr) = &plan.rmse_thresholds {
+                self.divergence[scenario * nf + fi].observe_mean(scale, &means, thr);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Writes one run's rows of `estimates.parquet`: every kfmc filter (external ones are what
+/// is being scored, not exported), in the exchange format of [`crate::score`].
+pub(super) fn write_estimates(
+    w: &mut TableWriter,
+    plan: &Plan,
+    scenario: &str,
+    noise: f64,
+    run: usize,
+    tr: &crate::trial::RunTrace,
+    nq: usize,
+) -> Result<(), OutputError> {
+    let ntri = nq * (nq + 1) / 2;
+    let nz = plan.layout().measurements.len();
+    let ztri = nz * (nz + 1) / 2;
+    let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+    for (fi, f) in plan.filters.iter().enumerate() {
+        let Some(Some(x)) = tr.export.get(fi) else {
+            continue;
+        };
+        for k in 0..tr.truth.len() / nq {
+            let mut row = vec![
+                Value::Str(scenario),
+                Value::F64(Some(noise)),
+                Value::I64(Some(run as i64)),
+                Value::I64(Some(k as i64)),
+                Value::Str(&f.label),
+            ];
+            row.extend(f64s(&tr.est[fi][k * nq..(k + 1) * nq]));
+            row.extend(f64s(&tr.cov[fi][k * ntri..(k + 1) * ntri]));
+            row.extend(f64s(&x.nu[k * nz..(k + 1) * nz]));
+            row.extend(f64s(&x.s[k * ztri..(k + 1) * ztri]));
+            row.extend(f64s(&x.a[k * nq * nq..(k + 1) * nq * nq]));
+            w.push(&row)?;
+        }
+    }
+    Ok(())
+}
+
+/// The credibility columns of one `steps.parquet` row ([`schema::credibility_steps`]): per
+/// block its ANEES with the per-step χ² band at the study's α, then NCI, inclination and the
+/// credible filter's values at the step's run count.
+pub(super) fn credibility_step_values(
+    c: &CredibilityStep,
+    blocks: &[QuantityBlock],
+    bands: &mut BandCache,
+    nx: usize,
+) -> Vec<Value<'static>> {
+    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
+    for (b, blk) in blocks.iter().enumerate() {
+        let a = c.block_anees(b);
+        let band = a.and_then(|(_, m)| bands.band(m as u64 * blk.indices.len() as u64, m as u64));
+        row.extend([
+            Value::F64(a.map(|x| x.0)),
+            Value::F64(band.map(|b| b.lo)),
+            Value::F64(band.map(|b| b.hi)),
+            Value::Bool(a.zip(band).map(|(x, b)| b.contains(x.0))),
+        ]);
+    }
+    let reference = c.nci.and_then(|_| credible_reference(c.runs as usize, nx));
+    row.extend([
+        Value::F64(c.nci),
+        Value::F64(c.inclination),
+        Value::F64(reference.map(|r| r.0)),
+        Value::F64(reference.map(|r| r.1)),
+    ]);
+    row
+}
+
+/// The credibility columns of the whole cell's `consistency.parquet` rows
+/// ([`schema::consistency`]), over steps `first..=K`: per block the ANEES pooled over runs and
+/// steps with the χ² band of that average at `alpha` if the steps were independent (N·K·n_b
+/// degrees of freedom) and the fraction of steps whose block ANEES lies inside its per-step
+/// band; then the time averages of NCI, inclination and their credible references.
+pub(super) fn credibility_averages(
+    steps: &[CredibilityStep],
+    blocks: &[QuantityBlock],
+    alpha: f64,
+    first: usize,
+    nx: usize,
+) -> Vec<Value<'static>> {
+    let after = steps.get(first..).unwrap_or(&[]);
+    let mut bands = BandCache::new(alpha);
+    let mut row = Vec::with_capacity(4 * blocks.len() + 4);
+    for (b, blk) in blocks.iter().enumerate() {
+        let nb = blk.indices.len() as u64;
+        let (mut sum, mut count, mut inside, mut judged) = (0.0, 0u64, 0u64, 0u64);
+        for c in after {
+            let (s, n) = c.blocks[b];
+            if n == 0 {
+                continue;
+            }
+            sum += s;
+            count += u64::from(n);
+            if let Some(band) = bands.band(u64::from(n) * nb, u64::from(n)) {
+                judged += 1;
+                inside += u64::from(band.contains(s / f64::from(n)));
+            }
+        }
+        let mean = (count > 0).then(|| sum / count as f64);
+        let band = mean.and_then(|_| average_chi2_band(nb as f64, count as f64, alpha));
+        row.extend([
+            Value::F64(mean),
+            Value::F64(band.map(|b| b.lo)),
+            Value::F64(band.map(|b| b.hi)),
+            Value::F64((judged > 0).then(|| inside as f64 / judged as f64)),
+        ]);
+    }
+    let (mut nci, mut incl, mut r_nci, mut r_incl, mut n) = (0.0, 0.0, 0.0, 0.0, 0usize);
+    for c in after {
+        if let (Some(a), Some(b), Some(r)) = (
+            c.nci,
+            c.inclination,
+            credible_reference(c.runs as usize, nx),
+        ) {
+            nci += a;
+            incl += b;
+            r_nci += r.0;
+            r_incl += r.1;
+            n += 1;
+        }
+    }
+    let avg = |s: f64| (n > 0).then(|| s / n as f64);
+    row.extend([
+        Value::F64(avg(nci)),
+        Value::F64(avg(incl)),
+        Value::F64(avg(r_nci)),
+        Value::F64(avg(r_incl)),
+    ]);
+    row
+}

@@ -1,0 +1,333 @@
+//! A whole study: plan → units → executor → in-order folding into the tables → manifest.
+//!
+//! The files, by role, each importing only those listed before it: [`options`] (what an
+//! execution may vary without changing its results), `rows` (the key columns of a cell's
+//! rows), [`resources`] (what a plan will take, checked before it runs, and the result sizes
+//! that set the executor's window), `resume` (the checkpoint), `fold` (units into the
+//! tables, cell by cell), `divergence` (the divergence trackers and tables), `manifest`, and
+//! this file, which runs the executor over a folder.
+
+mod divergence;
+mod fold;
+mod manifest;
+pub mod options;
+pub mod resources;
+mod resume;
+mod rows;
+
+pub(crate) use divergence::{DivergenceFeed, divergence_tables};
+pub(crate) use manifest::manifest_for;
+pub use manifest::study_kind;
+pub use options::{Checkpoints, ExecOptions, ExistingCheckpoint, MAX_SHARDS, Shard, StudyReport};
+pub(crate) use resources::trajectory_bytes;
+pub use resources::{Resources, check_limits, check_replications, resources};
+
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use crate::error::{KfmcError, OutputError};
+use crate::experiment::Plan;
+use crate::metrics::blocks::QuantityBlock;
+use crate::metrics::consistency::BandCache;
+use crate::output::folder::StudyFolder;
+use crate::output::{TableWriter, Value, schema};
+use crate::runner::{RunObserver, execute_windowed, window_for};
+use crate::trial::Unit;
+
+use fold::Aggregator;
+use resources::credibility_bytes;
+use resume::{Checkpointer, checkpoint_identity, existing_checkpoint};
+
+/// Runs the study described by `plan`, writing its tables and manifest into `plan.output`.
+pub fn run(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<StudyReport, KfmcError> {
+    run_locked(plan, opts, observer).map(|(report, _)| report)
+}
+
+/// [`run`], returning the folder still locked, so that a caller that reads the committed
+/// tables back (`kfmc check`) reads this study's, not a later writer's.
+pub fn run_locked(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<(StudyReport, StudyFolder), KfmcError> {
+    if let Some(f) = plan.filters.iter().find(|f| f.external)
+        && plan.estimates.is_none()
+    {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "filters".into(),
+                message: format!(
+                    "`{}` is an external filter: its estimates come from a file. Run `kfmc simulate`, estimate from its tables, then `kfmc score DIR --estimates FILE` (or `kfmc check SPEC --estimates FILE`)",
+                    f.label
+                ),
+            },
+        ])));
+    }
+    if plan.export_estimates
+        && let Some(f) = plan
+            .filters
+            .iter()
+            .enumerate()
+            .find(|(i, f)| plan.filters[..*i].iter().any(|g| g.label == f.label))
+    {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "filters".into(),
+                message: format!(
+                    "--export-estimates needs one variant per label, but `{}` has several q_scale/r_scale variants (the estimates format keys a filter by its label alone)",
+                    f.1.label
+                ),
+            },
+        ])));
+    }
+    let started = Instant::now();
+    let started_unix_s = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let part_dir = opts.shard.map(|s| s.folder(&plan.output));
+    let dir = part_dir.as_ref().unwrap_or(&plan.output);
+    let folder = StudyFolder::open(dir, study_kind(plan), opts.force)?;
+    let n_cells = plan.scenarios.len() * plan.noise_scales.len();
+    let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
+    let result = run_in(
+        plan,
+        opts,
+        observer,
+        dir,
+        &folder,
+        n_cells,
+        cells,
+        started,
+        started_unix_s,
+    );
+    if result.is_err()
+        && opts.checkpoints.is_some()
+        && matches!(crate::output::checkpoint::Index::read(dir), Ok(None))
+    {
+        // Journals that no index vouches for cannot be resumed: they only take disk (which
+        // may be what ran out).
+        let _ = crate::output::checkpoint::remove(dir);
+    }
+    result.map(|report| (report, folder))
+}
+
+/// [`run`] once the folder is held.
+#[allow(clippy::too_many_arguments)]
+fn run_in(
+    plan: &Plan,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+    dir: &std::path::Path,
+    folder: &StudyFolder,
+    n_cells: usize,
+    cells: std::ops::Range<usize>,
+    started: Instant,
+    started_unix_s: u64,
+) -> Result<StudyReport, KfmcError> {
+    let trial = plan.trial();
+    let layout = plan.layout();
+    let states = layout.quantity_names();
+    let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
+    let journaling = opts.checkpoints.is_some();
+    // A table of the study: journaled when the study is resumable, and on a resume first
+    // refilled from its journal, each replayed row also shown to `on_row`.
+    let open = |name: &str,
+                columns: Vec<crate::output::schema::ColumnDef>,
+                on_row: &mut dyn FnMut(&[Value<'_>]) -> Result<(), OutputError>|
+     -> Result<TableWriter, OutputError> {
+        let metadata = plan.table_metadata(name);
+        if !journaling {
+            return TableWriter::create_with_metadata(dir, name, columns, &metadata);
+        }
+        let journal = crate::output::checkpoint::journal_path(dir, name);
+        let from = match &resume {
+            None => None,
+            Some(index) => Some(
+                index
+                    .tables
+                    .iter()
+                    .find(|t| t.name == name)
+                    .map(|t| (t.bytes, t.rows, index.cells_done))
+                    .ok_or_else(|| OutputError::Mismatch {
+                        path: journal.clone(),
+                        why: format!(
+                            "is missing: the checkpoint has no journal of table `{name}`; start over with `kfmc run SPEC --restart`"
+                        ),
+                    })?,
+            ),
+        };
+        TableWriter::journaled(dir, name, columns, &metadata, &journal, from, on_row)
+    };
+    let mut ignore = |_: &[Value<'_>]| Ok(());
+    // The divergence trackers look across cells: a resume rebuilds them from the replayed
+    // runs and summary rows, as `kfmc merge` does from the parts' tables.
+    let mut feed = DivergenceFeed::new(plan, dir);
+    let damaged = |why: &str| OutputError::Mismatch {
+        path: crate::output::checkpoint::dir(dir),
+        why: format!(
+            "is a damaged checkpoint: a row {why}; start over with `kfmc run SPEC --restart`"
+        ),
+    };
+    let runs = open("runs", feed.runs_columns().to_vec(), &mut |row| {
+        feed.run_row(row, &damaged)
+    })?;
+    let summary = open("summary", feed.summary_columns().to_vec(), &mut |row| {
+        feed.summary_row(row, &damaged)
+    })?;
+    let divergence = feed.into_trackers();
+    let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
+    // The blocks the runs keep NEES for (none when they do not fit the runs' masks).
+    let blocks =
+        if plan.consistency.is_some() && !crate::system::settings::block_masks(layout).is_empty() {
+            crate::trial::layout_blocks(layout)
+        } else {
+            Vec::new()
+        };
+    let block_names: Vec<String> = blocks.iter().map(QuantityBlock::column_name).collect();
+    let block_names: Vec<&str> = block_names.iter().map(String::as_str).collect();
+    let mut agg = Aggregator {
+        plan,
+        trial: trial.as_ref(),
+        runs,
+        steps: open(
+            "steps",
+            schema::steps(&states, plan.consistency.as_ref().map(|_| &block_names[..])),
+            &mut ignore,
+        )?,
+        summary,
+        traces: if plan.trace_runs > 0 {
+            Some(open(
+                "traces",
+                schema::traces(
+                    &states,
+                    &layout.input_names(),
+                    &layout.measurement_names(),
+                    &layout.world_state_names(),
+                ),
+                &mut ignore,
+            )?)
+        } else {
+            None
+        },
+        consistency: if plan.consistency.is_some() {
+            Some(open(
+                "consistency",
+                schema::consistency(Some(&block_names)),
+                &mut ignore,
+            )?)
+        } else {
+            None
+        },
+        sensors: if trial.world_metrics().is_empty() {
+            None
+        } else {
+            Some(open("sensors", schema::sensors(), &mut ignore)?)
+        },
+        estimates: if plan.export_estimates {
+            Some(open(
+                "estimates",
+                crate::score::estimate_columns(&states, &layout.measurement_names()),
+                &mut ignore,
+            )?)
+        } else {
+            None
+        },
+        bands: BandCache::new(plan.alpha),
+        blocks,
+        divergence,
+        states,
+        cell: None,
+        scratch: dir.to_path_buf(),
+        checkpoint: opts.checkpoints.as_ref().map(|c| Checkpointer {
+            dir: dir.to_path_buf(),
+            every: c.every,
+            last: Instant::now(),
+            index: resume
+                .clone()
+                .unwrap_or_else(|| checkpoint_identity(plan, n_cells, &cells)),
+            boundary: None,
+            first_cell: cells.start,
+        }),
+    };
+
+    // Unit i ↔ (scenario, scale, run) in scenario-major order, so cells complete in order.
+    let (n_scales, n_runs) = (plan.noise_scales.len(), plan.runs);
+    let unit_of = |i: usize| Unit {
+        scenario: i / (n_scales * n_runs),
+        scale: i / n_runs % n_scales,
+        run: i % n_runs,
+    };
+    let first_unit = (cells.start + cells_resumed) * n_runs;
+    // An exported run's result carries its whole trajectory, and with the consistency tests
+    // each filter's signed errors and block NEES per step: the window holds fewer of them.
+    let unit_bytes = if plan.export_estimates {
+        trajectory_bytes(plan)
+    } else {
+        0
+    } + credibility_bytes(plan);
+    let executed = execute_windowed::<_, KfmcError>(
+        (cells.end - cells.start - cells_resumed) * n_runs,
+        opts.threads,
+        window_for(unit_bytes, opts.threads),
+        |i| trial.run(&unit_of(first_unit + i)),
+        observer,
+        |r| agg.fold(r).map_err(KfmcError::from),
+    );
+    if let Err(KfmcError::Output(OutputError::Interrupted)) = executed {
+        // Keep every cell that completed: the next `--resume` starts after it.
+        if let Some(done) = agg.write_checkpoint()? {
+            return Err(KfmcError::Output(OutputError::InterruptedCheckpointed {
+                dir: crate::output::checkpoint::dir(dir),
+                cells_done: done,
+                cells: (cells.end - cells.start) as u64,
+            }));
+        }
+    }
+    executed?;
+
+    let mut written: Vec<TableWriter> = Vec::new();
+    // Divergence points look across every noise scale of a scenario: a part has only some,
+    // so `kfmc merge` computes them from the merged runs and summary.
+    if let (Some(thr), None) = (&plan.rmse_thresholds, opts.shard) {
+        let (d, dr) = divergence_tables(plan, dir, &mut agg.divergence, &agg.states, thr)?;
+        written.extend([d, dr]);
+    }
+    let Aggregator {
+        runs,
+        steps,
+        summary,
+        traces,
+        estimates,
+        consistency,
+        sensors,
+        ..
+    } = agg;
+    written.extend([runs, steps, summary]);
+    written.extend(sensors);
+    written.extend(consistency);
+    written.extend(traces);
+    written.extend(estimates);
+
+    let finished = written
+        .into_iter()
+        .map(TableWriter::finish)
+        .collect::<Result<Vec<_>, _>>()?;
+    let wall_s = started.elapsed().as_secs_f64();
+    let manifest = manifest_for(plan, opts, started_unix_s, wall_s, cells.clone());
+    let tables = folder.commit(finished, manifest)?;
+    // Committed: the tables are complete, and a checkpoint of them would only mislead.
+    crate::output::checkpoint::remove(dir)?;
+    let done = ((cells.end - cells.start - cells_resumed) * n_runs) as u64;
+    Ok(StudyReport {
+        output: dir.to_path_buf(),
+        tables,
+        wall_s,
+        runs: done,
+        cells_resumed: cells_resumed as u64,
+    })
+}

@@ -1,0 +1,27 @@
+//! The key columns of a cell's rows and the across-run quantile levels, shared by the fold
+//! and the divergence tables.
+
+use crate::experiment::FilterPlan;
+use crate::output::Value;
+
+/// The key values of a cell row: scenario, noise scale, filter label, q_scale, r_scale.
+pub(super) fn cell_key<'a>(scenario: &'a str, noise: f64, f: &'a FilterPlan) -> [Value<'a>; 5] {
+    let [q, r] = scale_keys(f);
+    [
+        Value::Str(scenario),
+        Value::F64(Some(noise)),
+        Value::Str(&f.label),
+        q,
+        r,
+    ]
+}
+
+/// The `q_scale` and `r_scale` key values of a filter variant: null for an external filter,
+/// whose tuning is its own and which kfmc never scales.
+pub(super) fn scale_keys(f: &FilterPlan) -> [Value<'static>; 2] {
+    let own = |v: f64| Value::F64((!f.external).then_some(v));
+    [own(f.q_scale), own(f.r_scale)]
+}
+
+/// The across-run quantile levels of the summary and sensors tables.
+pub(super) const LEVELS: [f64; 3] = [0.05, 0.50, 0.95];
