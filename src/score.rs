@@ -358,318 +358,11 @@ impl EstimateSet {
     /// error naming the file, the column and the first offending key; missing rows and
     /// non-finite values are left for the runs' status.
     pub fn load(study: &StudyKeys<'_>, files: &[PathBuf]) -> Result<Self, OutputError> {
-        let quantities = &study.quantities;
-        let measurements = &study.measurements;
-        let n_scales = study.noise_scales.len();
-        let mut cells = Vec::with_capacity(study.scenarios.len() * n_scales);
-        let mut total = 0u64;
-        for &(_, steps) in &study.scenarios {
-            for _ in 0..n_scales {
-                cells.push((total, steps + 1));
-                total += (study.runs * (steps + 1)) as u64;
-            }
-        }
-        let mut by_filter = vec![None; study.filters.len()];
-        let mut externals: Vec<External> = Vec::new();
-        let label_of: HashMap<&str, usize> = study
-            .filters
-            .iter()
-            .enumerate()
-            .filter(|(_, (_, external))| *external)
-            .map(|(i, (label, _))| (*label, i))
-            .collect();
-        let scenario_of: HashMap<&str, usize> = study
-            .scenarios
-            .iter()
-            .enumerate()
-            .map(|(i, (name, _))| (*name, i))
-            .collect();
-        let scale_of: HashMap<u64, usize> = study
-            .noise_scales
-            .iter()
-            .enumerate()
-            .map(|(i, s)| (s.to_bits(), i))
-            .collect();
-        let set = EstimateSet {
-            by_filter: Vec::new(),
-            externals: Vec::new(),
-            cells,
-            n_scales,
-            runs: study.runs,
-            unstamped: Vec::new(),
-        };
-        let mut unstamped = Vec::new();
-
+        let mut reading = Reading::new(study);
         for path in files {
-            let file = File::open(path).map_err(|source| OutputError::Io {
-                action: "cannot open",
-                path: path.clone(),
-                source,
-            })?;
-            if !crate::output::table::starts_as_parquet(&file) {
-                return Err(format_err(
-                    path,
-                    "estimates must be Parquet (got a CSV?): the file does not begin with Parquet's `PAR1` marker; `kfmc schema estimates SPEC` lists the columns to write",
-                ));
-            }
-            let mut reader = ParquetReader::new(file);
-            let meta = reader
-                .get_metadata()
-                .map_err(|e| polars_err(path, e))?
-                .clone();
-            if !check_metadata(path, &meta, study)? {
-                unstamped.push(path.clone());
-            }
-            let names: Vec<String> = reader
-                .schema()
-                .map_err(|e| polars_err(path, e))?
-                .iter_names()
-                .map(|n| n.to_string())
-                .collect();
-            let cols = detect_columns(path, &names, quantities, measurements)?;
-            let value_names = cols.value_columns();
-            let width = cols.width();
-            // Where null means "not given" and a non-finite number is an error: the
-            // innovation and the error transition.
-            let nu_at = cols.nq() + cols.ntri();
-            let nu_range = if cols.innovations {
-                nu_at..nu_at + cols.nz()
-            } else {
-                0..0
-            };
-            let a_range = if cols.transition {
-                width - cols.nq() * cols.nq()..width
-            } else {
-                0..0
-            };
-            let mut offset = 0usize;
-            crate::output::table::for_each_row_group(path, |df| {
-                let height = df.height();
-                offset += height;
-                let col_err =
-                    |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
-                let strs = |name: &str| -> Result<StringChunked, OutputError> {
-                    let c = df.column(name).map_err(|e| col_err(name, e))?;
-                    Ok(c.str().map_err(|e| col_err(name, e))?.clone())
-                };
-                let floats = |name: &str| -> Result<Float64Chunked, OutputError> {
-                    let c = df
-                        .column(name)
-                        .and_then(|c| c.cast(&DataType::Float64))
-                        .map_err(|e| col_err(name, e))?;
-                    Ok(c.f64().map_err(|e| col_err(name, e))?.clone())
-                };
-                let ints = |name: &str| -> Result<Int64Chunked, OutputError> {
-                    let c = df.column(name).map_err(|e| col_err(name, e))?;
-                    if !c.dtype().is_integer() {
-                        return Err(format_err(
-                            path,
-                            format!("column `{name}` must be an integer, not {}", c.dtype()),
-                        ));
-                    }
-                    let c = c.cast(&DataType::Int64).map_err(|e| col_err(name, e))?;
-                    Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
-                };
-                let scen = strs("scenario")?;
-                let filt = strs("filter")?;
-                let noise = floats("noise_scale")?;
-                let run = ints("run")?;
-                let step = ints("step")?;
-                let values: Vec<Float64Chunked> = value_names
-                    .iter()
-                    .map(|n| floats(n))
-                    .collect::<Result<_, _>>()?;
-                // Consecutive rows of one filter usually land in consecutive spill rows:
-                // they are written in one call.
-                let mut pending: Option<(usize, u64, Vec<f64>)> = None;
-                let mut buf = Vec::with_capacity(width);
-                for i in 0..df.height() {
-                    let key = || {
-                        let o = |v: Option<String>| v.unwrap_or_else(|| "null".into());
-                        format!(
-                            "scenario = {}, noise_scale = {}, run = {}, step = {}, filter = {}",
-                            o(scen.get(i).map(|s| format!("{s:?}"))),
-                            o(noise.get(i).map(|v| v.to_string())),
-                            o(run.get(i).map(|v| v.to_string())),
-                            o(step.get(i).map(|v| v.to_string())),
-                            o(filt.get(i).map(|s| format!("{s:?}"))),
-                        )
-                    };
-                    let label = filt.get(i).ok_or_else(|| {
-                        format_err(
-                            path,
-                            format!("column `filter`: null at row {}", offset - height + i),
-                        )
-                    })?;
-                    let Some(&fi) = label_of.get(label) else {
-                        let declared = study.filters.iter().any(|(l, _)| *l == label);
-                        return Err(format_err(
-                            path,
-                            if declared {
-                                format!(
-                                    "column `filter`: `{label}` is one of kfmc's filters, not an external one (set kind = \"external\" in the spec to score it from a file) at {}",
-                                    key()
-                                )
-                            } else {
-                                format!(
-                                    "column `filter`: `{label}` is not a filter of the spec; declare it with [[filters]] label = \"{label}\", kind = \"external\" (at {})",
-                                    key()
-                                )
-                            },
-                        ));
-                    };
-                    let ext = match by_filter[fi] {
-                        Some(e) => e,
-                        None => {
-                            externals.push(External {
-                                label: label.to_string(),
-                                files: Vec::new(),
-                                columns: cols.clone(),
-                                spill: scratch_file()?,
-                                present: vec![0; total.div_ceil(64) as usize],
-                            });
-                            by_filter[fi] = Some(externals.len() - 1);
-                            externals.len() - 1
-                        }
-                    };
-                    let e = &mut externals[ext];
-                    if e.columns != cols {
-                        return Err(format_err(
-                            path,
-                            format!(
-                                "filter `{label}` has other columns here than in {}; give every file of one filter the same columns",
-                                e.files
-                                    .first()
-                                    .map_or(String::new(), |p| p.display().to_string())
-                            ),
-                        ));
-                    }
-                    if !e.files.contains(path) {
-                        e.files.push(path.clone());
-                    }
-                    let si = scen
-                        .get(i)
-                        .and_then(|s| scenario_of.get(s).copied())
-                        .ok_or_else(|| {
-                            format_err(
-                                path,
-                                format!(
-                                    "column `scenario`: not a scenario of this study at {}",
-                                    key()
-                                ),
-                            )
-                        })?;
-                    let sj = noise
-                        .get(i)
-                        .and_then(|v| scale_of.get(&v.to_bits()).copied())
-                        .ok_or_else(|| {
-                            format_err(path, format!("column `noise_scale`: not a noise scale of this study (values must be the simulation's exactly) at {}", key()))
-                        })?;
-                    let (base, samples) = set.cells[si * n_scales + sj];
-                    let r = run
-                        .get(i)
-                        .filter(|r| (0..study.runs as i64).contains(r))
-                        .ok_or_else(|| {
-                            format_err(
-                                path,
-                                format!("column `run`: outside 0..{} at {}", study.runs, key()),
-                            )
-                        })?;
-                    let k = step
-                        .get(i)
-                        .filter(|k| (0..samples as i64).contains(k))
-                        .ok_or_else(|| {
-                            format_err(
-                                path,
-                                format!("column `step`: outside 0..={} at {}", samples - 1, key()),
-                            )
-                        })?;
-                    let row = base + r as u64 * samples as u64 + k as u64;
-                    let (word, bit) = ((row / 64) as usize, row % 64);
-                    if e.present[word] & (1 << bit) != 0 {
-                        return Err(format_err(path, format!("duplicate row {}", key())));
-                    }
-                    e.present[word] |= 1 << bit;
-                    buf.clear();
-                    buf.extend(values.iter().map(|c| c.get(i).unwrap_or(f64::NAN)));
-                    let non_finite = |t: &usize| values[*t].get(i).is_some_and(|v| !v.is_finite());
-                    if let Some(t) = nu_range.clone().chain(a_range.clone()).find(non_finite) {
-                        return Err(format_err(
-                            path,
-                            format!(
-                                "column `{}`: {} at {} (null means not given; a NaN or infinite value is an error)",
-                                value_names[t],
-                                buf[t],
-                                key()
-                            ),
-                        ));
-                    }
-                    let given = a_range
-                        .clone()
-                        .filter(|t| values[*t].get(i).is_some())
-                        .count();
-                    if given != 0 && given != a_range.len() {
-                        let t = a_range
-                            .clone()
-                            .find(|t| values[*t].get(i).is_none())
-                            .expect("some entry is null");
-                        return Err(format_err(
-                            path,
-                            format!(
-                                "column `{}`: null at {} where the row gives {given} other A_ entries (give the whole error transition of a step, or none)",
-                                value_names[t],
-                                key()
-                            ),
-                        ));
-                    }
-                    match &mut pending {
-                        Some((pe, start, data))
-                            if *pe == ext && *start + (data.len() / width) as u64 == row =>
-                        {
-                            data.extend_from_slice(&buf);
-                        }
-                        _ => {
-                            if let Some((pe, start, data)) = pending.take() {
-                                write_rows(&externals[pe], start, &data, width)?;
-                            }
-                            pending = Some((ext, row, buf.clone()));
-                        }
-                    }
-                    if let Some((pe, start, data)) = &pending
-                        && data.len() >= width * 4096
-                    {
-                        write_rows(&externals[*pe], *start, data, width)?;
-                        pending = None;
-                    }
-                }
-                if let Some((pe, start, data)) = pending.take() {
-                    write_rows(&externals[pe], start, &data, width)?;
-                }
-                Ok(())
-            })?;
+            reading.file(path)?;
         }
-        for e in &externals {
-            check_steps(e, study, &set.cells)?;
-        }
-        if let Some((_, (label, _))) = study
-            .filters
-            .iter()
-            .enumerate()
-            .find(|(i, (_, external))| *external && by_filter[*i].is_none())
-        {
-            return Err(format_err(
-                files
-                    .first()
-                    .map_or(Path::new("--estimates"), |p| p.as_path()),
-                format!("no rows for the external filter `{label}` in any of the estimate files",),
-            ));
-        }
-        Ok(EstimateSet {
-            by_filter,
-            externals,
-            unstamped,
-            ..set
-        })
+        reading.finish(files)
     }
 
     /// The files read that carry no world stamp: nothing ties them to this study's runs.
@@ -732,6 +425,485 @@ impl EstimateSet {
     /// Runs per cell the set was read for.
     pub fn runs(&self) -> usize {
         self.runs
+    }
+}
+
+/// A study's keys as indexes: what every row of an estimates file is checked against.
+struct KeyIndex<'a> {
+    study: &'a StudyKeys<'a>,
+    /// External filter label → the study's filter index.
+    label_of: HashMap<&'a str, usize>,
+    scenario_of: HashMap<&'a str, usize>,
+    /// A noise multiplier's bits → its index (the values must be the simulation's exactly).
+    scale_of: HashMap<u64, usize>,
+    /// Per cell (scenario-major): the first row index and the samples K + 1 per run.
+    cells: Vec<(u64, usize)>,
+    /// Rows of every cell together.
+    total: u64,
+}
+
+impl<'a> KeyIndex<'a> {
+    fn new(study: &'a StudyKeys<'a>) -> Self {
+        let n_scales = study.noise_scales.len();
+        let mut cells = Vec::with_capacity(study.scenarios.len() * n_scales);
+        let mut total = 0u64;
+        for &(_, steps) in &study.scenarios {
+            for _ in 0..n_scales {
+                cells.push((total, steps + 1));
+                total += (study.runs * (steps + 1)) as u64;
+            }
+        }
+        KeyIndex {
+            label_of: study
+                .filters
+                .iter()
+                .enumerate()
+                .filter(|(_, (_, external))| *external)
+                .map(|(i, (label, _))| (*label, i))
+                .collect(),
+            scenario_of: study
+                .scenarios
+                .iter()
+                .enumerate()
+                .map(|(i, (name, _))| (*name, i))
+                .collect(),
+            scale_of: study
+                .noise_scales
+                .iter()
+                .enumerate()
+                .map(|(i, s)| (s.to_bits(), i))
+                .collect(),
+            cells,
+            total,
+            study,
+        }
+    }
+
+    /// The study filter index of row `i`'s label, which must be an external filter's.
+    fn filter(&self, path: &Path, rows: &RowGroup, i: usize) -> Result<usize, OutputError> {
+        let label = rows.filter.get(i).ok_or_else(|| {
+            format_err(
+                path,
+                format!("column `filter`: null at row {}", rows.first_row + i),
+            )
+        })?;
+        self.label_of.get(label).copied().ok_or_else(|| {
+            let declared = self.study.filters.iter().any(|(l, _)| *l == label);
+            format_err(
+                path,
+                if declared {
+                    format!(
+                        "column `filter`: `{label}` is one of kfmc's filters, not an external one (set kind = \"external\" in the spec to score it from a file) at {}",
+                        rows.key(i)
+                    )
+                } else {
+                    format!(
+                        "column `filter`: `{label}` is not a filter of the spec; declare it with [[filters]] label = \"{label}\", kind = \"external\" (at {})",
+                        rows.key(i)
+                    )
+                },
+            )
+        })
+    }
+
+    /// The row index of row `i`'s (scenario, noise scale, run, step) among every cell's rows.
+    fn row(&self, path: &Path, rows: &RowGroup, i: usize) -> Result<u64, OutputError> {
+        let si = rows
+            .scenario
+            .get(i)
+            .and_then(|s| self.scenario_of.get(s).copied())
+            .ok_or_else(|| {
+                format_err(
+                    path,
+                    format!(
+                        "column `scenario`: not a scenario of this study at {}",
+                        rows.key(i)
+                    ),
+                )
+            })?;
+        let sj = rows
+            .noise
+            .get(i)
+            .and_then(|v| self.scale_of.get(&v.to_bits()).copied())
+            .ok_or_else(|| {
+                format_err(path, format!("column `noise_scale`: not a noise scale of this study (values must be the simulation's exactly) at {}", rows.key(i)))
+            })?;
+        let (base, samples) = self.cells[si * self.study.noise_scales.len() + sj];
+        let runs = self.study.runs;
+        let r = rows
+            .run
+            .get(i)
+            .filter(|r| (0..runs as i64).contains(r))
+            .ok_or_else(|| {
+                format_err(
+                    path,
+                    format!("column `run`: outside 0..{runs} at {}", rows.key(i)),
+                )
+            })?;
+        let k = rows
+            .step
+            .get(i)
+            .filter(|k| (0..samples as i64).contains(k))
+            .ok_or_else(|| {
+                format_err(
+                    path,
+                    format!(
+                        "column `step`: outside 0..={} at {}",
+                        samples - 1,
+                        rows.key(i)
+                    ),
+                )
+            })?;
+        Ok(base + r as u64 * samples as u64 + k as u64)
+    }
+}
+
+/// An estimates file's columns, as they are read.
+struct FileColumns {
+    columns: EstimateColumns,
+    /// The value columns in spill order.
+    names: Vec<String>,
+    /// Values per row.
+    width: usize,
+    /// Where null means "not given" and a non-finite number is an error: the innovation and
+    /// the error transition.
+    innovation: std::ops::Range<usize>,
+    transition: std::ops::Range<usize>,
+}
+
+impl FileColumns {
+    fn new(columns: EstimateColumns) -> Self {
+        let width = columns.width();
+        let nu_at = columns.nq() + columns.ntri();
+        FileColumns {
+            names: columns.value_columns(),
+            innovation: if columns.innovations {
+                nu_at..nu_at + columns.nz()
+            } else {
+                0..0
+            },
+            transition: if columns.transition {
+                width - columns.nq() * columns.nq()..width
+            } else {
+                0..0
+            },
+            width,
+            columns,
+        }
+    }
+
+    /// Row `i`'s values into `buf` (NaN where null), refusing a non-finite innovation or
+    /// transition entry and a transition given in part.
+    fn values(
+        &self,
+        path: &Path,
+        rows: &RowGroup,
+        i: usize,
+        buf: &mut Vec<f64>,
+    ) -> Result<(), OutputError> {
+        let values = &rows.values;
+        buf.clear();
+        buf.extend(values.iter().map(|c| c.get(i).unwrap_or(f64::NAN)));
+        let non_finite = |t: &usize| values[*t].get(i).is_some_and(|v| !v.is_finite());
+        if let Some(t) = self
+            .innovation
+            .clone()
+            .chain(self.transition.clone())
+            .find(non_finite)
+        {
+            return Err(format_err(
+                path,
+                format!(
+                    "column `{}`: {} at {} (null means not given; a NaN or infinite value is an error)",
+                    self.names[t],
+                    buf[t],
+                    rows.key(i)
+                ),
+            ));
+        }
+        let a = self.transition.clone();
+        let given = a.clone().filter(|t| values[*t].get(i).is_some()).count();
+        if given != 0 && given != a.len() {
+            let t = a
+                .clone()
+                .find(|t| values[*t].get(i).is_none())
+                .expect("some entry is null");
+            return Err(format_err(
+                path,
+                format!(
+                    "column `{}`: null at {} where the row gives {given} other A_ entries (give the whole error transition of a step, or none)",
+                    self.names[t],
+                    rows.key(i)
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// One row group's key and value columns, typed.
+struct RowGroup {
+    /// The file row of the group's first row (for messages).
+    first_row: usize,
+    scenario: StringChunked,
+    filter: StringChunked,
+    noise: Float64Chunked,
+    run: Int64Chunked,
+    step: Int64Chunked,
+    values: Vec<Float64Chunked>,
+}
+
+impl RowGroup {
+    fn new(
+        path: &Path,
+        df: &DataFrame,
+        first_row: usize,
+        value_names: &[String],
+    ) -> Result<Self, OutputError> {
+        let col_err =
+            |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
+        let strs = |name: &str| -> Result<StringChunked, OutputError> {
+            let c = df.column(name).map_err(|e| col_err(name, e))?;
+            Ok(c.str().map_err(|e| col_err(name, e))?.clone())
+        };
+        let floats = |name: &str| -> Result<Float64Chunked, OutputError> {
+            let c = df
+                .column(name)
+                .and_then(|c| c.cast(&DataType::Float64))
+                .map_err(|e| col_err(name, e))?;
+            Ok(c.f64().map_err(|e| col_err(name, e))?.clone())
+        };
+        let ints = |name: &str| -> Result<Int64Chunked, OutputError> {
+            let c = df.column(name).map_err(|e| col_err(name, e))?;
+            if !c.dtype().is_integer() {
+                return Err(format_err(
+                    path,
+                    format!("column `{name}` must be an integer, not {}", c.dtype()),
+                ));
+            }
+            let c = c.cast(&DataType::Int64).map_err(|e| col_err(name, e))?;
+            Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
+        };
+        Ok(RowGroup {
+            first_row,
+            scenario: strs("scenario")?,
+            filter: strs("filter")?,
+            noise: floats("noise_scale")?,
+            run: ints("run")?,
+            step: ints("step")?,
+            values: value_names
+                .iter()
+                .map(|n| floats(n))
+                .collect::<Result<_, _>>()?,
+        })
+    }
+
+    /// Row `i`'s key, for messages.
+    fn key(&self, i: usize) -> String {
+        let o = |v: Option<String>| v.unwrap_or_else(|| "null".into());
+        format!(
+            "scenario = {}, noise_scale = {}, run = {}, step = {}, filter = {}",
+            o(self.scenario.get(i).map(|s| format!("{s:?}"))),
+            o(self.noise.get(i).map(|v| v.to_string())),
+            o(self.run.get(i).map(|v| v.to_string())),
+            o(self.step.get(i).map(|v| v.to_string())),
+            o(self.filter.get(i).map(|s| format!("{s:?}"))),
+        )
+    }
+}
+
+/// Rows waiting to be written to one external filter's spill: consecutive rows of one filter
+/// usually land in consecutive spill rows, and are written in one call.
+struct PendingRows {
+    external: usize,
+    first_row: u64,
+    data: Vec<f64>,
+}
+
+/// An estimate set being read, file by file.
+struct Reading<'a> {
+    keys: KeyIndex<'a>,
+    /// Per study filter: index into `externals`, once a file gave a row of it.
+    by_filter: Vec<Option<usize>>,
+    externals: Vec<External>,
+    unstamped: Vec<PathBuf>,
+}
+
+impl<'a> Reading<'a> {
+    fn new(study: &'a StudyKeys<'a>) -> Self {
+        Reading {
+            by_filter: vec![None; study.filters.len()],
+            keys: KeyIndex::new(study),
+            externals: Vec::new(),
+            unstamped: Vec::new(),
+        }
+    }
+
+    /// Reads one file: its stamp and columns, then its row groups into the filters' spills.
+    fn file(&mut self, path: &PathBuf) -> Result<(), OutputError> {
+        let file = File::open(path).map_err(|source| OutputError::Io {
+            action: "cannot open",
+            path: path.clone(),
+            source,
+        })?;
+        if !crate::output::table::starts_as_parquet(&file) {
+            return Err(format_err(
+                path,
+                "estimates must be Parquet (got a CSV?): the file does not begin with Parquet's `PAR1` marker; `kfmc schema estimates SPEC` lists the columns to write",
+            ));
+        }
+        let mut reader = ParquetReader::new(file);
+        let meta = reader
+            .get_metadata()
+            .map_err(|e| polars_err(path, e))?
+            .clone();
+        if !check_metadata(path, &meta, self.keys.study)? {
+            self.unstamped.push(path.clone());
+        }
+        let names: Vec<String> = reader
+            .schema()
+            .map_err(|e| polars_err(path, e))?
+            .iter_names()
+            .map(|n| n.to_string())
+            .collect();
+        let study = self.keys.study;
+        let columns = FileColumns::new(detect_columns(
+            path,
+            &names,
+            &study.quantities,
+            &study.measurements,
+        )?);
+        let mut offset = 0usize;
+        crate::output::table::for_each_row_group(path, |df| {
+            let rows = RowGroup::new(path, &df, offset, &columns.names)?;
+            offset += df.height();
+            self.row_group(path, &columns, &rows)
+        })?;
+        Ok(())
+    }
+
+    /// Checks every row of a group against the study's keys and writes its values.
+    fn row_group(
+        &mut self,
+        path: &PathBuf,
+        columns: &FileColumns,
+        rows: &RowGroup,
+    ) -> Result<(), OutputError> {
+        let width = columns.width;
+        let mut pending: Option<PendingRows> = None;
+        let mut buf = Vec::with_capacity(width);
+        for i in 0..rows.filter.len() {
+            let fi = self.keys.filter(path, rows, i)?;
+            let ext = self.external(fi, path, &columns.columns, rows, i)?;
+            let row = self.keys.row(path, rows, i)?;
+            let e = &mut self.externals[ext];
+            let (word, bit) = ((row / 64) as usize, row % 64);
+            if e.present[word] & (1 << bit) != 0 {
+                return Err(format_err(path, format!("duplicate row {}", rows.key(i))));
+            }
+            e.present[word] |= 1 << bit;
+            columns.values(path, rows, i, &mut buf)?;
+            match &mut pending {
+                Some(p)
+                    if p.external == ext && p.first_row + (p.data.len() / width) as u64 == row =>
+                {
+                    p.data.extend_from_slice(&buf);
+                }
+                _ => {
+                    if let Some(p) = pending.take() {
+                        write_rows(&self.externals[p.external], p.first_row, &p.data, width)?;
+                    }
+                    pending = Some(PendingRows {
+                        external: ext,
+                        first_row: row,
+                        data: buf.clone(),
+                    });
+                }
+            }
+            if let Some(p) = &pending
+                && p.data.len() >= width * 4096
+            {
+                write_rows(&self.externals[p.external], p.first_row, &p.data, width)?;
+                pending = None;
+            }
+        }
+        if let Some(p) = pending.take() {
+            write_rows(&self.externals[p.external], p.first_row, &p.data, width)?;
+        }
+        Ok(())
+    }
+
+    /// The external of study filter `fi`, made on its first row; every file of one filter
+    /// must give the same columns.
+    fn external(
+        &mut self,
+        fi: usize,
+        path: &PathBuf,
+        columns: &EstimateColumns,
+        rows: &RowGroup,
+        i: usize,
+    ) -> Result<usize, OutputError> {
+        let ext = match self.by_filter[fi] {
+            Some(e) => e,
+            None => {
+                self.externals.push(External {
+                    label: rows.filter.get(i).unwrap_or_default().to_string(),
+                    files: Vec::new(),
+                    columns: columns.clone(),
+                    spill: scratch_file()?,
+                    present: vec![0; self.keys.total.div_ceil(64) as usize],
+                });
+                self.by_filter[fi] = Some(self.externals.len() - 1);
+                self.externals.len() - 1
+            }
+        };
+        let e = &mut self.externals[ext];
+        if e.columns != *columns {
+            return Err(format_err(
+                path,
+                format!(
+                    "filter `{}` has other columns here than in {}; give every file of one filter the same columns",
+                    e.label,
+                    e.files
+                        .first()
+                        .map_or(String::new(), |p| p.display().to_string())
+                ),
+            ));
+        }
+        if !e.files.contains(path) {
+            e.files.push(path.clone());
+        }
+        Ok(ext)
+    }
+
+    /// The set, once every file is read: a run's rows cover every step or none, and every
+    /// external filter of the study has rows.
+    fn finish(self, files: &[PathBuf]) -> Result<EstimateSet, OutputError> {
+        let study = self.keys.study;
+        for e in &self.externals {
+            check_steps(e, study, &self.keys.cells)?;
+        }
+        if let Some((_, (label, _))) = study
+            .filters
+            .iter()
+            .enumerate()
+            .find(|(i, (_, external))| *external && self.by_filter[*i].is_none())
+        {
+            return Err(format_err(
+                files
+                    .first()
+                    .map_or(Path::new("--estimates"), |p| p.as_path()),
+                format!("no rows for the external filter `{label}` in any of the estimate files",),
+            ));
+        }
+        Ok(EstimateSet {
+            by_filter: self.by_filter,
+            externals: self.externals,
+            n_scales: study.noise_scales.len(),
+            cells: self.keys.cells,
+            runs: study.runs,
+            unstamped: self.unstamped,
+        })
     }
 }
 
