@@ -17,7 +17,7 @@
 //! The error convention is e = truth − estimate, angle quantities wrapped.
 //!
 //! The file's stamp is two file-level metadata keys: `kfmc.world_stamp` (the study's
-//! [`Plan::world_stamp`], the hash of everything that makes run i's truth, measurements and
+//! [`crate::experiment::Plan::world_stamp`], the hash of everything that makes run i's truth, measurements and
 //! prior) and `kfmc.master_seed`. kfmc writes both into every estimates file; a file whose
 //! keys name another world is refused, naming the simulation it belongs to, and a file
 //! without a stamp is read but reported ([`EstimateSet::unstamped`]) for `kfmc score` to warn
@@ -54,7 +54,7 @@ pub const SCHEMA_VERSION: u32 = 1;
 /// The error convention every table uses, written into the simulation manifest.
 pub const ERROR_CONVENTION: &str = "e = truth - estimate; angle quantities wrapped";
 
-/// The metadata key of an estimates file's world stamp ([`Plan::world_stamp`]).
+/// The metadata key of an estimates file's world stamp ([`crate::experiment::Plan::world_stamp`]).
 pub const STAMP_KEY: &str = "kfmc.world_stamp";
 
 /// The metadata key of the master seed the file's runs were simulated with.

@@ -2,7 +2,7 @@
 //!
 //! The files, by role, each importing only those listed before it: [`options`] (what an
 //! execution may vary without changing its results), `rows` (the key columns of a cell's
-//! rows), [`resources`] (what a plan will take, checked before it runs, and the result sizes
+//! rows), [`mod@resources`] (what a plan will take, checked before it runs, and the result sizes
 //! that set the executor's window), `resume` (the checkpoint), `fold` (units into the
 //! tables, cell by cell), `divergence` (the divergence trackers and tables), `manifest`, and
 //! this file, which runs the executor over a folder.
