@@ -14,7 +14,13 @@
 //! | `nu_<z>`, `S_<zi>_<zj>` | optional: the innovation (null where z did not report) and its covariance, lower triangle: enable the NIS and whiteness tests |
 //! | `A_<qi>_<qj>` | optional: the error transition (row qi, column qj): enables the calibrated NEES verdict |
 //!
-//! The error convention is e = truth − estimate, angle quantities wrapped.
+//! The error convention is e = truth − estimate, angle quantities wrapped; a rotation's
+//! quantities (a [`crate::linalg::so3::EulerRotation`] of the study's layout) are scored by the
+//! rotation error. Such a rotation is given either as its Euler angles `est_<q>` with their
+//! covariance (as for any quantity: kfmc maps it into the rotation error's tangent space by
+//! the chart Jacobian at the estimate), or, as kfmc writes it, as a unit quaternion
+//! `quat_<q1>_<q2>_<q3>_w|x|y|z` in place of the three `est_` columns, and then its rows and
+//! columns of the covariance are the rotation error's, in the quantities' unit.
 //!
 //! The file's stamp is two file-level metadata keys: `kfmc.world_stamp` (the study's
 //! [`Plan::world_stamp`], the hash of everything that makes run i's truth, measurements and
@@ -43,11 +49,12 @@ use polars::prelude::*;
 use crate::error::OutputError;
 use crate::experiment::Plan;
 use crate::filter::{Filter, FilterError, Innovation};
+use crate::linalg::so3::{self, EulerRotation};
 use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::metrics::StepValues;
 use crate::model::{Availability, Measurement, Model};
 use crate::output::schema::{ColumnDef, Dtype, covariance_columns};
-use crate::trial::{FilterOutput, Identity, Prior, RunContext, Unit, run_filter};
+use crate::trial::{Evaluate, FilterOutput, Prior, RunContext, Unit, run_filter};
 
 /// Version of the exchange format (`truth`, `measurements`, `initial`, estimates).
 pub const SCHEMA_VERSION: u32 = 1;
@@ -103,6 +110,9 @@ pub struct EstimateColumns {
     pub innovations: bool,
     /// Whether `A_*` is present.
     pub transition: bool,
+    /// The rotations given as quaternions (their `est_` columns are formed from them on
+    /// reading, and their covariance is already the rotation error's).
+    pub quaternions: Vec<EulerRotation>,
 }
 
 impl EstimateColumns {
@@ -132,6 +142,19 @@ impl EstimateColumns {
             } else {
                 0
             }
+    }
+
+    /// The columns a file has: [`EstimateColumns::value_columns`] with each quaternion
+    /// rotation's three `est_` columns replaced by its four `quat_` ones.
+    pub fn file_columns(&self) -> Vec<String> {
+        let mut c = self.value_columns();
+        for r in self.quaternions.iter().rev() {
+            c.splice(
+                r.first..r.first + 3,
+                quaternion_columns(&self.quantities, r),
+            );
+        }
+        c
     }
 
     /// The value columns in spill order.
@@ -171,15 +194,35 @@ impl EstimateColumns {
 /// Every column of an estimates file for a study with these quantities and measurements, in
 /// the order `kfmc run --export-estimates` writes them (`kfmc schema estimates`).
 pub fn estimate_columns(quantities: &[&str], measurements: &[&str]) -> Vec<ColumnDef> {
+    estimate_columns_with(quantities, measurements, &[])
+}
+
+/// The quaternion columns of a rotation: `quat_<q1>_<q2>_<q3>_w`, `_x`, `_y`, `_z`.
+pub fn quaternion_columns(quantities: &[String], r: &EulerRotation) -> Vec<String> {
+    let stem = quantities[r.first..r.first + 3].join("_");
+    ["w", "x", "y", "z"]
+        .iter()
+        .map(|c| format!("quat_{stem}_{c}"))
+        .collect()
+}
+
+/// [`estimate_columns`] for a study whose layout has `rotations`: kfmc writes each as a
+/// quaternion with the rotation error's covariance.
+pub fn estimate_columns_with(
+    quantities: &[&str],
+    measurements: &[&str],
+    rotations: &[EulerRotation],
+) -> Vec<ColumnDef> {
     let cols = EstimateColumns {
         quantities: quantities.iter().map(|s| s.to_string()).collect(),
         measurements: measurements.iter().map(|s| s.to_string()).collect(),
         covariance: CovarianceForm::Lower,
         innovations: true,
         transition: true,
+        quaternions: rotations.to_vec(),
     };
     let mut c = key_columns();
-    c.extend(cols.value_columns().into_iter().map(|name| ColumnDef {
+    c.extend(cols.file_columns().into_iter().map(|name| ColumnDef {
         name,
         dtype: Dtype::F64,
     }));
@@ -274,14 +317,37 @@ fn detect_columns(
     names: &[String],
     quantities: &[&str],
     measurements: &[&str],
+    rotations: &[EulerRotation],
 ) -> Result<EstimateColumns, OutputError> {
     let has = |n: &str| names.iter().any(|c| c == n);
+    let owned: Vec<String> = quantities.iter().map(|s| s.to_string()).collect();
+    let mut quaternions = Vec::new();
+    for r in rotations {
+        let quat = quaternion_columns(&owned, r);
+        if quat.iter().any(|c| has(c)) {
+            if let Some(e) = owned[r.first..r.first + 3]
+                .iter()
+                .map(|q| format!("est_{q}"))
+                .find(|e| has(e))
+            {
+                return Err(format_err(
+                    path,
+                    format!(
+                        "both `{e}` and `{}`: give the rotation one way, as Euler angles est_* (with their covariance) or as a quaternion quat_* (with the rotation error's covariance)",
+                        quat[0]
+                    ),
+                ));
+            }
+            quaternions.push(*r);
+        }
+    }
     let base = |covariance, innovations, transition| EstimateColumns {
-        quantities: quantities.iter().map(|s| s.to_string()).collect(),
+        quantities: owned.clone(),
         measurements: measurements.iter().map(|s| s.to_string()).collect(),
         covariance,
         innovations,
         transition,
+        quaternions: quaternions.clone(),
     };
     if names.iter().any(|c| c.starts_with("L_")) && names.iter().any(|c| c.starts_with("P_")) {
         return Err(format_err(
@@ -305,7 +371,7 @@ fn detect_columns(
         ));
     }
     let cols = base(covariance, innovations, transition);
-    let expected = cols.value_columns();
+    let expected = cols.file_columns();
     for k in key_columns() {
         if !has(&k.name) {
             return Err(format_err(path, format!("missing key column `{}`", k.name)));
@@ -347,6 +413,7 @@ impl EstimateSet {
         let layout = plan.layout();
         let quantities = layout.quantity_names();
         let measurements = layout.measurement_names();
+        let rotations = layout.rotations();
         let n_scales = plan.noise_scales.len();
         let mut cells = Vec::with_capacity(plan.scenarios.len() * n_scales);
         let mut total = 0u64;
@@ -412,7 +479,7 @@ impl EstimateSet {
                 .iter_names()
                 .map(|n| n.to_string())
                 .collect();
-            let cols = detect_columns(path, &names, &quantities, &measurements)?;
+            let cols = detect_columns(path, &names, &quantities, &measurements, &rotations)?;
             let value_names = cols.value_columns();
             let width = cols.width();
             // Where null means "not given" and a non-finite number is an error: the
@@ -461,9 +528,19 @@ impl EstimateSet {
                 let noise = floats("noise_scale")?;
                 let run = ints("run")?;
                 let step = ints("step")?;
+                let mut from_quaternions = HashMap::new();
+                for r in &cols.quaternions {
+                    let quat: Vec<Float64Chunked> = quaternion_columns(&cols.quantities, r)
+                        .iter()
+                        .map(|n| floats(n))
+                        .collect::<Result<_, _>>()?;
+                    for (j, e) in euler_columns(r, &quat).into_iter().enumerate() {
+                        from_quaternions.insert(format!("est_{}", cols.quantities[r.first + j]), e);
+                    }
+                }
                 let values: Vec<Float64Chunked> = value_names
                     .iter()
-                    .map(|n| floats(n))
+                    .map(|n| from_quaternions.remove(n).map_or_else(|| floats(n), Ok))
                     .collect::<Result<_, _>>()?;
                 // Consecutive rows of one filter usually land in consecutive spill rows:
                 // they are written in one call.
@@ -722,6 +799,28 @@ impl EstimateSet {
     pub fn runs(&self) -> usize {
         self.runs
     }
+}
+
+/// The Euler angles (in the rotation's unit) of a quaternion per row: null where a component
+/// is null or the quaternion is zero or not finite (the run then reports it).
+fn euler_columns(r: &EulerRotation, quat: &[Float64Chunked]) -> [Float64Chunked; 3] {
+    let scale = if r.degrees {
+        180.0 / std::f64::consts::PI
+    } else {
+        1.0
+    };
+    let rows: Vec<Option<Vector<3>>> = (0..quat[0].len())
+        .map(|i| {
+            let q = [
+                quat[0].get(i)?,
+                quat[1].get(i)?,
+                quat[2].get(i)?,
+                quat[3].get(i)?,
+            ];
+            so3::matrix_of_quaternion(&q).map(|m| so3::euler_of_matrix(&m) * scale)
+        })
+        .collect();
+    [0, 1, 2].map(|j| rows.iter().map(|e| e.map(|e| e[j])).collect())
 }
 
 fn write_rows(e: &External, start: u64, data: &[f64], width: usize) -> Result<(), OutputError> {
@@ -1000,16 +1099,57 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
         return fail(why);
     }
     let (x0, p0) = (rows.mean::<NQ>(0), rows.covariance::<NQ>(0));
+    // Rotations the file gives as Euler angles have an Euler-angle covariance to map.
+    let charts: Vec<EulerRotation> = ctx
+        .rotations
+        .iter()
+        .filter(|r| !rows.columns.quaternions.contains(r))
+        .copied()
+        .collect();
     run_filter(
         model,
         &Replay { rows: &rows },
-        &Identity,
+        &Charted { charts: &charts },
         &Prior {
             x0_hat: &x0,
             p0: &p0,
         },
         ctx,
     )
+}
+
+/// The replay's evaluation: the identity, except that each rotation given as Euler angles
+/// has its covariance (and error transition) mapped into the rotation error's tangent space
+/// by the chart Jacobian at the estimate.
+struct Charted<'a> {
+    charts: &'a [EulerRotation],
+}
+
+impl Charted<'_> {
+    fn blocks<const N: usize>(&self, x: &Vector<N>) -> Vec<(usize, Matrix<3, 3>)> {
+        self.charts
+            .iter()
+            .map(|r| (r.first, r.chart_jacobian(x.as_slice())))
+            .collect()
+    }
+}
+
+impl<const N: usize> Evaluate<N, N> for Charted<'_> {
+    fn mean(&self, x: &Vector<N>) -> Vector<N> {
+        *x
+    }
+    fn covariance(&self, x: &Vector<N>, p: &Matrix<N, N>) -> Matrix<N, N> {
+        so3::transform_blocks(p, &self.blocks(x))
+    }
+    fn covariance_ref<'p>(&self, p: &'p Matrix<N, N>) -> Option<&'p Matrix<N, N>> {
+        self.charts.is_empty().then_some(p)
+    }
+    fn transition(&self, a: &Matrix<N, N>) -> Option<Matrix<N, N>> {
+        self.charts.is_empty().then_some(*a)
+    }
+    fn transition_at(&self, x: &Vector<N>, a: &Matrix<N, N>) -> Option<Matrix<N, N>> {
+        so3::conjugate_blocks(a, &self.blocks(x))
+    }
 }
 
 /// The model a world system's external filters are replayed on: kfmc does not know their

@@ -968,7 +968,7 @@ fn schema<'py>(
             l.world_state_names(),
         );
         let cols = match kind {
-            "estimates" => kfmc::score::estimate_columns(&q, &z),
+            "estimates" => kfmc::score::estimate_columns_with(&q, &z, &l.rotations()),
             "truth" => s::truth(&q, &w),
             "measurements" => s::measurements(&z, &u),
             "initial" => s::initial(&q),

@@ -28,6 +28,11 @@ pub struct QuantityEntry {
     pub unit: String,
     /// Whether its error is a wrapped angle.
     pub angle: bool,
+    /// `right` or `left` on the three quantities of a rotation (roll, pitch, yaw as ZYX Euler
+    /// angles), whose error is the rotation error on that side
+    /// ([`crate::linalg::so3::EulerRotation`]); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation: Option<String>,
 }
 
 /// Which part of a sharded study a folder holds.

@@ -876,6 +876,8 @@ struct AdditiveTrial<'a, const NX: usize, const NU: usize, const NZ: usize, M> {
     names: Vec<&'a str>,
     /// The angle quantities (index, in degrees), whose errors are wrapped.
     angles: Vec<(usize, bool)>,
+    /// The rotations among the quantities, scored by their rotation error.
+    rotations: Vec<crate::linalg::so3::EulerRotation>,
     /// Per (filter variant, noise scale): the prepared filter, built on first use.
     prepared: Vec<OnceLock<Box<dyn RunFilter<NX, NU, NZ, M>>>>,
 }
@@ -892,6 +894,7 @@ where
             model_q: sys.model.process_noise_covariance(),
             names: sys.layout.quantity_names(),
             angles: sys.layout.angles(),
+            rotations: sys.layout.rotations(),
             prepared: (0..plan.filters.len() * plan.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
@@ -957,6 +960,7 @@ where
             inputs: &sc.controls,
             measurements: &trajectory.measurements,
             angles: &self.angles,
+            rotations: &self.rotations,
             thresholds: None,
             quantity_names: &self.names,
             trace: false,
@@ -1023,6 +1027,7 @@ where
             inputs: &scenario.controls,
             measurements: &trajectory.measurements,
             angles: &self.angles,
+            rotations: &self.rotations,
             thresholds: plan.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,
