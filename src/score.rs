@@ -56,6 +56,10 @@ use crate::model::{Availability, Measurement, Model};
 use crate::output::schema::{ColumnDef, Dtype, covariance_columns};
 use crate::trial::{Evaluate, FilterOutput, Prior, RunContext, Unit, run_filter};
 
+mod rotation;
+use rotation::euler_columns;
+pub use rotation::quaternion_columns;
+
 /// Version of the exchange format (`truth`, `measurements`, `initial`, estimates).
 pub const SCHEMA_VERSION: u32 = 1;
 
@@ -195,15 +199,6 @@ impl EstimateColumns {
 /// the order `kfmc run --export-estimates` writes them (`kfmc schema estimates`).
 pub fn estimate_columns(quantities: &[&str], measurements: &[&str]) -> Vec<ColumnDef> {
     estimate_columns_with(quantities, measurements, &[])
-}
-
-/// The quaternion columns of a rotation: `quat_<q1>_<q2>_<q3>_w`, `_x`, `_y`, `_z`.
-pub fn quaternion_columns(quantities: &[String], r: &EulerRotation) -> Vec<String> {
-    let stem = quantities[r.first..r.first + 3].join("_");
-    ["w", "x", "y", "z"]
-        .iter()
-        .map(|c| format!("quat_{stem}_{c}"))
-        .collect()
 }
 
 /// [`estimate_columns`] for a study whose layout has `rotations`: kfmc writes each as a
@@ -801,28 +796,6 @@ impl EstimateSet {
     }
 }
 
-/// The Euler angles (in the rotation's unit) of a quaternion per row: null where a component
-/// is null or the quaternion is zero or not finite (the run then reports it).
-fn euler_columns(r: &EulerRotation, quat: &[Float64Chunked]) -> [Float64Chunked; 3] {
-    let scale = if r.degrees {
-        180.0 / std::f64::consts::PI
-    } else {
-        1.0
-    };
-    let rows: Vec<Option<Vector<3>>> = (0..quat[0].len())
-        .map(|i| {
-            let q = [
-                quat[0].get(i)?,
-                quat[1].get(i)?,
-                quat[2].get(i)?,
-                quat[3].get(i)?,
-            ];
-            so3::matrix_of_quaternion(&q).map(|m| so3::euler_of_matrix(&m) * scale)
-        })
-        .collect();
-    [0, 1, 2].map(|j| rows.iter().map(|e| e.map(|e| e[j])).collect())
-}
-
 fn write_rows(e: &External, start: u64, data: &[f64], width: usize) -> Result<(), OutputError> {
     let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
     e.spill
@@ -1151,7 +1124,6 @@ impl<const N: usize> Evaluate<N, N> for Charted<'_> {
         so3::conjugate_blocks(a, &self.blocks(x))
     }
 }
-
 /// The model a world system's external filters are replayed on: kfmc does not know their
 /// model, and the replay never asks it anything; it only carries Δt.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -468,10 +468,13 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
                 crate::linalg::so3::ErrorSide::Left => ("log(RR̂ᵀ)", "navigation"),
             };
             s.push_str(&format!(
-                "rotation {}: {}..{} is the estimate as a unit quaternion (Hamilton, scalar first, body → navigation frame, R = R_z(yaw) R_y(pitch) R_x(roll)); the P_* rows and columns of {} are then the covariance of the rotation error {error} ({} error, {axes} axes) in {}. Instead of the quaternion a file may give est_{}, est_{}, est_{} (ZYX Euler angles) with their Euler-angle covariance, as before rotations were scored: kfmc maps it by the chart Jacobian at the estimate\n",
+                "rotation {}: {}..{} is the estimate as a unit quaternion (Hamilton, scalar first, body → navigation frame, R = R_z({}) R_y({}) R_x({})); the P_* rows and columns of {} are then the covariance of the rotation error {error} ({} error, {axes} axes) in {}. Instead of the quaternion a file may give est_{}, est_{}, est_{} (ZYX Euler angles) with their Euler-angle covariance, as before rotations were scored: kfmc maps it by the chart Jacobian at the estimate\n",
                 three.join(", "),
                 quat[0],
                 quat[3],
+                three[2],
+                three[1],
+                three[0],
                 three.join(", "),
                 r.side.name(),
                 if r.degrees { "degrees" } else { "radians" },
