@@ -927,6 +927,17 @@ impl UnitRows<'_> {
         let row = self.row(k);
         let names = &self.columns.quantities;
         if let Some(i) = (0..NQ).find(|&i| !row[i].is_finite()) {
+            if let Some(r) = self
+                .columns
+                .quaternions
+                .iter()
+                .find(|r| (r.first..r.first + 3).contains(&i))
+            {
+                return Some(format!(
+                    "estimates: the quaternion {} is null, zero or non-finite",
+                    quaternion_columns(names, r)[..].join(", ")
+                ));
+            }
             return Some(format!("estimates: est_{} is null or non-finite", names[i]));
         }
         if row[NQ..NQ + NQ * (NQ + 1) / 2]

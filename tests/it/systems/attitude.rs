@@ -381,6 +381,43 @@ fn the_exchange_carries_a_rotation_as_a_quaternion_or_as_euler_angles() {
         }
     }
 
+    // A zero quaternion fails its run, naming the quaternion's columns; the batch completes.
+    let mut zero = quat.clone();
+    let (run_col, step_col) = (
+        zero.column("run").unwrap().i64().unwrap().clone(),
+        zero.column("step").unwrap().i64().unwrap().clone(),
+    );
+    let at = (0..zero.height())
+        .find(|&i| run_col.get(i) == Some(1) && step_col.get(i) == Some(5))
+        .unwrap();
+    for c in ["w", "x", "y", "z"] {
+        let name = format!("quat_roll_pitch_yaw_{c}");
+        let mut v = f64s(&zero, &name);
+        v[at] = 0.0;
+        zero.with_column(Column::new(name.into(), v)).unwrap();
+    }
+    write_with(&zero, &dir.join("zero.parquet"), &stamp);
+    ok(kfmc()
+        .args(["score", "-q"])
+        .arg(dir.join("sim"))
+        .arg("--out")
+        .arg(dir.join("zero"))
+        .arg("--estimates")
+        .arg(dir.join("zero.parquet")));
+    let runs = read(&dir.join("zero/runs.parquet")).unwrap();
+    let detail = runs.column("status_detail").unwrap().str().unwrap().clone();
+    let step = runs.column("status_step").unwrap().i64().unwrap().clone();
+    let run_of = runs.column("run").unwrap().i64().unwrap().clone();
+    for i in 0..runs.height() {
+        if run_of.get(i) == Some(1) {
+            assert_eq!(step.get(i), Some(5));
+            let d = detail.get(i).unwrap_or("");
+            assert!(d.contains("quaternion quat_roll_pitch_yaw_w"), "{d}");
+        } else {
+            assert_eq!(step.get(i), None, "run {:?}", run_of.get(i));
+        }
+    }
+
     // Both forms at once is refused, naming the columns.
     let mut both = quat.clone();
     both.with_column(Column::new("est_roll".into(), vec![0.0; quat.height()]))
