@@ -606,6 +606,13 @@ impl Description {
                 }
             };
             let _ = writeln!(s, "  errors wrapped: {}", list(&c.wrapped_errors));
+            if !c.rotation_errors.is_empty() {
+                let _ = writeln!(
+                    s,
+                    "  rotations (error = rotation vector): {}",
+                    list(&c.rotation_errors)
+                );
+            }
             if !c.continuous_angles.is_empty() {
                 let _ = writeln!(
                     s,

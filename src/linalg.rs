@@ -6,6 +6,8 @@
 
 use nalgebra::{SMatrix, SVector};
 
+pub mod so3;
+
 /// A state, measurement or input vector of compile-time length `N`.
 pub type Vector<const N: usize> = SVector<f64, N>;
 /// A compile-time `R × C` matrix.

@@ -14,7 +14,13 @@
 //! | `nu_<z>`, `S_<zi>_<zj>` | optional: the innovation (null where z did not report) and its covariance, lower triangle: enable the NIS and whiteness tests |
 //! | `A_<qi>_<qj>` | optional: the error transition (row qi, column qj): enables the calibrated NEES verdict |
 //!
-//! The error convention is e = truth − estimate, angle quantities wrapped.
+//! The error convention is e = truth − estimate, angle quantities wrapped; a rotation's
+//! quantities (a [`crate::linalg::so3::EulerRotation`] of the study's layout) are scored by the
+//! rotation error. Such a rotation is given either as its Euler angles `est_<q>` with their
+//! covariance (as for any quantity: kfmc maps it into the rotation error's tangent space by
+//! the chart Jacobian at the estimate), or, as kfmc writes it, as a unit quaternion
+//! `quat_<q1>_<q2>_<q3>_w|x|y|z` in place of the three `est_` columns, and then its rows and
+//! columns of the covariance are the rotation error's, in the quantities' unit.
 //!
 //! The file's stamp is two file-level metadata keys: `kfmc.world_stamp` (the study's
 //! [`crate::experiment::Plan::world_stamp`], the hash of everything that makes run i's truth, measurements and
@@ -42,11 +48,16 @@ use polars::prelude::*;
 
 use crate::error::OutputError;
 use crate::filter::{Filter, FilterError, Innovation};
+use crate::linalg::so3::{self, EulerRotation};
 use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::metrics::StepValues;
 use crate::model::{Availability, Measurement, Model};
 use crate::output::schema::{ColumnDef, Dtype, covariance_columns};
-use crate::step_loop::{FilterOutput, Identity, Prior, RunContext, Unit, run_filter};
+use crate::step_loop::{Evaluate, FilterOutput, Prior, RunContext, Unit, run_filter};
+
+mod rotation;
+use rotation::euler_columns;
+pub use rotation::quaternion_columns;
 
 /// Version of the exchange format (`truth`, `measurements`, `initial`, estimates).
 pub const SCHEMA_VERSION: u32 = 1;
@@ -83,6 +94,9 @@ pub struct StudyKeys<'a> {
     pub quantities: Vec<&'a str>,
     /// The measurement components, in order.
     pub measurements: Vec<&'a str>,
+    /// The rotations among the quantities ([`crate::linalg::so3::EulerRotation`]): a file may
+    /// give each as a quaternion instead of its three Euler angles.
+    pub rotations: Vec<EulerRotation>,
     /// (name, transitions K) of each scenario, in study order.
     pub scenarios: Vec<(&'a str, usize)>,
     /// The truth-noise multipliers, ascending.
@@ -115,6 +129,9 @@ pub struct EstimateColumns {
     pub innovations: bool,
     /// Whether `A_*` is present.
     pub transition: bool,
+    /// The rotations given as quaternions (their `est_` columns are formed from them on
+    /// reading, and their covariance is already the rotation error's).
+    pub quaternions: Vec<EulerRotation>,
 }
 
 impl EstimateColumns {
@@ -144,6 +161,19 @@ impl EstimateColumns {
             } else {
                 0
             }
+    }
+
+    /// The columns a file has: [`EstimateColumns::value_columns`] with each quaternion
+    /// rotation's three `est_` columns replaced by its four `quat_` ones.
+    pub fn file_columns(&self) -> Vec<String> {
+        let mut c = self.value_columns();
+        for r in self.quaternions.iter().rev() {
+            c.splice(
+                r.first..r.first + 3,
+                quaternion_columns(&self.quantities, r),
+            );
+        }
+        c
     }
 
     /// The value columns in spill order.
@@ -183,15 +213,26 @@ impl EstimateColumns {
 /// Every column of an estimates file for a study with these quantities and measurements, in
 /// the order `kfmc run --export-estimates` writes them (`kfmc schema estimates`).
 pub fn estimate_columns(quantities: &[&str], measurements: &[&str]) -> Vec<ColumnDef> {
+    estimate_columns_with(quantities, measurements, &[])
+}
+
+/// [`estimate_columns`] for a study whose layout has `rotations`: kfmc writes each as a
+/// quaternion with the rotation error's covariance.
+pub fn estimate_columns_with(
+    quantities: &[&str],
+    measurements: &[&str],
+    rotations: &[EulerRotation],
+) -> Vec<ColumnDef> {
     let cols = EstimateColumns {
         quantities: quantities.iter().map(|s| s.to_string()).collect(),
         measurements: measurements.iter().map(|s| s.to_string()).collect(),
         covariance: CovarianceForm::Lower,
         innovations: true,
         transition: true,
+        quaternions: rotations.to_vec(),
     };
     let mut c = key_columns();
-    c.extend(cols.value_columns().into_iter().map(|name| ColumnDef {
+    c.extend(cols.file_columns().into_iter().map(|name| ColumnDef {
         name,
         dtype: Dtype::F64,
     }));
@@ -288,14 +329,37 @@ fn detect_columns(
     names: &[String],
     quantities: &[&str],
     measurements: &[&str],
+    rotations: &[EulerRotation],
 ) -> Result<EstimateColumns, OutputError> {
     let has = |n: &str| names.iter().any(|c| c == n);
+    let owned: Vec<String> = quantities.iter().map(|s| s.to_string()).collect();
+    let mut quaternions = Vec::new();
+    for r in rotations {
+        let quat = quaternion_columns(&owned, r);
+        if quat.iter().any(|c| has(c)) {
+            if let Some(e) = owned[r.first..r.first + 3]
+                .iter()
+                .map(|q| format!("est_{q}"))
+                .find(|e| has(e))
+            {
+                return Err(format_err(
+                    path,
+                    format!(
+                        "both `{e}` and `{}`: give the rotation one way, as Euler angles est_* (with their covariance) or as a quaternion quat_* (with the rotation error's covariance)",
+                        quat[0]
+                    ),
+                ));
+            }
+            quaternions.push(*r);
+        }
+    }
     let base = |covariance, innovations, transition| EstimateColumns {
-        quantities: quantities.iter().map(|s| s.to_string()).collect(),
+        quantities: owned.clone(),
         measurements: measurements.iter().map(|s| s.to_string()).collect(),
         covariance,
         innovations,
         transition,
+        quaternions: quaternions.clone(),
     };
     if names.iter().any(|c| c.starts_with("L_")) && names.iter().any(|c| c.starts_with("P_")) {
         return Err(format_err(
@@ -319,7 +383,7 @@ fn detect_columns(
         ));
     }
     let cols = base(covariance, innovations, transition);
-    let expected = cols.value_columns();
+    let expected = cols.file_columns();
     for k in key_columns() {
         if !has(&k.name) {
             return Err(format_err(path, format!("missing key column `{}`", k.name)));
@@ -658,7 +722,7 @@ impl RowGroup {
         path: &Path,
         df: &DataFrame,
         first_row: usize,
-        value_names: &[String],
+        columns: &FileColumns,
     ) -> Result<Self, OutputError> {
         let col_err =
             |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
@@ -684,6 +748,19 @@ impl RowGroup {
             let c = c.cast(&DataType::Int64).map_err(|e| col_err(name, e))?;
             Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
         };
+        // A rotation given as a quaternion is read as the Euler angles its `est_` columns
+        // would hold.
+        let cols = &columns.columns;
+        let mut from_quaternions = HashMap::new();
+        for r in &cols.quaternions {
+            let quat: Vec<Float64Chunked> = quaternion_columns(&cols.quantities, r)
+                .iter()
+                .map(|n| floats(n))
+                .collect::<Result<_, _>>()?;
+            for (j, e) in euler_columns(r, &quat).into_iter().enumerate() {
+                from_quaternions.insert(format!("est_{}", cols.quantities[r.first + j]), e);
+            }
+        }
         Ok(RowGroup {
             first_row,
             scenario: strs("scenario")?,
@@ -691,9 +768,10 @@ impl RowGroup {
             noise: floats("noise_scale")?,
             run: ints("run")?,
             step: ints("step")?,
-            values: value_names
+            values: columns
+                .names
                 .iter()
-                .map(|n| floats(n))
+                .map(|n| from_quaternions.remove(n).map_or_else(|| floats(n), Ok))
                 .collect::<Result<_, _>>()?,
         })
     }
@@ -772,10 +850,11 @@ impl<'a> Reading<'a> {
             &names,
             &study.quantities,
             &study.measurements,
+            &study.rotations,
         )?);
         let mut offset = 0usize;
         crate::output::table::for_each_row_group(path, |df| {
-            let rows = RowGroup::new(path, &df, offset, &columns.names)?;
+            let rows = RowGroup::new(path, &df, offset, &columns)?;
             offset += df.height();
             self.row_group(path, &columns, &rows)
         })?;
@@ -1042,6 +1121,17 @@ impl UnitRows<'_> {
         let row = self.row(k);
         let names = &self.columns.quantities;
         if let Some(i) = (0..NQ).find(|&i| !row[i].is_finite()) {
+            if let Some(r) = self
+                .columns
+                .quaternions
+                .iter()
+                .find(|r| (r.first..r.first + 3).contains(&i))
+            {
+                return Some(format!(
+                    "estimates: the quaternion {} is null, zero or non-finite",
+                    quaternion_columns(names, r)[..].join(", ")
+                ));
+            }
             return Some(format!("estimates: est_{} is null or non-finite", names[i]));
         }
         if row[NQ..NQ + NQ * (NQ + 1) / 2]
@@ -1184,10 +1274,17 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
         return fail(why);
     }
     let (x0, p0) = (rows.mean::<NQ>(0), rows.covariance::<NQ>(0));
+    // Rotations the file gives as Euler angles have an Euler-angle covariance to map.
+    let charts: Vec<EulerRotation> = ctx
+        .rotations
+        .iter()
+        .filter(|r| !rows.columns.quaternions.contains(r))
+        .copied()
+        .collect();
     run_filter(
         model,
         &Replay { rows: &rows },
-        &Identity,
+        &Charted { charts: &charts },
         &Prior {
             x0_hat: &x0,
             p0: &p0,
@@ -1196,6 +1293,39 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
     )
 }
 
+/// The replay's evaluation: the identity, except that each rotation given as Euler angles
+/// has its covariance (and error transition) mapped into the rotation error's tangent space
+/// by the chart Jacobian at the estimate.
+struct Charted<'a> {
+    charts: &'a [EulerRotation],
+}
+
+impl Charted<'_> {
+    fn blocks<const N: usize>(&self, x: &Vector<N>) -> Vec<(usize, Matrix<3, 3>)> {
+        self.charts
+            .iter()
+            .map(|r| (r.first, r.chart_jacobian(x.as_slice())))
+            .collect()
+    }
+}
+
+impl<const N: usize> Evaluate<N, N> for Charted<'_> {
+    fn mean(&self, x: &Vector<N>) -> Vector<N> {
+        *x
+    }
+    fn covariance(&self, x: &Vector<N>, p: &Matrix<N, N>) -> Matrix<N, N> {
+        so3::transform_blocks(p, &self.blocks(x))
+    }
+    fn covariance_ref<'p>(&self, p: &'p Matrix<N, N>) -> Option<&'p Matrix<N, N>> {
+        self.charts.is_empty().then_some(p)
+    }
+    fn transition(&self, a: &Matrix<N, N>) -> Option<Matrix<N, N>> {
+        self.charts.is_empty().then_some(*a)
+    }
+    fn transition_at(&self, x: &Vector<N>, a: &Matrix<N, N>) -> Option<Matrix<N, N>> {
+        so3::conjugate_blocks(a, &self.blocks(x))
+    }
+}
 /// The model a world system's external filters are replayed on: kfmc does not know their
 /// model, and the replay never asks it anything; it only carries Δt.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -159,6 +159,12 @@ pub trait Evaluate<const NX: usize, const NQ: usize>: Sync {
     /// and the burn-in rule need it; only an identity evaluation has one (a marginal of a
     /// larger state does not evolve on its own), others leave the model-free test.
     fn transition(&self, a: &Matrix<NX, NX>) -> Option<Matrix<NQ, NQ>>;
+    /// The error transition at the estimate x̂_k, for an evaluation whose map depends on the
+    /// estimate (a rotation's chart Jacobian J: J A J⁻¹, to first order in the step); the
+    /// default is [`Evaluate::transition`].
+    fn transition_at(&self, _x: &Vector<NX>, a: &Matrix<NX, NX>) -> Option<Matrix<NQ, NQ>> {
+        self.transition(a)
+    }
 }
 
 /// The evaluation of a filter whose state is the quantities.
@@ -304,6 +310,9 @@ pub struct RunContext<'a, const NQ: usize, const NU: usize, const NZ: usize> {
     pub measurements: &'a [Measurement<NZ>],
     /// Indices of the angle quantities (their errors are wrapped), and whether in degrees.
     pub angles: &'a [(usize, bool)],
+    /// The rotations among the quantities ([`crate::system::Layout::rotations`]): their error
+    /// is the rotation error, and the evaluation reports its covariance.
+    pub rotations: &'a [crate::linalg::so3::EulerRotation],
     /// Divergence thresholds per quantity.
     pub thresholds: Option<&'a [f64]>,
     /// Quantity names (for status details).
@@ -409,6 +418,9 @@ where
         for &(i, degrees) in ctx.angles {
             e[i] = wrap_angle(e[i], degrees);
         }
+        for r in ctx.rotations {
+            r.error_into(ctx.truth[k].as_slice(), mean.as_slice(), e.as_mut_slice());
+        }
         let mut nees = f64::NAN;
         // The quantities' covariance, formed once per step (after a repair, the repaired
         // one): NEES, the consistency sums and the trace all read this one value.
@@ -442,7 +454,7 @@ where
             if k > 0 && opts.is_some() {
                 let a = filter
                     .error_transition(&belief)
-                    .and_then(|a| eval.transition(&a));
+                    .and_then(|a| eval.transition_at(&x, &a));
                 if let (Some(gm), Some(a)) = (g.as_mut(), a.as_ref()) {
                     *gm = a * *gm * a.transpose();
                     if after_burn_in.is_none() && chol.solve(gm).trace() <= BURN_IN_THRESHOLD {
@@ -486,7 +498,7 @@ where
             && let Some(x) = export.as_mut()
             && let Some(a) = filter
                 .error_transition(&belief)
-                .and_then(|a| eval.transition(&a))
+                .and_then(|a| eval.transition_at(&filter.mean(&belief), &a))
         {
             x.a[k * NQ * NQ..(k + 1) * NQ * NQ]
                 .iter_mut()

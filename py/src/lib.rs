@@ -966,7 +966,7 @@ fn schema<'py>(
             l.world_state_names(),
         );
         let cols = match kind {
-            "estimates" => kfmc::score::estimate_columns(&q, &z),
+            "estimates" => kfmc::score::estimate_columns_with(&q, &z, &l.rotations()),
             "truth" => s::truth(&q, &w),
             "measurements" => s::measurements(&z, &u),
             "initial" => s::initial(&q),
@@ -1014,6 +1014,7 @@ fn convention_dict<'py>(
     d.set_item("wrapped_errors", c.wrapped_errors.clone())?;
     d.set_item("continuous_angles", c.continuous_angles.clone())?;
     d.set_item("wrapped_innovations", c.wrapped_innovations.clone())?;
+    d.set_item("rotation_errors", c.rotation_errors.clone())?;
     Ok(d)
 }
 

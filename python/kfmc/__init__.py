@@ -236,7 +236,8 @@ class Model:
         ``measurement``, ``row_0`` (sentences), ``wrapped_errors`` (quantities whose error
         kfmc wraps), ``continuous_angles`` (angles kept continuous: truth, z and error not
         wrapped), ``wrapped_innovations`` (components whose innovation kfmc's filters wrap
-        to [−π, π); :meth:`residual` does it)."""
+        to [−π, π); :meth:`residual` does it), ``rotation_errors`` (quantities scored as a
+        rotation: the rotation vector of the attitude error, not wrapped angles)."""
         return dict(self._raw.step_convention)
 
     def _rows(self, sensor: Sensor) -> List[int]:

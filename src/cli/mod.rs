@@ -408,7 +408,7 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
         l.world_state_names(),
     );
     let cols = match table {
-        SchemaTable::Estimates => crate::score::estimate_columns(&q, &z),
+        SchemaTable::Estimates => crate::score::estimate_columns_with(&q, &z, &l.rotations()),
         SchemaTable::Truth => schema::truth(&q, &w),
         SchemaTable::Measurements => schema::measurements(&z, &u),
         SchemaTable::Initial => schema::initial(&q),
@@ -442,6 +442,7 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             }
             (SchemaTable::Estimates, "P") => "  or L_<i>_<j>, a lower Cholesky factor",
             (SchemaTable::Estimates, "filter") => "  a [[filters]] label with kind = \"external\"",
+            (SchemaTable::Estimates, "quat") => "  a rotation as a unit quaternion (see below)",
             (SchemaTable::Measurements, "z") => {
                 "  null where the sensor did not report; null at step 0 (a run starts from its prior, with no measurement)"
             }
@@ -465,6 +466,30 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             crate::score::SEED_KEY,
             plan.master_seed
         ));
+        let names: Vec<String> = q.iter().map(|n| n.to_string()).collect();
+        for r in l.rotations() {
+            let three = &names[r.first..r.first + 3];
+            let quat = crate::score::quaternion_columns(&names, &r);
+            let (error, axes) = match r.side {
+                crate::linalg::so3::ErrorSide::Right => ("log(R̂ᵀR)", "body"),
+                crate::linalg::so3::ErrorSide::Left => ("log(RR̂ᵀ)", "navigation"),
+            };
+            s.push_str(&format!(
+                "rotation {}: {}..{} is the estimate as a unit quaternion (Hamilton, scalar first, body → navigation frame, R = R_z({}) R_y({}) R_x({})); the P_* rows and columns of {} are then the covariance of the rotation error {error} ({} error, {axes} axes) in {}. Instead of the quaternion a file may give est_{}, est_{}, est_{} (ZYX Euler angles) with their Euler-angle covariance, as before rotations were scored: kfmc maps it by the chart Jacobian at the estimate\n",
+                three.join(", "),
+                quat[0],
+                quat[3],
+                three[2],
+                three[1],
+                three[0],
+                three.join(", "),
+                r.side.name(),
+                if r.degrees { "degrees" } else { "radians" },
+                three[0],
+                three[1],
+                three[2],
+            ));
+        }
     }
     s
 }
@@ -485,6 +510,12 @@ fn convention_text(c: &crate::output::manifest::StepConvention) -> String {
         c.row_0,
         list(&c.wrapped_errors)
     );
+    if !c.rotation_errors.is_empty() {
+        s.push_str(&format!(
+            "  rotations (error = rotation vector, not wrapped angle differences): {}\n",
+            list(&c.rotation_errors)
+        ));
+    }
     if !c.continuous_angles.is_empty() {
         s.push_str(&format!(
             "  continuous angles (truth, z and error not wrapped): {}\n",

@@ -247,6 +247,7 @@ impl Plan {
             master_seed: self.master_seed,
             quantities: layout.quantity_names(),
             measurements: layout.measurement_names(),
+            rotations: layout.rotations(),
             scenarios: self
                 .scenarios
                 .iter()

@@ -28,6 +28,11 @@ pub struct QuantityEntry {
     pub unit: String,
     /// Whether its error is a wrapped angle.
     pub angle: bool,
+    /// `right` or `left` on the three quantities of a rotation (roll, pitch, yaw as ZYX Euler
+    /// angles), whose error is the rotation error on that side
+    /// ([`crate::linalg::so3::EulerRotation`]); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation: Option<String>,
 }
 
 /// Which part of a sharded study a folder holds.
@@ -81,6 +86,11 @@ pub struct StepConvention {
     /// The measurement components whose innovation z − h(x̂⁻) kfmc's filters wrap to
     /// [−π, π) (the measurement itself is not wrapped).
     pub wrapped_innovations: Vec<String>,
+    /// The quantities scored as a rotation: three consecutive quantities whose error is the
+    /// rotation vector (right: log(R̂ᵀR), left: log(RR̂ᵀ)) in their unit, not three wrapped
+    /// angle differences; each entry names the three and the side.
+    #[serde(default)]
+    pub rotation_errors: Vec<String>,
 }
 
 /// What kind of result a folder holds: a writing command replaces only a folder of its own

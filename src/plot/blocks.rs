@@ -12,6 +12,7 @@ use nalgebra::{DMatrix, DVector};
 use super::errors::wants_log;
 use super::{Figure, FigureKind, Ink, Mark, Panel, Tables, file_part, short};
 use crate::error::PlotError;
+use crate::linalg::so3::{ErrorSide, EulerRotation};
 use crate::metrics::consistency::average_chi2_band;
 
 /// One block: its name and the indices of its quantities in `Tables::states`.
@@ -33,11 +34,12 @@ pub fn blocks(t: &Tables) -> Vec<Block> {
     let Some(tr) = &t.traces else {
         return Vec::new();
     };
+    // A rotation's quantities form an attitude block as three angles do.
     let angle = |q: &str| {
         t.manifest
             .as_ref()
             .and_then(|m| m.quantities.iter().find(|e| e.name == q))
-            .is_some_and(|e| e.angle)
+            .is_some_and(|e| e.angle || e.rotation.is_some())
     };
     // The tables' grouping ([`crate::metrics::blocks`]), one definition for both.
     let units: Vec<(String, bool)> = t
@@ -64,6 +66,40 @@ pub fn blocks(t: &Tables) -> Vec<Block> {
     });
     if out.len() < 2 || !out.iter().any(|b| b.idx.len() >= 3) || !covariances {
         return Vec::new();
+    }
+    out
+}
+
+/// The rotations among a folder's quantities (indices into `Tables::states`), from the
+/// manifest: three consecutive quantities marked with the same side.
+fn rotations(t: &Tables) -> Vec<EulerRotation> {
+    let side_of = |q: &str| {
+        let e = t
+            .manifest
+            .as_ref()?
+            .quantities
+            .iter()
+            .find(|e| e.name == q)?;
+        match e.rotation.as_deref()? {
+            "left" => Some((ErrorSide::Left, e.unit == "deg")),
+            _ => Some((ErrorSide::Right, e.unit == "deg")),
+        }
+    };
+    let sides: Vec<_> = t.states.iter().map(|s| side_of(s)).collect();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i + 3 <= sides.len() {
+        match sides[i] {
+            Some((side, degrees)) if sides[i + 1] == sides[i] && sides[i + 2] == sides[i] => {
+                out.push(EulerRotation {
+                    first: i,
+                    degrees,
+                    side,
+                });
+                i += 3;
+            }
+            _ => i += 1,
+        }
     }
     out
 }
@@ -111,7 +147,8 @@ pub fn alpha(t: &Tables) -> f64 {
 }
 
 /// Block NEES of every traced (scenario, filter variant), averaged over its traced runs per
-/// step. Angle errors are wrapped to ±180° (±π rad). Steps whose block covariance is missing
+/// step. Angle errors are wrapped to ±180° (±π rad), and a rotation's error is its rotation
+/// error, as the tables score it. Steps whose block covariance is missing
 /// or not positive definite are left out.
 pub fn block_cells(t: &Tables, bl: &[Block]) -> Result<Vec<BlockCell>, PlotError> {
     let Some(tr) = &t.traces else {
@@ -144,6 +181,7 @@ pub fn block_cells(t: &Tables, bl: &[Block]) -> Result<Vec<BlockCell>, PlotError
         })
     };
     let periods: Vec<Option<f64>> = t.states.iter().map(|s| period(s)).collect();
+    let rotations = rotations(t);
     let mut pcols = std::collections::BTreeMap::new();
     for b in bl {
         for &i in &b.idx {
@@ -200,6 +238,23 @@ pub fn block_cells(t: &Tables, bl: &[Block]) -> Result<Vec<BlockCell>, PlotError
             }
             if !ok {
                 continue;
+            }
+            for rot in &rotations {
+                let Some(a0) = b.idx.iter().position(|&i| i == rot.first) else {
+                    continue;
+                };
+                if b.idx.get(a0 + 2) != Some(&(rot.first + 2)) {
+                    continue;
+                }
+                // Both are present: `ok` checked every quantity of the block.
+                let tv: Vec<f64> = (0..3).filter_map(|j| truth[rot.first + j][r]).collect();
+                let ev: Vec<f64> = (0..3).filter_map(|j| est[rot.first + j][r]).collect();
+                let local = EulerRotation { first: 0, ..*rot };
+                let mut out = [0.0; 3];
+                local.error_into(&tv, &ev, &mut out);
+                for (j, v) in out.iter().enumerate() {
+                    e[a0 + j] = *v;
+                }
             }
             let Some(ch) = p.cholesky() else { continue };
             let nees = e.dot(&ch.solve(&e));

@@ -425,6 +425,17 @@ pub(super) fn write_estimates(
     let nz = plan.layout().measurements.len();
     let ztri = nz * (nz + 1) / 2;
     let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+    let rotations = plan.layout().rotations();
+    // A rotation is written as its quaternion, in place of its three Euler angles (its
+    // covariance is already the rotation error's).
+    let estimate = |e: &[f64]| {
+        let mut out = f64s(e);
+        for r in rotations.iter().rev() {
+            let q = crate::linalg::so3::quaternion_of(&r.matrix(e));
+            out.splice(r.first..r.first + 3, q.map(|c| Value::F64(Some(c))));
+        }
+        out
+    };
     for (fi, f) in plan.filters.iter().enumerate() {
         let Some(Some(x)) = tr.export.get(fi) else {
             continue;
@@ -437,7 +448,7 @@ pub(super) fn write_estimates(
                 Value::I64(Some(k as i64)),
                 Value::Str(&f.label),
             ];
-            row.extend(f64s(&tr.est[fi][k * nq..(k + 1) * nq]));
+            row.extend(estimate(&tr.est[fi][k * nq..(k + 1) * nq]));
             row.extend(f64s(&tr.cov[fi][k * ntri..(k + 1) * ntri]));
             row.extend(f64s(&x.nu[k * nz..(k + 1) * nz]));
             row.extend(f64s(&x.s[k * ztri..(k + 1) * ztri]));

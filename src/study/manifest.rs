@@ -32,6 +32,7 @@ pub(crate) fn manifest_for(
                 name: q.name.clone(),
                 unit: q.unit.clone(),
                 angle: q.angle,
+                rotation: q.rotation.map(|side| side.name().to_string()),
             })
             .collect(),
         inputs: plan.layout().inputs.clone(),

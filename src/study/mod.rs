@@ -31,7 +31,7 @@ use crate::metrics::consistency::BandCache;
 use crate::output::folder::StudyFolder;
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute_windowed, window_for};
-use crate::trial::Unit;
+use crate::trial::{Trial, Unit};
 
 use fold::Aggregator;
 use resources::credibility_bytes;
@@ -130,22 +130,68 @@ fn run_in(
     started_unix_s: u64,
 ) -> Result<StudyReport, KfmcError> {
     let trial = plan.trial();
-    let layout = plan.layout();
-    let states = layout.quantity_names();
     let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
-    let journaling = opts.checkpoints.is_some();
-    // A table of the study: journaled when the study is resumable, and on a resume first
-    // refilled from its journal, each replayed row also shown to `on_row`.
-    let open = |name: &str,
-                columns: Vec<crate::output::schema::ColumnDef>,
-                on_row: &mut dyn FnMut(&[Value<'_>]) -> Result<(), OutputError>|
-     -> Result<TableWriter, OutputError> {
+    let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
+    let opener = TableOpener {
+        plan,
+        dir,
+        journaling: opts.checkpoints.is_some(),
+        resume: resume.as_ref(),
+    };
+    let checkpoint = opts.checkpoints.as_ref().map(|c| Checkpointer {
+        dir: dir.to_path_buf(),
+        every: c.every,
+        last: Instant::now(),
+        index: resume
+            .clone()
+            .unwrap_or_else(|| checkpoint_identity(plan, n_cells, &cells)),
+        boundary: None,
+        first_cell: cells.start,
+    });
+    let mut agg = open_aggregator(plan, trial.as_ref(), &opener, checkpoint)?;
+    let todo = cells.start + cells_resumed..cells.end;
+    execute(plan, trial.as_ref(), &mut agg, opts, observer, todo.clone())
+        .map_err(|e| interrupted(e, &mut agg, dir, cells.len()))?;
+    let finished = finish_tables(plan, opts, dir, agg)?;
+    let wall_s = started.elapsed().as_secs_f64();
+    let manifest = manifest_for(plan, opts, started_unix_s, wall_s, cells.clone());
+    let tables = folder.commit(finished, manifest)?;
+    // Committed: the tables are complete, and a checkpoint of them would only mislead.
+    crate::output::checkpoint::remove(dir)?;
+    Ok(StudyReport {
+        output: dir.to_path_buf(),
+        tables,
+        wall_s,
+        runs: (todo.len() * plan.runs) as u64,
+        cells_resumed: cells_resumed as u64,
+    })
+}
+
+/// Opens a study's tables: journaled when the study is resumable, and on a resume first
+/// refilled from the checkpoint's journal.
+struct TableOpener<'a> {
+    plan: &'a Plan,
+    dir: &'a std::path::Path,
+    journaling: bool,
+    resume: Option<&'a crate::output::checkpoint::Index>,
+}
+
+impl TableOpener<'_> {
+    /// Opens table `name`; on a resume each row replayed from its journal is also shown to
+    /// `on_row`.
+    fn open(
+        &self,
+        name: &str,
+        columns: Vec<crate::output::schema::ColumnDef>,
+        on_row: &mut dyn FnMut(&[Value<'_>]) -> Result<(), OutputError>,
+    ) -> Result<TableWriter, OutputError> {
+        let (plan, dir) = (self.plan, self.dir);
         let metadata = plan.table_metadata(name);
-        if !journaling {
+        if !self.journaling {
             return TableWriter::create_with_metadata(dir, name, columns, &metadata);
         }
         let journal = crate::output::checkpoint::journal_path(dir, name);
-        let from = match &resume {
+        let from = match self.resume {
             None => None,
             Some(index) => Some(
                 index
@@ -162,10 +208,30 @@ fn run_in(
             ),
         };
         TableWriter::journaled(dir, name, columns, &metadata, &journal, from, on_row)
-    };
-    let mut ignore = |_: &[Value<'_>]| Ok(());
-    // The divergence trackers look across cells: a resume rebuilds them from the replayed
-    // runs and summary rows, as `kfmc merge` does from the parts' tables.
+    }
+
+    /// Opens a table whose replayed rows need no other use.
+    fn open_plain(
+        &self,
+        name: &str,
+        columns: Vec<crate::output::schema::ColumnDef>,
+    ) -> Result<TableWriter, OutputError> {
+        self.open(name, columns, &mut |_| Ok(()))
+    }
+}
+
+/// The fold over a study's tables. The divergence trackers look across cells: a resume
+/// rebuilds them from the replayed runs and summary rows, as `kfmc merge` does from the
+/// parts' tables.
+fn open_aggregator<'a>(
+    plan: &'a Plan,
+    trial: &'a dyn Trial,
+    opener: &TableOpener<'_>,
+    checkpoint: Option<Checkpointer>,
+) -> Result<Aggregator<'a>, OutputError> {
+    let dir = opener.dir;
+    let layout = plan.layout();
+    let states = layout.quantity_names();
     let mut feed = DivergenceFeed::new(plan, dir);
     let damaged = |why: &str| OutputError::Mismatch {
         path: crate::output::checkpoint::dir(dir),
@@ -173,14 +239,13 @@ fn run_in(
             "is a damaged checkpoint: a row {why}; start over with `kfmc run SPEC --restart`"
         ),
     };
-    let runs = open("runs", feed.runs_columns().to_vec(), &mut |row| {
+    let runs = opener.open("runs", feed.runs_columns().to_vec(), &mut |row| {
         feed.run_row(row, &damaged)
     })?;
-    let summary = open("summary", feed.summary_columns().to_vec(), &mut |row| {
+    let summary = opener.open("summary", feed.summary_columns().to_vec(), &mut |row| {
         feed.summary_row(row, &damaged)
     })?;
     let divergence = feed.into_trackers();
-    let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
     // The blocks the runs keep NEES for (none when they do not fit the runs' masks).
     let blocks =
         if plan.consistency.is_some() && !crate::system::settings::block_masks(layout).is_empty() {
@@ -190,71 +255,66 @@ fn run_in(
         };
     let block_names: Vec<String> = blocks.iter().map(QuantityBlock::column_name).collect();
     let block_names: Vec<&str> = block_names.iter().map(String::as_str).collect();
-    let mut agg = Aggregator {
+    let optional = |wanted: bool, name: &str, columns: Vec<crate::output::schema::ColumnDef>| {
+        wanted.then(|| opener.open_plain(name, columns)).transpose()
+    };
+    Ok(Aggregator {
         plan,
-        trial: trial.as_ref(),
+        trial,
         runs,
-        steps: open(
+        steps: opener.open_plain(
             "steps",
             schema::steps(&states, plan.consistency.as_ref().map(|_| &block_names[..])),
-            &mut ignore,
         )?,
         summary,
-        traces: if plan.trace_runs > 0 {
-            Some(open(
-                "traces",
-                schema::traces(
-                    &states,
-                    &layout.input_names(),
-                    &layout.measurement_names(),
-                    &layout.world_state_names(),
-                ),
-                &mut ignore,
-            )?)
-        } else {
-            None
-        },
-        consistency: if plan.consistency.is_some() {
-            Some(open(
-                "consistency",
-                schema::consistency(Some(&block_names)),
-                &mut ignore,
-            )?)
-        } else {
-            None
-        },
-        sensors: if trial.world_metrics().is_empty() {
-            None
-        } else {
-            Some(open("sensors", schema::sensors(), &mut ignore)?)
-        },
-        estimates: if plan.export_estimates {
-            Some(open(
-                "estimates",
-                crate::score::estimate_columns(&states, &layout.measurement_names()),
-                &mut ignore,
-            )?)
-        } else {
-            None
-        },
+        traces: optional(
+            plan.trace_runs > 0,
+            "traces",
+            schema::traces(
+                &states,
+                &layout.input_names(),
+                &layout.measurement_names(),
+                &layout.world_state_names(),
+            ),
+        )?,
+        consistency: optional(
+            plan.consistency.is_some(),
+            "consistency",
+            schema::consistency(Some(&block_names)),
+        )?,
+        sensors: optional(
+            !trial.world_metrics().is_empty(),
+            "sensors",
+            schema::sensors(),
+        )?,
+        estimates: optional(
+            plan.export_estimates,
+            "estimates",
+            crate::score::estimate_columns_with(
+                &states,
+                &layout.measurement_names(),
+                &layout.rotations(),
+            ),
+        )?,
         bands: BandCache::new(plan.alpha),
         blocks,
         divergence,
         states,
         cell: None,
         scratch: dir.to_path_buf(),
-        checkpoint: opts.checkpoints.as_ref().map(|c| Checkpointer {
-            dir: dir.to_path_buf(),
-            every: c.every,
-            last: Instant::now(),
-            index: resume
-                .clone()
-                .unwrap_or_else(|| checkpoint_identity(plan, n_cells, &cells)),
-            boundary: None,
-            first_cell: cells.start,
-        }),
-    };
+        checkpoint,
+    })
+}
 
+/// Runs the units of `cells` on the executor and folds their results in order.
+fn execute(
+    plan: &Plan,
+    trial: &dyn Trial,
+    agg: &mut Aggregator<'_>,
+    opts: &ExecOptions,
+    observer: &dyn RunObserver,
+    cells: std::ops::Range<usize>,
+) -> Result<(), KfmcError> {
     // Unit i ↔ (scenario, scale, run) in scenario-major order, so cells complete in order.
     let (n_scales, n_runs) = (plan.noise_scales.len(), plan.runs);
     let unit_of = |i: usize| Unit {
@@ -262,7 +322,7 @@ fn run_in(
         scale: i / n_runs % n_scales,
         run: i % n_runs,
     };
-    let first_unit = (cells.start + cells_resumed) * n_runs;
+    let first_unit = cells.start * n_runs;
     // An exported run's result carries its whole trajectory, and with the consistency tests
     // each filter's signed errors and block NEES per step: the window holds fewer of them.
     let unit_bytes = if plan.export_estimates {
@@ -270,29 +330,48 @@ fn run_in(
     } else {
         0
     } + credibility_bytes(plan);
-    let executed = execute_windowed::<_, KfmcError>(
-        (cells.end - cells.start - cells_resumed) * n_runs,
+    execute_windowed::<_, KfmcError>(
+        cells.len() * n_runs,
         opts.threads,
         window_for(unit_bytes, opts.threads),
         |i| trial.run(&unit_of(first_unit + i)),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
-    );
-    if let Err(KfmcError::Output(OutputError::Interrupted)) = executed {
-        // Keep every cell that completed: the next `--resume` starts after it.
-        if let Some(done) = agg.write_checkpoint()? {
-            return Err(KfmcError::Output(OutputError::InterruptedCheckpointed {
-                dir: crate::output::checkpoint::dir(dir),
-                cells_done: done,
-                cells: (cells.end - cells.start) as u64,
-            }));
-        }
-    }
-    executed?;
+    )
+}
 
+/// An interrupted study keeps every cell that completed (the next `--resume` starts after
+/// it); any other error passes through.
+fn interrupted(
+    e: KfmcError,
+    agg: &mut Aggregator<'_>,
+    dir: &std::path::Path,
+    cells: usize,
+) -> KfmcError {
+    if !matches!(e, KfmcError::Output(OutputError::Interrupted)) {
+        return e;
+    }
+    match agg.write_checkpoint() {
+        Ok(Some(done)) => KfmcError::Output(OutputError::InterruptedCheckpointed {
+            dir: crate::output::checkpoint::dir(dir),
+            cells_done: done,
+            cells: cells as u64,
+        }),
+        Ok(None) => e,
+        Err(w) => KfmcError::Output(w),
+    }
+}
+
+/// The tables of a folded study, finished in the order the folder commits them; the
+/// divergence tables look across every noise scale of a scenario, so a part (which has only
+/// some) leaves them to `kfmc merge`.
+fn finish_tables(
+    plan: &Plan,
+    opts: &ExecOptions,
+    dir: &std::path::Path,
+    mut agg: Aggregator<'_>,
+) -> Result<Vec<crate::output::table::FinishedTable>, OutputError> {
     let mut written: Vec<TableWriter> = Vec::new();
-    // Divergence points look across every noise scale of a scenario: a part has only some,
-    // so `kfmc merge` computes them from the merged runs and summary.
     if let (Some(thr), None) = (&plan.rmse_thresholds, opts.shard) {
         let (d, dr) = divergence_tables(plan, dir, &mut agg.divergence, &agg.states, thr)?;
         written.extend([d, dr]);
@@ -312,22 +391,5 @@ fn run_in(
     written.extend(consistency);
     written.extend(traces);
     written.extend(estimates);
-
-    let finished = written
-        .into_iter()
-        .map(TableWriter::finish)
-        .collect::<Result<Vec<_>, _>>()?;
-    let wall_s = started.elapsed().as_secs_f64();
-    let manifest = manifest_for(plan, opts, started_unix_s, wall_s, cells.clone());
-    let tables = folder.commit(finished, manifest)?;
-    // Committed: the tables are complete, and a checkpoint of them would only mislead.
-    crate::output::checkpoint::remove(dir)?;
-    let done = ((cells.end - cells.start - cells_resumed) * n_runs) as u64;
-    Ok(StudyReport {
-        output: dir.to_path_buf(),
-        tables,
-        wall_s,
-        runs: done,
-        cells_resumed: cells_resumed as u64,
-    })
+    written.into_iter().map(TableWriter::finish).collect()
 }

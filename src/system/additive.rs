@@ -888,6 +888,8 @@ struct AdditiveTrial<'a, const NX: usize, const NU: usize, const NZ: usize, M> {
     names: Vec<&'a str>,
     /// The angle quantities (index, in degrees), whose errors are wrapped.
     angles: Vec<(usize, bool)>,
+    /// The rotations among the quantities, scored by their rotation error.
+    rotations: Vec<crate::linalg::so3::EulerRotation>,
     /// Per (filter variant, noise scale): the prepared filter, built on first use.
     prepared: Vec<OnceLock<Box<dyn RunFilter<NX, NU, NZ, M>>>>,
 }
@@ -904,6 +906,7 @@ where
             model_q: sys.model.process_noise_covariance(),
             names: sys.layout.quantity_names(),
             angles: sys.layout.angles(),
+            rotations: sys.layout.rotations(),
             prepared: (0..settings.filters.len() * settings.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
@@ -969,6 +972,7 @@ where
             inputs: &sc.controls,
             measurements: &trajectory.measurements,
             angles: &self.angles,
+            rotations: &self.rotations,
             thresholds: None,
             quantity_names: &self.names,
             trace: false,
@@ -1035,6 +1039,7 @@ where
             inputs: &scenario.controls,
             measurements: &trajectory.measurements,
             angles: &self.angles,
+            rotations: &self.rotations,
             thresholds: settings.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,

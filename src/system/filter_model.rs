@@ -140,6 +140,19 @@ pub fn step_convention(layout: &Layout, model: Option<&dyn DynModel>) -> StepCon
         wrapped_innovations: model
             .map(|m| names(&m.angle_measurements(), &layout.measurements))
             .unwrap_or_default(),
+        rotation_errors: layout
+            .rotations()
+            .iter()
+            .map(|r| {
+                let side = layout.quantities[r.first]
+                    .rotation
+                    .map_or("right", |s| s.name());
+                format!(
+                    "{} ({side} error)",
+                    quantities[r.first..r.first + 3].join(", ")
+                )
+            })
+            .collect(),
     }
 }
 

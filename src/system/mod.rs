@@ -34,6 +34,7 @@ use std::sync::Arc;
 
 use trial::Trial;
 
+pub use crate::linalg::so3::{ErrorSide, EulerRotation};
 pub use checker::Checker;
 pub use settings::{InitialMode, RunSettings};
 pub use spec_values::OneOrMany;
@@ -48,6 +49,9 @@ pub struct Quantity {
     /// Whether the error of this quantity is an angle wrapped to [−π, π) (or [−180°, 180°)
     /// when the unit is `deg`).
     pub angle: bool,
+    /// Set on the three quantities of a rotation ([`Quantity::rotation`]): their error is the
+    /// rotation error on this side, not three angle differences.
+    pub rotation: Option<ErrorSide>,
 }
 
 impl Quantity {
@@ -57,6 +61,7 @@ impl Quantity {
             name: name.into(),
             unit: unit.into(),
             angle: false,
+            rotation: None,
         }
     }
     /// An angle quantity: its error is wrapped.
@@ -65,7 +70,21 @@ impl Quantity {
             name: name.into(),
             unit: unit.into(),
             angle: true,
+            rotation: None,
         }
+    }
+    /// The three quantities of an attitude held as ZYX Euler angles (roll, pitch, yaw, in
+    /// that order, in `deg` or `rad`) and scored as a rotation: the error is the rotation
+    /// vector log(R̂ᵀR) (`ErrorSide::Right`) or log(RR̂ᵀ) (`Left`) in the quantities' unit, and
+    /// the covariance a filter reports for them must be that error's
+    /// ([`crate::linalg::so3`]).
+    pub fn rotation(names: [&str; 3], unit: &str, side: ErrorSide) -> [Quantity; 3] {
+        names.map(|n| Quantity {
+            name: n.into(),
+            unit: unit.into(),
+            angle: false,
+            rotation: Some(side),
+        })
     }
 }
 
@@ -110,6 +129,29 @@ impl Layout {
     /// The world-state names.
     pub fn world_state_names(&self) -> Vec<&str> {
         self.world_states.iter().map(String::as_str).collect()
+    }
+    /// The rotations: each run of three consecutive quantities declared with
+    /// [`Quantity::rotation`].
+    pub fn rotations(&self) -> Vec<EulerRotation> {
+        let q = &self.quantities;
+        let mut out = Vec::new();
+        let mut i = 0;
+        while i + 3 <= q.len() {
+            match q[i].rotation {
+                Some(side)
+                    if q[i + 1].rotation == Some(side) && q[i + 2].rotation == Some(side) =>
+                {
+                    out.push(EulerRotation {
+                        first: i,
+                        degrees: q[i].unit == "deg",
+                        side,
+                    });
+                    i += 3;
+                }
+                _ => i += 1,
+            }
+        }
+        out
     }
     /// Indices of the angle quantities.
     pub fn angle_indices(&self) -> Vec<usize> {

@@ -174,5 +174,11 @@ pub fn block_masks(layout: &Layout) -> BlockMasks {
 
 /// The blocks of a layout's quantities ([`crate::metrics::blocks::group`]).
 pub fn layout_blocks(layout: &Layout) -> Vec<crate::metrics::blocks::QuantityBlock> {
-    crate::metrics::blocks::group(layout.quantities.iter().map(|q| (q.unit.as_str(), q.angle)))
+    // A rotation's three quantities form an attitude block as three angles do.
+    crate::metrics::blocks::group(
+        layout
+            .quantities
+            .iter()
+            .map(|q| (q.unit.as_str(), q.angle || q.rotation.is_some())),
+    )
 }

@@ -156,6 +156,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
         Box::new(WorldTrial {
             names: self.layout.quantity_names(),
             angles: self.layout.angles(),
+            rotations: self.layout.rotations(),
             prepared: (0..settings.filters.len() * settings.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
@@ -173,6 +174,7 @@ struct WorldTrial<'a, const NQ: usize, const NU: usize, const NZ: usize> {
     settings: &'a RunSettings,
     names: Vec<&'a str>,
     angles: Vec<(usize, bool)>,
+    rotations: Vec<crate::linalg::so3::EulerRotation>,
     prepared: Vec<OnceLock<Box<dyn WorldFilter<NQ, NU, NZ>>>>,
 }
 
@@ -190,6 +192,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
             inputs: &real.inputs,
             measurements: &real.measurements,
             angles: &self.angles,
+            rotations: &self.rotations,
             thresholds: settings.rmse_thresholds.as_deref(),
             quantity_names: &self.names,
             trace: traced,

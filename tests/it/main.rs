@@ -69,6 +69,7 @@ mod cross_checks {
 
 /// The systems: the drone, linear systems from TOML, L1 studies, worlds, a user's own filter.
 mod systems {
+    mod attitude;
     mod drone;
     mod linear_generic;
     mod linear_studies;

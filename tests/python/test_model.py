@@ -374,4 +374,5 @@ def test_schema_and_describe_state_the_convention_and_the_model(root):
     assert d["convention"] == c
     drone = root / "experiments" / "drone_consistency.toml"
     c = kfmc.schema("estimates", drone)["step_convention"]
-    assert c["wrapped_errors"] == ["roll", "pitch", "yaw"] and c["wrapped_innovations"] == []
+    assert c["wrapped_errors"] == [] and c["wrapped_innovations"] == []
+    assert c["rotation_errors"] == ["roll, pitch, yaw (right error)"]

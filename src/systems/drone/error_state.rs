@@ -19,9 +19,11 @@
 //! δz − D δv_z: the accelerometer noise of that window moves z by a variance of about
 //! σ_a² Δt D³ / 3, three orders below the barometer's.
 //!
-//! It reports its belief as the total state [p, v, Θ, b_a, b_g, d, d_b, clones] with the
-//! covariance mapped through δΘ = E(Θ) δφ, and is scored on the nine quantities through its
-//! marginal.
+//! It reports its belief as the total state [p, v, Θ, b_a, b_g, d, d_b, clones] with its own
+//! error covariance (δφ in place of δΘ), and is scored on the nine quantities through
+//! [`EsDegrees`]: the attitude error's covariance is native to it as a rotation error (turned
+//! to the body axes for the right error), and mapped through δΘ = E(Θ) δφ for Euler-angle
+//! errors.
 
 use std::collections::VecDeque;
 
@@ -30,11 +32,12 @@ use super::kinematics::{euler_of, euler_of_nav_rotation, exp_so3, rate_transform
 use super::world::{DroneParams, ImuOutput};
 use super::{NQ, NU, NZ, gps_fix_prior, z};
 use crate::filter::{Filter, FilterError, Innovation, check_finite};
+use crate::linalg::so3::{self, ErrorSide};
 use crate::linalg::{Matrix, Vector};
 use crate::model::{Availability, Measurement, Model};
 use crate::system::FilterInfo;
 use crate::system::world::{NoiseSettings, Realisation, WorldFilter, WorldFilterEntry};
-use crate::trial::{FilterOutput, Prior, RunContext, run_filter};
+use crate::trial::{Evaluate, FilterOutput, Prior, RunContext, run_filter};
 
 /// State size without velocity clones.
 pub const NX: usize = 19;
@@ -344,10 +347,43 @@ impl<const N: usize> Filter<N, NU, NZ, ErrorState> for ErrorStateEkf {
     }
 
     fn covariance(&self, b: &EsBelief<N>) -> Option<Matrix<N, N>> {
-        let mut j = Matrix::<N, N>::identity();
-        j.fixed_view_mut::<3, 3>(6, 6)
-            .copy_from(&euler_of_nav_rotation(&v3(&b.x, 6)));
-        Some(j * b.p * j.transpose())
+        Some(b.p)
+    }
+}
+
+/// The error-state filter's evaluation: its covariance holds the navigation-frame rotation
+/// error δφ (C_true = exp(\[δφ\]×) Ĉ, the left error), which is the attitude quantities'
+/// covariance as it stands for a left rotation error, turned to the body axes (R̂ᵀ P R̂) for
+/// the right one, and mapped by E(Θ̂) for Euler-angle errors.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct EsDegrees {
+    /// How the attitude is scored: `None`, as three wrapped Euler-angle differences.
+    pub rotation: Option<ErrorSide>,
+}
+
+impl<const N: usize> Evaluate<N, NQ> for EsDegrees {
+    fn mean(&self, x: &Vector<N>) -> Vector<NQ> {
+        Evaluate::<N, NQ>::mean(&Degrees::default(), x)
+    }
+    fn covariance(&self, x: &Vector<N>, p: &Matrix<N, N>) -> Matrix<NQ, NQ> {
+        let euler = Degrees::default();
+        match self.rotation {
+            None => {
+                let mut j = Matrix::<N, N>::identity();
+                j.fixed_view_mut::<3, 3>(6, 6)
+                    .copy_from(&euler_of_nav_rotation(&v3(x, 6)));
+                euler.covariance(x, &(j * p * j.transpose()))
+            }
+            Some(ErrorSide::Left) => euler.covariance(x, p),
+            Some(ErrorSide::Right) => so3::transform_blocks(
+                &euler.covariance(x, p),
+                &[(6, rotation(&v3(x, 6)).transpose())],
+            ),
+        }
+    }
+    fn transition(&self, _a: &Matrix<N, N>) -> Option<Matrix<NQ, NQ>> {
+        // A marginal of the larger error state does not evolve on its own.
+        None
     }
 }
 
@@ -489,7 +525,10 @@ impl<const N: usize> WorldFilter<NQ, NU, NZ> for EsRun<N> {
             x0_hat: &x0,
             p0: &p0,
         };
-        run_filter(&self.model, &ErrorStateEkf, &Degrees, &prior, ctx)
+        let eval = EsDegrees {
+            rotation: self.params.attitude_error,
+        };
+        run_filter(&self.model, &ErrorStateEkf, &eval, &prior, ctx)
     }
 }
 

@@ -12,6 +12,7 @@ use super::kinematics::{d_rate_transform_times, d_rotation_times, rate_transform
 use super::world::ImuOutput;
 use super::{NU, NZ, z};
 use crate::filter::{CovarianceUpdate, Filter, FilterError, Innovation, check_finite};
+use crate::linalg::so3::{self, ErrorSide, EulerRotation};
 use crate::linalg::{Matrix, SmallCholesky, Vector, symmetrize};
 use crate::model::{Availability, Measurement, Model};
 use crate::trial::{Evaluate, wrap_angle};
@@ -202,19 +203,46 @@ impl<const NX: usize, M: Nav<NX>> Filter<NX, NU, NZ, M> for SeqEkf {
 }
 
 /// The evaluation of a state whose first nine entries are [p, v, Θ (rad)]: the quantities
-/// with the attitude in degrees, G = diag(I₆, (180/π) I₃) applied to the covariance.
+/// with the attitude in degrees, G = diag(I₆, (180/π) I₃) applied to the covariance. With
+/// `rotation` set, the attitude is scored as a rotation on that side, and the Euler-angle
+/// covariance is mapped into its tangent space by the chart Jacobian J at the estimate
+/// (G = diag(I₆, (180/π) J)).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Degrees;
+pub struct Degrees {
+    /// How the attitude is scored: `None`, as three wrapped Euler-angle differences.
+    pub rotation: Option<ErrorSide>,
+}
 
 const DEG: f64 = 180.0 / std::f64::consts::PI;
+
+/// The drone's attitude quantities (roll, pitch, yaw in degrees, from index 6) as a rotation.
+pub fn attitude(side: ErrorSide) -> EulerRotation {
+    EulerRotation {
+        first: 6,
+        degrees: true,
+        side,
+    }
+}
+
+impl Degrees {
+    /// The chart Jacobian of the attitude at the quantities `q` (none without rotation).
+    fn chart(&self, q: &Vector<9>) -> Option<Matrix<3, 3>> {
+        self.rotation
+            .map(|side| attitude(side).chart_jacobian(q.as_slice()))
+    }
+}
 
 impl<const NX: usize> Evaluate<NX, 9> for Degrees {
     fn mean(&self, x: &Vector<NX>) -> Vector<9> {
         Vector::<9>::from_fn(|i, _| if i < 6 { x[i] } else { x[i] * DEG })
     }
-    fn covariance(&self, _x: &Vector<NX>, p: &Matrix<NX, NX>) -> Matrix<9, 9> {
+    fn covariance(&self, x: &Vector<NX>, p: &Matrix<NX, NX>) -> Matrix<9, 9> {
         let g = |i: usize| if i < 6 { 1.0 } else { DEG };
-        Matrix::<9, 9>::from_fn(|i, j| p[(i, j)] * g(i) * g(j))
+        let euler = Matrix::<9, 9>::from_fn(|i, j| p[(i, j)] * g(i) * g(j));
+        match self.chart(&Evaluate::<NX, 9>::mean(self, x)) {
+            None => euler,
+            Some(j) => so3::transform_blocks(&euler, &[(6, j)]),
+        }
     }
     fn transition(&self, a: &Matrix<NX, NX>) -> Option<Matrix<9, 9>> {
         // Only a state that is exactly the quantities has its own error transition: G A G⁻¹.
@@ -222,6 +250,13 @@ impl<const NX: usize> Evaluate<NX, 9> for Degrees {
             let g = |i: usize| if i < 6 { 1.0 } else { DEG };
             Matrix::<9, 9>::from_fn(|i, j| a[(i, j)] * g(i) / g(j))
         })
+    }
+    fn transition_at(&self, x: &Vector<NX>, a: &Matrix<NX, NX>) -> Option<Matrix<9, 9>> {
+        let euler = Evaluate::<NX, 9>::transition(self, a)?;
+        match self.chart(&Evaluate::<NX, 9>::mean(self, x)) {
+            None => Some(euler),
+            Some(j) => so3::conjugate_blocks(&euler, &[(6, j)]),
+        }
     }
 }
 

@@ -21,6 +21,7 @@ use std::sync::Arc;
 
 use serde::Deserialize;
 
+use crate::linalg::so3::ErrorSide;
 use crate::linalg::{Matrix, Vector};
 use crate::model::Measurement;
 use crate::system::checker::{Checker, non_negative, positive};
@@ -101,6 +102,9 @@ pub const SEED_EKF_RMSE: [[f64; NQ]; 3] = [
     ],
 ];
 
+/// The largest pitch (degrees) a route with `attitude_offset_deg` may reach.
+pub const PITCH_LIMIT_DEG: f64 = 89.99;
+
 /// The built-in routes and the seed table each one's paper filter takes its R from.
 pub const BUILTIN_ROUTES: [(&str, usize, &str); 4] = [
     ("linear", 1, "R1: a = (1.00, 0.15, 0.02) m/s²"),
@@ -140,6 +144,7 @@ struct ModelKeys {
     baro_drift_rw: Option<f64>,
     baro_delay_s: Option<f64>,
     initial_attitude_std_deg: Option<OneOrMany>,
+    attitude_error: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -155,6 +160,7 @@ struct ScenarioKeys {
     wave_period_s: Option<OneOrMany>,
     attitude_deg: Option<OneOrMany>,
     attitude_period_s: Option<OneOrMany>,
+    attitude_offset_deg: Option<OneOrMany>,
     seed_table: Option<i64>,
 }
 
@@ -201,7 +207,7 @@ impl System for DroneSystem {
             about: "9-state drone of seed 004: IMU (100 Hz), GPS (10 Hz, drift, velocity latency), barometer (50 Hz, drift, delay); quantities px, py, pz, vx, vy, vz, roll, pitch, yaw (m, m/s, deg)".into(),
             sections: vec![
                 (
-                    "scenarios (built-in; base = …, duration_s, start_ned_m, accel_m_s2, jerk_m_s3, wave_m_s2, wave_period_s, attitude_deg, attitude_period_s, seed_table)".into(),
+                    "scenarios (built-in; base = …, duration_s, start_ned_m, accel_m_s2, jerk_m_s3, wave_m_s2, wave_period_s, attitude_deg, attitude_period_s, attitude_offset_deg, seed_table)".into(),
                     BUILTIN_ROUTES
                         .iter()
                         .map(|(n, t, d)| (n.to_string(), format!("{d}; paper R from seed Table {t}")))
@@ -219,7 +225,7 @@ impl System for DroneSystem {
                     "model keys".into(),
                     vec![(
                         "[model]".into(),
-                        "dt_s, gravity_m_s2, imu_output (gravity_subtracted | specific_force), accel_white_std, accel_bias_std, accel_bias_rw, gyro_white_std, gyro_bias_std, gyro_bias_rw, gps_rate_hz, gps_position_std, gps_drift_std, gps_drift_tau_s, gps_velocity_std, gps_velocity_latency_s, baro_rate_hz, baro_std, baro_drift_rw, baro_delay_s, initial_attitude_std_deg".into(),
+                        "dt_s, gravity_m_s2, imu_output (gravity_subtracted | specific_force), accel_white_std, accel_bias_std, accel_bias_rw, gyro_white_std, gyro_bias_std, gyro_bias_rw, gps_rate_hz, gps_position_std, gps_drift_std, gps_drift_tau_s, gps_velocity_std, gps_velocity_latency_s, baro_rate_hz, baro_std, baro_drift_rw, baro_delay_s, initial_attitude_std_deg, attitude_error (rotation | rotation_left | euler)".into(),
                     )],
                 ),
                 (
@@ -353,10 +359,17 @@ impl System for DroneSystem {
                 Quantity::new("vx", "m/s"),
                 Quantity::new("vy", "m/s"),
                 Quantity::new("vz", "m/s"),
-                Quantity::angle("roll", "deg"),
-                Quantity::angle("pitch", "deg"),
-                Quantity::angle("yaw", "deg"),
-            ],
+            ]
+            .into_iter()
+            .chain(match params.attitude_error {
+                None => [
+                    Quantity::angle("roll", "deg"),
+                    Quantity::angle("pitch", "deg"),
+                    Quantity::angle("yaw", "deg"),
+                ],
+                Some(side) => Quantity::rotation(["roll", "pitch", "yaw"], "deg", side),
+            })
+            .collect(),
             inputs: ["f_x", "f_y", "f_z", "w_x", "w_y", "w_z"]
                 .iter()
                 .map(|s| s.to_string())
@@ -468,6 +481,16 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
             non_negative,
             nn,
         ),
+        attitude_error: match c.choice(
+            "model.attitude_error",
+            m.attitude_error.as_deref(),
+            "rotation",
+            &["rotation", "rotation_left", "euler"],
+        ) {
+            "euler" => None,
+            "rotation_left" => Some(ErrorSide::Left),
+            _ => Some(ErrorSide::Right),
+        },
         ..d.clone()
     };
     let mut v3 = |key: &str, v: &Option<OneOrMany>, def: [f64; 3]| {
@@ -626,13 +649,35 @@ fn scenarios(tables: &[toml::Table], p: &DroneParams, c: &mut Checker) -> Vec<Dr
             |x| x.is_finite() && x.abs() <= 360.0,
             "an angle within ±360°",
         );
-        if att[1].abs() >= 80.0 {
-            c.err(
-                format!("{key}.attitude_deg[1]"),
-                format!("a pitch swing of {}° comes within 10° of the Euler singularity at 90°; at most ±80°", att[1]),
-            );
+        let offset = v3(
+            c,
+            "attitude_offset_deg",
+            &s.attitude_offset_deg,
+            [0.0; 3],
+            |x| x.is_finite() && x.abs() <= 360.0,
+            "an angle within ±360°",
+        );
+        if s.attitude_offset_deg.is_none() {
+            if att[1].abs() >= 80.0 {
+                c.err(
+                    format!("{key}.attitude_deg[1]"),
+                    format!("a pitch swing of {}° comes within 10° of the Euler singularity at 90°; at most ±80° (a route meant to come closer sets attitude_offset_deg)", att[1]),
+                );
+            }
+        } else {
+            // A route that sets its held attitude may approach the singularity on purpose (the
+            // rotation error is defined there), but its truth stays on the Euler branch
+            // |θ| < 90°, where T(Θ) and so the body rates of the closed form exist.
+            let reach = [offset[1], offset[1] + att[1]];
+            if let Some(p) = reach.iter().find(|p| p.abs() > PITCH_LIMIT_DEG) {
+                c.err(
+                    format!("{key}.attitude_offset_deg[1]"),
+                    format!("the route's pitch reaches {p}°; it must stay within ±{PITCH_LIMIT_DEG}° (the Euler angles' singularity is at ±90°)"),
+                );
+            }
         }
         route.attitude_rad = att.map(f64::to_radians);
+        route.attitude_offset_rad = offset.map(f64::to_radians);
         route.attitude_period_s = v3(
             c,
             "attitude_period_s",
@@ -720,6 +765,7 @@ impl WorldFilterEntry<NQ, NU, NZ> for PaperEntry {
         Box::new(PaperFilter {
             grid: self.grid,
             models: self.tables.iter().map(|&t| model_for(t)).collect(),
+            attitude_error: self.params.attitude_error,
         })
     }
 }
@@ -727,6 +773,7 @@ impl WorldFilterEntry<NQ, NU, NZ> for PaperEntry {
 struct PaperFilter {
     grid: bool,
     models: Vec<PaperModel>,
+    attitude_error: Option<ErrorSide>,
 }
 
 /// The context of a run with another measurement stream (the grid protocol's).
@@ -759,17 +806,14 @@ impl WorldFilter<NQ, NU, NZ> for PaperFilter {
             x0_hat: &x0,
             p0: &p0,
         };
+        let eval = Degrees {
+            rotation: self.attitude_error,
+        };
         if self.grid {
             let g = world::grid(&real.measurements);
-            run_filter(
-                model,
-                &SeqEkf,
-                &Degrees,
-                &prior,
-                &with_measurements(ctx, &g),
-            )
+            run_filter(model, &SeqEkf, &eval, &prior, &with_measurements(ctx, &g))
         } else {
-            run_filter(model, &SeqEkf, &Degrees, &prior, ctx)
+            run_filter(model, &SeqEkf, &eval, &prior, ctx)
         }
     }
 }
@@ -831,7 +875,10 @@ impl<const NX: usize> WorldFilter<NQ, NU, NZ> for PrincipledFilter<NX> {
             x0_hat: &x0,
             p0: &p0,
         };
-        run_filter(&self.model, &SeqEkf, &Degrees, &prior, ctx)
+        let eval = Degrees {
+            rotation: self.params.attitude_error,
+        };
+        run_filter(&self.model, &SeqEkf, &eval, &prior, ctx)
     }
 }
 

@@ -11,6 +11,7 @@ use rand_pcg::Pcg64;
 use super::kinematics::{Euler, inverse_rate_transform, rate_transform, rotation};
 use super::{NQ, NU, NZ, z};
 use crate::linalg::Vector;
+use crate::linalg::so3::ErrorSide;
 use crate::model::{Availability, Measurement};
 use crate::sim::seed::world_stream;
 use crate::system::world::{Realisation, World};
@@ -68,6 +69,10 @@ pub struct DroneParams {
     pub baro_delay_s: f64,
     /// The error of the attitude the principled filters start from, σ per angle (deg).
     pub initial_attitude_std_deg: [f64; 3],
+    /// How the filters' attitude is scored (`model.attitude_error`; not part of the world):
+    /// as a rotation error on this side, or, with `None`, as three wrapped Euler-angle
+    /// differences.
+    pub attitude_error: Option<ErrorSide>,
 }
 
 impl Default for DroneParams {
@@ -93,6 +98,7 @@ impl Default for DroneParams {
             baro_drift_rw: 0.05,
             baro_delay_s: 1.0,
             initial_attitude_std_deg: [1.0, 1.0, 2.0],
+            attitude_error: Some(ErrorSide::Right),
         }
     }
 }
@@ -113,7 +119,8 @@ impl DroneParams {
 }
 
 /// A route: net acceleration a_i(t) = c0_i + c1_i t + A_i cos(2πt/T_i) for t ≥ 0 and an
-/// attitude Θ_j(t) = B_j (1 − cos(2πt/P_j)) / 2 (zero rates at t = 0, as at hover).
+/// attitude Θ_j(t) = Θ0_j + B_j (1 − cos(2πt/P_j)) / 2 (zero rates at t = 0, as at hover, which
+/// holds the attitude Θ0).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Route {
     /// Start position (NED, m).
@@ -130,6 +137,8 @@ pub struct Route {
     pub attitude_rad: [f64; 3],
     /// P (s).
     pub attitude_period_s: [f64; 3],
+    /// Θ0 (rad): the attitude held at hover, to which the swing adds.
+    pub attitude_offset_rad: [f64; 3],
 }
 
 /// One instant of the truth.
@@ -158,6 +167,7 @@ impl Route {
             wave_period_s: [1.0; 3],
             attitude_rad: [0.0; 3],
             attitude_period_s: [1.0; 3],
+            attitude_offset_rad: [0.0; 3],
         };
         Some(match name {
             "linear" => Route {
@@ -194,7 +204,7 @@ impl Route {
                 p: p0,
                 v: Vector::<3>::zeros(),
                 a: Vector::<3>::zeros(),
-                euler: Euler::zeros(),
+                euler: Euler::from(self.attitude_offset_rad),
                 omega: Vector::<3>::zeros(),
             };
         }
@@ -211,12 +221,18 @@ impl Route {
                 p[i] += aw * (1.0 - (w * t).cos()) / (w * w);
             }
         }
-        let (mut euler, mut rates) = (Euler::zeros(), Vector::<3>::zeros());
+        let (mut euler, mut rates) = (Euler::from(self.attitude_offset_rad), Vector::<3>::zeros());
         for j in 0..3 {
             let b = self.attitude_rad[j];
             if b != 0.0 {
                 let w = 2.0 * std::f64::consts::PI / self.attitude_period_s[j];
-                euler[j] = b * (1.0 - (w * t).cos()) / 2.0;
+                let swing = b * (1.0 - (w * t).cos()) / 2.0;
+                // Without an offset the swing alone, so that its sign (−0 at rest) is kept.
+                euler[j] = if euler[j] == 0.0 {
+                    swing
+                } else {
+                    euler[j] + swing
+                };
                 rates[j] = b * w * (w * t).sin() / 2.0;
             }
         }

@@ -85,6 +85,7 @@ where
         inputs: &scenario.controls,
         measurements: &traj.measurements,
         angles: &[],
+        rotations: &[],
         thresholds: None,
         quantity_names: &STATES,
         trace: true,

@@ -305,13 +305,19 @@ fn a_linear_spec_model_takes_only_its_own_inputs() {
 }
 
 #[test]
-fn the_drone_has_no_filter_model_and_wraps_its_euler_angle_errors() {
+fn the_drone_has_no_filter_model_and_scores_its_attitude_as_a_rotation() {
     let text =
         std::fs::read_to_string(crate::common::repo().join("experiments/drone_consistency.toml"))
             .unwrap();
     let plan = plan_of(&text);
     assert!(plan.system.filter_model().is_none());
     let c = kfmc::system::filter_model::convention_of(plan.system.as_ref());
-    assert_eq!(c.wrapped_errors, vec!["roll", "pitch", "yaw"]);
+    assert!(c.wrapped_errors.is_empty(), "{:?}", c.wrapped_errors);
+    assert_eq!(c.rotation_errors, vec!["roll, pitch, yaw (right error)"]);
     assert!(c.continuous_angles.is_empty() && c.wrapped_innovations.is_empty());
+    // With the seed's Euler-angle errors, the three are wrapped angles again.
+    let euler = plan_of(&text.replace("[model]\n", "[model]\nattitude_error = \"euler\"\n"));
+    let c = kfmc::system::filter_model::convention_of(euler.system.as_ref());
+    assert_eq!(c.wrapped_errors, vec!["roll", "pitch", "yaw"]);
+    assert!(c.rotation_errors.is_empty());
 }

@@ -765,7 +765,8 @@ fn block_anees_is_the_traced_runs_mean_of_the_block_nees() {
     assert_eq!(cells.len(), 1);
 
     // Independently, from the trace columns: per step ≥ 1, the mean over the 3 runs of
-    // eᵀP⁻¹e, angles wrapped to ±180°.
+    // eᵀP⁻¹e, the attitude's e the rotation error log(R̂ᵀR) in degrees (the drone's default),
+    // here from the matrix formula (angle and axis from the trace and the antisymmetric part).
     let tr = df(&res, "traces");
     let (step, time) = (f64s(&tr, "step"), f64s(&tr, "t"));
     let order = ["px", "py", "pz", "vx", "vy", "vz", "roll", "pitch", "yaw"];
@@ -805,11 +806,20 @@ fn block_anees_is_the_traced_runs_mean_of_the_block_nees() {
             }
             let mut ev = [0.0; 3];
             for (j, col) in e.iter().enumerate() {
-                let mut v = col[r].unwrap();
-                if b.name == "attitude" {
-                    v -= 360.0 * (v / 360.0).round();
-                }
-                ev[j] = v;
+                ev[j] = col[r].unwrap();
+            }
+            if b.name == "attitude" {
+                let angles = |pre: &str| -> [f64; 3] {
+                    std::array::from_fn(|j| {
+                        f64s(&tr, &format!("{pre}_{}", b.quantities[j]))[r]
+                            .unwrap()
+                            .to_radians()
+                    })
+                };
+                ev = rotation_error_deg(
+                    &euler_matrix(angles("est")),
+                    &euler_matrix(angles("truth")),
+                );
             }
             let m: [[f64; 3]; 3] =
                 std::array::from_fn(|i| std::array::from_fn(|j| p[i][j][r].unwrap()));
@@ -860,4 +870,46 @@ fn block_anees_is_the_traced_runs_mean_of_the_block_nees() {
         .unwrap();
     assert_eq!(fixes, want);
     assert_eq!(want, 31, "10 Hz over 3 s, from t = 0");
+}
+
+/// R_z(ψ) R_y(θ) R_x(φ) for (φ, θ, ψ) in radians, multiplied out.
+fn euler_matrix(e: [f64; 3]) -> [[f64; 3]; 3] {
+    let rx = |a: f64| {
+        [
+            [1.0, 0.0, 0.0],
+            [0.0, a.cos(), -a.sin()],
+            [0.0, a.sin(), a.cos()],
+        ]
+    };
+    let ry = |a: f64| {
+        [
+            [a.cos(), 0.0, a.sin()],
+            [0.0, 1.0, 0.0],
+            [-a.sin(), 0.0, a.cos()],
+        ]
+    };
+    let rz = |a: f64| {
+        [
+            [a.cos(), -a.sin(), 0.0],
+            [a.sin(), a.cos(), 0.0],
+            [0.0, 0.0, 1.0],
+        ]
+    };
+    let mul = |a: [[f64; 3]; 3], b: [[f64; 3]; 3]| -> [[f64; 3]; 3] {
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| a[i][k] * b[k][j]).sum()))
+    };
+    mul(rz(e[2]), mul(ry(e[1]), rx(e[0])))
+}
+
+/// log(R̂ᵀR) in degrees for rotations well below 180° apart: the angle from the trace and
+/// the antisymmetric part (sin and cos of the angle), the axis from the latter.
+fn rotation_error_deg(est: &[[f64; 3]; 3], truth: &[[f64; 3]; 3]) -> [f64; 3] {
+    let d: [[f64; 3]; 3] = std::array::from_fn(|i| {
+        std::array::from_fn(|j| (0..3).map(|k| est[k][i] * truth[k][j]).sum())
+    });
+    let w = [d[2][1] - d[1][2], d[0][2] - d[2][0], d[1][0] - d[0][1]];
+    let s = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt() / 2.0;
+    let angle = s.atan2((d[0][0] + d[1][1] + d[2][2] - 1.0) / 2.0);
+    let k = if s < 1e-12 { 0.5 } else { angle / (2.0 * s) };
+    w.map(|x| (x * k).to_degrees())
 }
