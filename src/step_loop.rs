@@ -341,6 +341,11 @@ pub struct FilterOutput {
 
 /// The monomorphised step loop: predict, update, and per-step metrics on the quantities that
 /// `eval` maps the filter's belief to.
+///
+/// It is one long function on purpose: it is the hot loop of every study, and keeping the
+/// step's error, NEES, consistency sums and trace in one body lets the compiler keep the
+/// fixed-size matrices in registers and form the quantities' covariance once per step for all
+/// of them; the parts it calls out to are the ones that are not per step.
 pub fn run_filter<const NX: usize, const NU: usize, const NZ: usize, const NQ: usize, M, F, E>(
     model: &M,
     filter: &F,
