@@ -16,6 +16,12 @@ write)
     mkdir -p "$out"
     for spec in experiments/*.toml; do
         name=$(basename "$spec" .toml)
+        # A binary older than a spec (keys it does not know) refuses it with exit 2: the spec
+        # is skipped and `compare` reports its tables as present on one side only.
+        if ! "$bin" validate "$spec" >/dev/null 2>&1; then
+            echo "skipped $name: $bin refuses the spec" >&2
+            continue
+        fi
         if grep -q 'kind *= *"external"' "$spec"; then
             "$bin" simulate "$spec" --out "$out/$name" --runs "$runs" >/dev/null
         else
