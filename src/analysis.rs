@@ -593,7 +593,7 @@ impl Description {
             let c = &m.convention;
             let _ = writeln!(
                 s,
-                "\nfilter-side model ({}; [filter_model] of the TOML file at full precision):",
+                "\nfilter-side model ({}; at full precision: [filter_model] of describe.toml, kfmc.model in Python):",
                 m.form
             );
             let _ = writeln!(s, "  {}", c.transition);
