@@ -1385,7 +1385,19 @@ pub fn attach_estimates(
     files: &[std::path::PathBuf],
     unstamped: Unstamped,
 ) -> Result<(), KfmcError> {
-    let set = crate::score::EstimateSet::load(&plan.study_keys(), files)?;
+    attach_estimates_with_tables(plan, files, &[], unstamped)
+}
+
+/// [`attach_estimates`] with tables already in memory besides the files
+/// ([`crate::score::InMemoryTable`]: no file, so no stamp to check; the caller vouches for
+/// their world).
+pub fn attach_estimates_with_tables(
+    plan: &mut Plan,
+    files: &[std::path::PathBuf],
+    tables: &[crate::score::InMemoryTable],
+    unstamped: Unstamped,
+) -> Result<(), KfmcError> {
+    let set = crate::score::EstimateSet::load_with_tables(&plan.study_keys(), files, tables)?;
     let stamp = format!(
         "{} = {}, {} = {}",
         crate::score::STAMP_KEY,

@@ -422,9 +422,22 @@ impl EstimateSet {
     /// error naming the file, the column and the first offending key; missing rows and
     /// non-finite values are left for the runs' status.
     pub fn load(study: &StudyKeys<'_>, files: &[PathBuf]) -> Result<Self, OutputError> {
+        Self::load_with_tables(study, files, &[])
+    }
+
+    /// [`EstimateSet::load`] with tables already in memory besides the files (read after
+    /// them, with the same checks and messages, each named by its [`InMemoryTable::name`]).
+    pub fn load_with_tables(
+        study: &StudyKeys<'_>,
+        files: &[PathBuf],
+        tables: &[InMemoryTable],
+    ) -> Result<Self, OutputError> {
         let mut reading = Reading::new(study);
         for path in files {
             reading.file(path)?;
+        }
+        for table in tables {
+            reading.table(table)?;
         }
         reading.finish(files)
     }
@@ -490,6 +503,18 @@ impl EstimateSet {
     pub fn runs(&self) -> usize {
         self.runs
     }
+}
+
+/// Estimates already in memory (a Python user's DataFrames, read through the Arrow C stream
+/// interface): the table's batches in order. They carry no file metadata, so no world stamp:
+/// whoever hands them over vouches for their world (the Python API pairs them with the
+/// simulation they were made from), and they are not listed as unstamped.
+#[derive(Clone, Debug)]
+pub struct InMemoryTable {
+    /// A name for messages (`<estimates 0>`).
+    pub name: String,
+    /// The batches, each with the same columns.
+    pub batches: Vec<DataFrame>,
 }
 
 /// A study's keys as indexes: what every row of an estimates file is checked against.
@@ -858,6 +883,37 @@ impl<'a> Reading<'a> {
             offset += df.height();
             self.row_group(path, &columns, &rows)
         })?;
+        Ok(())
+    }
+
+    /// Reads a table already in memory, batch by batch, as a file's row groups.
+    fn table(&mut self, table: &InMemoryTable) -> Result<(), OutputError> {
+        let path = PathBuf::from(&table.name);
+        let Some(first) = table.batches.first() else {
+            return Err(format_err(
+                &path,
+                "an empty table (no batch, so no columns)",
+            ));
+        };
+        let names: Vec<String> = first
+            .get_column_names()
+            .iter()
+            .map(|n| n.to_string())
+            .collect();
+        let study = self.keys.study;
+        let columns = FileColumns::new(detect_columns(
+            &path,
+            &names,
+            &study.quantities,
+            &study.measurements,
+            &study.rotations,
+        )?);
+        let mut offset = 0usize;
+        for df in &table.batches {
+            let rows = RowGroup::new(&path, df, offset, &columns)?;
+            offset += df.height();
+            self.row_group(&path, &columns, &rows)?;
+        }
         Ok(())
     }
 

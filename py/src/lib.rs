@@ -535,35 +535,11 @@ fn simulate<'py>(
     })
 }
 
-/// Estimates handed over in memory: each object's Arrow C stream (`__arrow_c_stream__`) is
-/// imported through polars-arrow's C stream interface and written, with the plan's world
-/// stamp (the caller pairs them with this simulation), to a private Parquet file the
-/// estimates reader takes; the files are removed when this value is dropped.
-struct InMemoryEstimates {
-    dir: PathBuf,
-    files: Vec<PathBuf>,
-}
-
-impl Drop for InMemoryEstimates {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
-}
-
-fn import_streams(objects: &[Bound<'_, PyAny>], plan: &Plan) -> PyResult<InMemoryEstimates> {
-    use std::sync::atomic::AtomicUsize;
-    static COUNTER: AtomicUsize = AtomicUsize::new(0);
-    let dir = std::env::temp_dir().join(format!(
-        "kfmc-estimates-{}-{}",
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    std::fs::create_dir_all(&dir)
-        .map_err(|e| Error::new_err(format!("cannot create {}: {e}", dir.display())))?;
-    let mut held = InMemoryEstimates {
-        dir,
-        files: Vec::new(),
-    };
+/// Reads objects with `__arrow_c_stream__` (polars and pandas DataFrames, pyarrow Tables) into
+/// tables in memory, batch by batch, through the Arrow C stream interface: no copy of the
+/// values and no file. The estimates reader checks them as it checks a file's row groups.
+fn import_streams(objects: &[Bound<'_, PyAny>]) -> PyResult<Vec<kfmc::score::InMemoryTable>> {
+    let mut tables = Vec::with_capacity(objects.len());
     for (i, obj) in objects.iter().enumerate() {
         let name = format!("<estimates {i}>");
         let bad = |what: String| EstimatesError::new_err(format!("{name}: {what}"));
@@ -589,11 +565,7 @@ fn import_streams(objects: &[Bound<'_, PyAny>], plan: &Plan) -> PyResult<InMemor
         let mut reader =
             unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
                 .map_err(|e| bad(format!("not an Arrow stream: {e}")))?;
-        let path = held.dir.join(format!("estimates-{i}.parquet"));
-        let file = std::fs::File::create(&path)
-            .map_err(|e| Error::new_err(format!("cannot create {}: {e}", path.display())))?;
-        let mut writer: Option<polars::io::parquet::write::BatchedWriter<std::fs::File>> = None;
-        let mut file = Some(file);
+        let mut batches = Vec::new();
         loop {
             // SAFETY: as above, the producer fulfils the C data interface.
             let Some(chunk) = (unsafe { reader.next() }) else {
@@ -617,36 +589,14 @@ fn import_streams(objects: &[Bound<'_, PyAny>], plan: &Plan) -> PyResult<InMemor
             }
             let df = DataFrame::new(batch.len(), columns)
                 .map_err(|e| bad(format!("cannot form a table: {e}")))?;
-            if writer.is_none() {
-                let metadata = plan.stamp_metadata();
-                // LZ4: cheap to write and read; the file is read once, right away.
-                let w = ParquetWriter::new(file.take().expect("taken once"))
-                    .with_compression(ParquetCompression::Lz4Raw)
-                    .with_key_value_metadata(Some(
-                        polars::io::parquet::write::KeyValueMetadata::from_static(metadata),
-                    ))
-                    .batched(&df.schema().clone())
-                    .map_err(|e| Error::new_err(format!("writing {}: {e}", path.display())))?;
-                writer = Some(w);
-            }
-            if df.height() > 0 {
-                writer
-                    .as_mut()
-                    .expect("started above")
-                    .write_batch(&df)
-                    .map_err(|e| bad(format!("{e}")))?;
-            }
+            batches.push(df);
         }
-        match writer {
-            Some(w) => {
-                w.finish()
-                    .map_err(|e| Error::new_err(format!("writing {}: {e}", path.display())))?;
-            }
-            None => return Err(bad("an empty stream (no batch, so no columns)".into())),
+        if batches.is_empty() {
+            return Err(bad("an empty stream (no batch, so no columns)".into()));
         }
-        held.files.push(path);
+        tables.push(kfmc::score::InMemoryTable { name, batches });
     }
-    Ok(held)
+    Ok(tables)
 }
 
 /// Attaches estimates files and in-memory tables to `plan`, as EstimatesError on trouble.
@@ -655,22 +605,13 @@ fn attach(
     paths: &[PathBuf],
     streams: &[Bound<'_, PyAny>],
     unstamped: kfmc::check::Unstamped,
-) -> PyResult<Option<InMemoryEstimates>> {
-    let memory = if streams.is_empty() {
-        None
-    } else {
-        Some(import_streams(streams, plan)?)
-    };
-    let mut files = paths.to_vec();
-    if let Some(m) = &memory {
-        files.extend(m.files.iter().cloned());
-    }
-    kfmc::check::attach_estimates(plan, &files, unstamped).map_err(|e| {
+) -> PyResult<()> {
+    let tables = import_streams(streams)?;
+    kfmc::check::attach_estimates_with_tables(plan, paths, &tables, unstamped).map_err(|e| {
         Failure::new(Kind::Estimates, e)
             .context("reading the estimates".into())
             .into_py()
-    })?;
-    Ok(memory)
+    })
 }
 
 /// `kfmc score`: `simulation` is a `kfmc simulate` folder; estimates are files and/or
@@ -692,7 +633,7 @@ fn score<'py>(
         let registry = kfmc::systems::builtin();
         let mut plan = kfmc::cli::score_plan(&simulation, out, &registry)
             .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
-        let memory = attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
+        attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
             force,
@@ -700,11 +641,9 @@ fn score<'py>(
             checkpoints: None,
         };
         let report = run_study(py, quiet, move |obs| {
-            let r = kfmc::study::run(&plan, &exec, obs).map_err(|e| {
+            kfmc::study::run(&plan, &exec, obs).map_err(|e| {
                 Failure::from(e).context(format!("scoring against {}", simulation.display()))
-            });
-            drop(memory);
-            r
+            })
         })?;
         report_dict(py, &report)
     })
@@ -731,16 +670,14 @@ fn check<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
-        let memory = if paths.is_empty() && streams.is_empty() {
-            None
-        } else {
+        if !(paths.is_empty() && streams.is_empty()) {
             let unstamped = if allow_unstamped {
                 kfmc::check::Unstamped::Warn
             } else {
                 kfmc::check::Unstamped::Refuse
             };
-            attach(&mut plan, &paths, &streams, unstamped)?
-        };
+            attach(&mut plan, &paths, &streams, unstamped)?;
+        }
         let folder = plan.output.clone();
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
@@ -751,15 +688,14 @@ fn check<'py>(
         // The observer of each of check's studies is the one the caller waits on.
         let outcome = run_study(py, quiet, move |obs| {
             let shared = SharedObserver(obs);
-            let r = kfmc::check::run(plan, &path, replications, allow_large, &exec, || shared)
-                .map_err(|e| match e {
+            kfmc::check::run(plan, &path, replications, allow_large, &exec, || shared).map_err(
+                |e| match e {
                     kfmc::check::RunError::Invalid(e) => Failure::from(e),
                     kfmc::check::RunError::Stage { context, source } => {
                         Failure::from(*source).context(context)
                     }
-                });
-            drop(memory);
-            r
+                },
+            )
         })?;
         let d = PyDict::new(py);
         d.set_item("exit_code", outcome.exit_code())?;

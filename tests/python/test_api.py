@@ -246,8 +246,10 @@ def test_bad_estimates_name_the_column(l1_world, tmp_path, column):
     spec, sim, est, base = l1_world
     names = [c for c in est.columns if c.startswith("est_")]
     column = {"est_x": names[0], "step": "step", "P_x_x": [c for c in est.columns if c.startswith("P_")][0]}[column]
-    with pytest.raises(kfmc.EstimatesError, match=re.escape(f"`{column}`")):
+    with pytest.raises(kfmc.EstimatesError, match=re.escape(f"`{column}`")) as e:
         kfmc.score(sim, est.drop(column), out=tmp_path / "o", quiet=True)
+    # A table in memory is read as it is, with no file: the message names it by position.
+    assert "<estimates 0>" in str(e.value), str(e.value)
     # A key of the wrong type is named too.
     with pytest.raises(kfmc.EstimatesError, match="`step`"):
         kfmc.score(sim, est.with_columns(pl.col("step").cast(pl.Float64)), out=tmp_path / "p", quiet=True)
