@@ -34,8 +34,8 @@ use crate::model::Model;
 use crate::scenario::Scenario;
 use crate::sim::{NoiseDraws, TruthNoise, simulate};
 use crate::step_loop::{
-    FilterOutput, Identity, Prior, RunContext, RunTrace, Unit, UnitResult, lower_triangle,
-    run_filter,
+    ConsistencyOptions, FilterOutput, Identity, Prior, RunContext, RunTrace, Unit, UnitResult,
+    lower_triangle, run_filter,
 };
 
 /// The filter's assumed noise for one cell: Q and R after every scale is applied.
@@ -890,6 +890,8 @@ struct AdditiveTrial<'a, const NX: usize, const NU: usize, const NZ: usize, M> {
     angles: Vec<(usize, bool)>,
     /// The rotations among the quantities, scored by their rotation error.
     rotations: Vec<crate::linalg::so3::EulerRotation>,
+    /// What the consistency tests need of every run (the same for all of them).
+    consistency: Option<ConsistencyOptions>,
     /// Per (filter variant, noise scale): the prepared filter, built on first use.
     prepared: Vec<OnceLock<Box<dyn RunFilter<NX, NU, NZ, M>>>>,
 }
@@ -907,6 +909,7 @@ where
             names: sys.layout.quantity_names(),
             angles: sys.layout.angles(),
             rotations: sys.layout.rotations(),
+            consistency: settings.consistency_options(&sys.layout),
             prepared: (0..settings.filters.len() * settings.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
@@ -1044,7 +1047,7 @@ where
             quantity_names: &self.names,
             trace: traced,
             export: settings.export_estimates,
-            consistency: settings.consistency_options(&sys.layout),
+            consistency: self.consistency,
             unit: *unit,
         };
         let keep = traced || settings.export_estimates;

@@ -21,7 +21,7 @@ use super::trial::Trial;
 use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
 use crate::linalg::Vector;
 use crate::model::Measurement;
-use crate::step_loop::{FilterOutput, RunContext, RunTrace, Unit, UnitResult};
+use crate::step_loop::{ConsistencyOptions, FilterOutput, RunContext, RunTrace, Unit, UnitResult};
 
 /// One simulated run of a world.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -157,6 +157,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
             names: self.layout.quantity_names(),
             angles: self.layout.angles(),
             rotations: self.layout.rotations(),
+            consistency: settings.consistency_options(&self.layout),
             prepared: (0..settings.filters.len() * settings.noise_scales.len())
                 .map(|_| OnceLock::new())
                 .collect(),
@@ -175,6 +176,8 @@ struct WorldTrial<'a, const NQ: usize, const NU: usize, const NZ: usize> {
     names: Vec<&'a str>,
     angles: Vec<(usize, bool)>,
     rotations: Vec<crate::linalg::so3::EulerRotation>,
+    /// What the consistency tests need of every run (the same for all of them).
+    consistency: Option<ConsistencyOptions>,
     prepared: Vec<OnceLock<Box<dyn WorldFilter<NQ, NU, NZ>>>>,
 }
 
@@ -197,7 +200,7 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
             quantity_names: &self.names,
             trace: traced,
             export: settings.export_estimates,
-            consistency: settings.consistency_options(&self.sys.layout),
+            consistency: self.consistency,
             unit: *unit,
         };
         let noise = NoiseSettings {

@@ -57,9 +57,7 @@ pub fn rate_transform(e: &Euler) -> Matrix<3, 3> {
 
 /// T(Θ)⁻¹: Euler-angle rates → body rates, ω = T⁻¹ Θ̇ (defined at every attitude).
 pub fn inverse_rate_transform(e: &Euler) -> Matrix<3, 3> {
-    let (sp, cp) = e[0].sin_cos();
-    let (st, ct) = e[1].sin_cos();
-    Matrix::<3, 3>::new(1.0, 0.0, -st, 0.0, cp, sp * ct, 0.0, -sp, cp * ct)
+    crate::linalg::so3::euler_rates_to_body(e)
 }
 
 /// ∂(T(Θ) ω)/∂[φ, θ, ψ] for fixed body rates ω (ψ does not enter T).
@@ -92,10 +90,7 @@ pub fn euler_of(r: &Matrix<3, 3>) -> Euler {
     )
 }
 
-/// The skew-symmetric matrix \[v\]× (v × w = \[v\]× w).
-pub fn skew(v: &Vector<3>) -> Matrix<3, 3> {
-    Matrix::<3, 3>::new(0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0)
-}
+pub use crate::linalg::so3::skew;
 
 /// exp(\[φ\]×): the rotation by the vector φ (Rodrigues).
 pub fn exp_so3(phi: &Vector<3>) -> Matrix<3, 3> {
