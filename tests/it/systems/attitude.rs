@@ -1,4 +1,4 @@
-//! Attitude errors on SO(3) (issue 36 §3): the drone's attitude scored as a rotation error
+//! Attitude errors on SO(3): the drone's attitude scored as a rotation error
 //! against three Euler-angle differences next to the singularity at pitch 90°, and the
 //! estimates exchange carrying a rotation as a quaternion or as Euler angles.
 
