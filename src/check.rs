@@ -11,7 +11,7 @@ use std::collections::HashMap;
 
 use crate::experiment::Plan;
 use crate::experiment::plan::{Assertion, FilterPlan, Selection};
-use crate::metrics::consistency::{VERDICT, test_names};
+use crate::metrics::consistency::{SEQUENTIAL, VERDICT, test_names};
 use crate::output::table::read;
 
 /// One evaluated test case (an assertion applied to one cell the spec declares).
@@ -287,6 +287,14 @@ fn fmt_g(v: Option<f64>) -> String {
     v.map_or("—".into(), |x| format!("{x}"))
 }
 
+/// A p-value or level, in scientific notation when four decimals would show only zeros.
+fn fmt_p(v: Option<f64>) -> String {
+    match v {
+        Some(x) if x != 0.0 && x.abs() < 1e-3 => format!("{x:.2e}"),
+        other => fmt(other),
+    }
+}
+
 fn fmt(v: Option<f64>) -> String {
     v.map_or("null".into(), |x| format!("{x:.4}"))
 }
@@ -401,6 +409,10 @@ struct Judge<'a> {
     /// The whole cell, then each subset, as the study evaluates them.
     evaluations: Vec<Evaluation>,
     counts: HashMap<CellKey, RunCounts>,
+    /// Under a sequential gate: per (scenario, noise-scale bits), the runs the gate's
+    /// decisions declared (the look of the last gating filter to decide, as the study's
+    /// `sequential` rows record them). A cell without its rows is held to the spec's runs.
+    gated_runs: Option<HashMap<(String, u64), usize>>,
     /// The tables read so far, each read once however many assertions use it.
     tables: std::cell::RefCell<HashMap<&'static str, std::rc::Rc<Table>>>,
 }
@@ -420,14 +432,58 @@ impl<'a> Judge<'a> {
         }
         let bounds: Vec<usize> = evaluations.iter().map(|e| e.runs).collect();
         let counts = count_runs(&dir.join("runs.parquet"), &bounds)?;
-        Ok(Self {
+        let mut judge = Self {
             plan,
             dir,
             cells: planned_cells(plan),
             evaluations,
             counts,
+            gated_runs: None,
             tables: Default::default(),
-        })
+        };
+        if plan.sequential.is_some() {
+            judge.gated_runs = Some(judge.read_gated_runs()?);
+        }
+        Ok(judge)
+    }
+
+    /// Per (scenario, noise-scale bits): the largest `runs` of its `sequential` rows in
+    /// consistency.parquet, which is where the gate stopped the cell.
+    fn read_gated_runs(&self) -> Result<HashMap<(String, u64), usize>, OutputError> {
+        let t = self.table("consistency.parquet")?;
+        let (scenario, noise, test, runs) = (
+            t.str("scenario")?,
+            t.f64("noise_scale")?,
+            t.str("test")?,
+            t.i64("runs")?,
+        );
+        let mut out: HashMap<(String, u64), usize> = HashMap::new();
+        for i in 0..test.len() {
+            if test[i] != SEQUENTIAL {
+                continue;
+            }
+            let (Some(noise), Some(runs)) = (noise[i], runs[i].filter(|r| *r > 0)) else {
+                continue;
+            };
+            let e = out
+                .entry((scenario[i].clone(), noise.to_bits()))
+                .or_default();
+            *e = (*e).max(runs as usize);
+        }
+        Ok(out)
+    }
+
+    /// The runs evaluation `e` of `c` is judged on: the spec's (or the subset's), or under a
+    /// sequential gate the look that settled the cell.
+    fn declared_runs(&self, c: &PlannedCell<'_>, e: usize) -> usize {
+        let fixed = self.evaluations[e].runs;
+        match (&self.gated_runs, c.key.noise) {
+            (Some(gated), Some(noise)) => gated
+                .get(&(c.scenario.to_string(), noise))
+                .copied()
+                .map_or(fixed, |n| n.min(fixed)),
+            _ => fixed,
+        }
     }
 
     /// `name` of the study's folder, read on first use.
@@ -445,7 +501,7 @@ impl<'a> Judge<'a> {
         runs_problem(
             self.counts.get(&c.key),
             e,
-            self.evaluations[e].runs,
+            self.declared_runs(c, e),
             self.plan.runs,
             self.plan.check_max_failed_runs,
             cell,
@@ -485,6 +541,7 @@ impl<'a> Judge<'a> {
             t.bool("pass")?,
             t.str("direction")?,
         );
+        let runs = t.i64("runs")?;
         // Without a filter named, the assertion covers the filters that have tests (a
         // filter without a covariance has none, by its kind).
         let covered = |c: &&PlannedCell<'_>| {
@@ -511,6 +568,9 @@ impl<'a> Judge<'a> {
                     } else {
                         format!("{kind}[{cell}]")
                     };
+                    // Under a sequential gate the verdict is the gate's decision on it.
+                    let gated = self.gated_runs.is_some() && want == VERDICT;
+                    let want = if gated { SEQUENTIAL } else { want.as_str() };
                     if let Some(why) = self.runs_problem(c, e, &cell) {
                         out.push(CaseResult::incomplete(kind, label, why));
                         continue;
@@ -528,6 +588,17 @@ impl<'a> Judge<'a> {
                     let computed = stat[i].is_some_and(f64::is_finite)
                         && pass[i].is_some()
                         && (!needs_p || p[i].is_some_and(f64::is_finite));
+                    if gated && !computed {
+                        out.push(CaseResult::incomplete(
+                            kind,
+                            label,
+                            format!(
+                                "the sequential gate left the verdict of {cell} undecided at its last look ({} runs): it could not be computed",
+                                runs[i].unwrap_or(0)
+                            ),
+                        ));
+                        continue;
+                    }
                     if !computed {
                         out.push(CaseResult::incomplete(
                             kind,
@@ -560,7 +631,9 @@ impl<'a> Judge<'a> {
                     } else {
                         format!(", {}", dir[i])
                     };
-                    let detail = if *want == VERDICT {
+                    let detail = if gated {
+                        sequential_detail(ok, stat[i], lo[i], hi[i], runs[i], &dir[i])
+                    } else if want == VERDICT {
                         format!(
                             "Bonferroni p-value 2·min(p_NEES, p_NIS) = {} (must exceed α = {}){d}",
                             fmt(stat[i]),
@@ -830,6 +903,42 @@ pub fn paired_excess_test(pairs: &[(f64, f64)], margin: f64) -> Option<PairedExc
 
 /// Why test `want` of `cell` has no row: what the cell's evaluation did compute says which
 /// part was missing.
+/// The detail of a sequential gate's decision (`p`: the verdict's Bonferroni p-value at the
+/// deciding look of `runs` runs; `reject_p`/`accept_p`: that look's boundaries on it).
+fn sequential_detail(
+    ok: bool,
+    p: Option<f64>,
+    reject_p: Option<f64>,
+    accept_p: Option<f64>,
+    runs: Option<i64>,
+    direction: &str,
+) -> String {
+    let n = runs.unwrap_or(0);
+    let why = if ok {
+        match accept_p {
+            Some(a) if a < 1.0 && p.is_some_and(|p| p > a) => {
+                format!("exceeds the futility bound {}", fmt_p(Some(a)))
+            }
+            _ => format!(
+                "above the reject bound {} at the last look",
+                fmt_p(reject_p)
+            ),
+        }
+    } else {
+        format!("at or below the reject bound {}", fmt_p(reject_p))
+    };
+    let d = if direction.is_empty() {
+        String::new()
+    } else {
+        format!(", {direction}")
+    };
+    format!(
+        "sequential gate: {} after {n} runs: Bonferroni p-value {} {why}{d}",
+        if ok { "consistent" } else { "inconsistent" },
+        fmt_p(p)
+    )
+}
+
 fn not_computed(want: &str, cell: &str, rows: &[usize], test: &[String]) -> String {
     if rows.is_empty() {
         return format!("{cell} has no consistency tests at all: {want} could not be computed");
@@ -1311,6 +1420,9 @@ pub fn run<O: crate::runner::RunObserver>(
             whiteness_lags: 5,
             subsets: Vec::new(),
         });
+    plan.sequential = plan
+        .check_gate()
+        .map_err(|e| RunError::Invalid(KfmcError::Spec(e)))?;
     let needs_power = plan.assertions.iter().any(|a| a.needs_replications());
     let replications = replications.or(plan.check_replications);
     if let Some(r) = replications.filter(|_| needs_power) {
@@ -1349,6 +1461,8 @@ pub fn run<O: crate::runner::RunObserver>(
         let out = plan.output.join("power");
         let mut power_plan = plan.clone();
         power_plan.output = out.clone();
+        // Rejection rates are those of the fixed-N tests the assertions name.
+        power_plan.sequential = None;
         let report = crate::power::power(&power_plan, r, plan.master_seed, &out, exec, &observer())
             .map_err(stage(format!(
                 "running {} replications of {}",

@@ -548,6 +548,47 @@ pub fn default_looks(runs: usize, count: usize) -> Vec<usize> {
     looks
 }
 
+/// What a gate is made of before the study's run count is known: the looks, how α is spent,
+/// and the optional futility β (`[check] sequential`, `kfmc check --sequential`, `kfmc power
+/// --sequential`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct GateSettings {
+    /// Where the gate looks.
+    pub looks: Looks,
+    /// How α is spent over the looks.
+    pub spending: Spending,
+    /// Non-binding futility bounds spending β, when given.
+    pub futility_beta: Option<f64>,
+}
+
+impl Default for GateSettings {
+    /// Ten even looks, O'Brien–Fleming-type spending, no futility bounds.
+    fn default() -> Self {
+        GateSettings {
+            looks: Looks::Count(10),
+            spending: Spending::OBrienFleming,
+            futility_beta: None,
+        }
+    }
+}
+
+impl GateSettings {
+    /// The gate of a study of `runs` runs per cell at level `alpha`.
+    pub fn gate(&self, runs: usize, alpha: f64) -> Result<Gate, GateError> {
+        Gate::for_study(runs, alpha, &self.looks, &self.spending, self.futility_beta)
+    }
+
+    /// The spending function's name as a spec writes it (`obrien_fleming`, `pocock`, …).
+    pub fn spending_name(&self) -> String {
+        match &self.spending {
+            Spending::OBrienFleming => "obrien_fleming".into(),
+            Spending::Pocock => "pocock".into(),
+            Spending::Power(rho) => format!("power({rho})"),
+            Spending::User(v) => format!("user({v:?})"),
+        }
+    }
+}
+
 impl Gate {
     /// The gate of `kfmc power --sequential` (and of the Python `power(sequential=True)`) for
     /// a study of `runs` runs per cell at level `alpha`: `looks`, `spending` for α and, with
@@ -612,6 +653,21 @@ impl Gate {
     /// Each test's nominal two-sided level at look `k`: it rejects at or below it.
     pub fn nominal_level(&self, k: usize) -> f64 {
         2.0 * normal().sf(self.design.efficacy[k])
+    }
+
+    /// Look `k`'s boundaries on the verdict's Bonferroni p-value p: the look rejects when
+    /// p is at most the first and, with futility bounds, accepts when p exceeds the second
+    /// (1 when it cannot), exactly as [`Gate::decide`] decides.
+    pub fn p_boundaries(&self, k: usize) -> (f64, Option<f64>) {
+        let reject = (2.0 * self.nominal_level(k)).min(1.0);
+        let accept = self.design.futility.as_ref().map(|b| {
+            if b[k] > 0.0 {
+                (4.0 * normal().sf(b[k])).min(1.0)
+            } else {
+                1.0
+            }
+        });
+        (reject, accept)
     }
 
     /// The decision at look `k` from the verdict's Bonferroni p-value at that look.

@@ -25,6 +25,11 @@ pub struct Check {
     /// they are judged on `kfmc power`'s table, written to `<out>/power`.
     #[arg(long, short = 'R', value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
     pub replications: Option<usize>,
+    /// Judge the consistency verdicts with a group-sequential gate (`check.sequential`
+    /// in the spec): each cell stops at the first look that settles its verdicts, and
+    /// `sequential.parquet` records every look.
+    #[command(flatten)]
+    pub sequential: SequentialArgs,
 }
 
 impl Check {
@@ -36,8 +41,10 @@ impl Check {
             estimates,
             allow_unstamped,
             replications,
+            sequential,
         } = self;
         let mut plan = study.plan(registry, None)?;
+        plan.check_sequential = sequential.settings(plan.check_sequential.as_ref())?;
         if !estimates.is_empty() {
             let unstamped = if allow_unstamped {
                 Unstamped::Warn

@@ -151,19 +151,21 @@ fn at_least_one(text: &str) -> Result<usize, String> {
 /// The group-sequential gate's settings (`kfmc power --sequential`).
 #[derive(clap::Args, Debug, Clone)]
 pub struct SequentialArgs {
-    /// Measure the sequential gate beside the fixed-N verdict.
+    /// A group-sequential gate on the consistency verdicts (`check`: each cell stops at the
+    /// look that settles its verdicts; `power`: the gate is measured beside the fixed-N
+    /// verdict).
     #[arg(long)]
     pub sequential: bool,
     /// The looks: a count of even looks (default 10), or the run counts of the looks
     /// (`10,25,50,100`; the last must be the study's runs per cell).
-    #[arg(long, requires = "sequential", value_name = "COUNT|N1,N2,...")]
+    #[arg(long, value_name = "COUNT|N1,N2,...")]
     pub looks: Option<String>,
-    /// How α is spent over the looks.
-    #[arg(long, requires = "sequential", value_enum, default_value_t = SpendingArg::ObrienFleming)]
-    pub spending: SpendingArg,
+    /// How α is spent over the looks (default: obrien-fleming).
+    #[arg(long, value_enum)]
+    pub spending: Option<SpendingArg>,
     /// Stop a consistent filter early: non-binding futility bounds spending β (power 1 − β
     /// at the design's drift), by a quadratic β-spending function.
-    #[arg(long, requires = "sequential", value_name = "BETA")]
+    #[arg(long, value_name = "BETA")]
     pub futility: Option<f64>,
 }
 
@@ -281,6 +283,60 @@ fn usage(flag: &str, message: impl Into<String>) -> UsageError {
 }
 
 impl SequentialArgs {
+    /// The gate's settings: `None` without `--sequential` (and without `spec`'s), else the
+    /// flags given over `spec`'s settings (`[check]`'s keys) over the defaults.
+    pub fn settings(
+        &self,
+        spec: Option<&crate::sequential::GateSettings>,
+    ) -> Result<Option<crate::sequential::GateSettings>, UsageError> {
+        use crate::sequential::{Looks, Spending};
+        let Some(mut settings) = (match (self.sequential, spec) {
+            (true, s) => Some(s.cloned().unwrap_or_default()),
+            (false, s) => s.cloned(),
+        }) else {
+            let flag = [
+                ("--looks", self.looks.is_some()),
+                ("--spending", self.spending.is_some()),
+                ("--futility", self.futility.is_some()),
+            ]
+            .into_iter()
+            .find(|(_, given)| *given);
+            return match flag {
+                Some((flag, _)) => Err(usage(
+                    flag,
+                    "is a setting of the sequential gate: add --sequential".to_string(),
+                )),
+                None => Ok(None),
+            };
+        };
+        match self.looks.as_deref().map(str::trim) {
+            None => {}
+            Some(text) if !text.contains(',') => {
+                settings.looks = Looks::Count(at_least_one(text).map_err(|e| usage("--looks", e))?)
+            }
+            Some(text) => {
+                settings.looks = Looks::RunCounts(
+                    text.split(',')
+                        .map(|v| {
+                            v.trim().parse::<usize>().map_err(|_| {
+                                usage("--looks", format!("`{v}` is not a run count ≥ 2"))
+                            })
+                        })
+                        .collect::<Result<Vec<_>, _>>()?,
+                )
+            }
+        }
+        match self.spending {
+            None => {}
+            Some(SpendingArg::ObrienFleming) => settings.spending = Spending::OBrienFleming,
+            Some(SpendingArg::Pocock) => settings.spending = Spending::Pocock,
+        }
+        if self.futility.is_some() {
+            settings.futility_beta = self.futility;
+        }
+        Ok(Some(settings))
+    }
+
     /// The gate for a study of `runs` runs per cell at level `alpha`, or `None` without
     /// `--sequential`.
     pub fn gate(
@@ -288,36 +344,23 @@ impl SequentialArgs {
         runs: usize,
         alpha: f64,
     ) -> Result<Option<crate::sequential::Gate>, UsageError> {
-        use crate::sequential::{Gate, GateError, Looks, Spending};
-        if !self.sequential {
+        let Some(settings) = self.settings(None)? else {
             return Ok(None);
-        }
-        let looks = match self.looks.as_deref().map(str::trim) {
-            None => Looks::Count(10),
-            Some(text) if !text.contains(',') => {
-                Looks::Count(at_least_one(text).map_err(|e| usage("--looks", e))?)
-            }
-            Some(text) => Looks::RunCounts(
-                text.split(',')
-                    .map(|v| {
-                        v.trim()
-                            .parse::<usize>()
-                            .map_err(|_| usage("--looks", format!("`{v}` is not a run count ≥ 2")))
-                    })
-                    .collect::<Result<Vec<_>, _>>()?,
-            ),
         };
-        let spending = match self.spending {
-            SpendingArg::ObrienFleming => Spending::OBrienFleming,
-            SpendingArg::Pocock => Spending::Pocock,
-        };
-        Gate::for_study(runs, alpha, &looks, &spending, self.futility)
+        settings
+            .gate(runs, alpha)
             .map(Some)
-            .map_err(|e| match e {
-                GateError::Looks(m) => usage("--looks", m),
-                GateError::Futility(_) => usage("--futility", e.to_string()),
-                GateError::Design(_) => usage("--sequential", e.to_string()),
-            })
+            .map_err(|e| usage(gate_flag(&e), e.to_string()))
+    }
+}
+
+/// The flag a gate's error is about.
+fn gate_flag(e: &crate::sequential::GateError) -> &'static str {
+    use crate::sequential::GateError;
+    match e {
+        GateError::Looks(_) => "--looks",
+        GateError::Futility(_) => "--futility",
+        GateError::Design(_) => "--sequential",
     }
 }
 

@@ -8,7 +8,7 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use super::spec::{AssertSpec, Scales, Spec};
+use super::spec::{AssertSpec, OneOrMany, Scales, Spec};
 
 use crate::error::{SpecError, SpecErrors};
 use crate::sim::seed::hash_str;
@@ -169,6 +169,12 @@ pub struct Plan {
     /// `check.max_failed_runs`: the fraction of a cell's declared runs that may fail
     /// numerically before `kfmc check` calls its cases incomplete (default 0).
     pub check_max_failed_runs: f64,
+    /// `check.sequential` and its keys: the gate `kfmc check` judges the verdicts with.
+    pub check_sequential: Option<crate::sequential::GateSettings>,
+    /// The gate this study runs under: each cell stops at the first look that settles
+    /// every verdict in it. Set by `kfmc check` from [`Plan::check_sequential`] (for the
+    /// study's run count); `kfmc run` leaves it `None` and runs every declared run.
+    pub sequential: Option<crate::sequential::Gate>,
     /// Whether a run that never crosses its divergence threshold records the largest
     /// multiplier (`divergence.never_crossed = "largest_scale"`) instead of null.
     pub never_crossed_largest: bool,
@@ -578,7 +584,7 @@ pub(crate) fn validate_into(
         whiteness_lags: consistency.whiteness_lags,
     };
     let assertions = check_asserts(&mut c, &targets);
-    let (check_replications, check_max_failed_runs) = check_table(&mut c, &spec);
+    let check = check_table(&mut c, &spec, runs as usize, consistency.alpha);
     check_sizes(&mut c, &spec, runs, filters.len(), configured.as_deref());
     let name = experiment_name(&mut c, &spec, &path);
 
@@ -647,8 +653,10 @@ pub(crate) fn validate_into(
         output,
         alpha: consistency.alpha,
         assertions,
-        check_replications,
-        check_max_failed_runs,
+        check_replications: check.replications,
+        check_max_failed_runs: check.max_failed_runs,
+        check_sequential: check.sequential,
+        sequential: None,
         never_crossed_largest,
     })
 }
@@ -1401,8 +1409,15 @@ fn rejection_rate(
     })
 }
 
-/// `[check]`'s own keys: (replications, max_failed_runs).
-fn check_table(c: &mut Checker, spec: &Spec) -> (Option<usize>, f64) {
+/// `[check]`'s own keys.
+struct CheckTable {
+    replications: Option<usize>,
+    max_failed_runs: f64,
+    sequential: Option<crate::sequential::GateSettings>,
+}
+
+/// `[check]`'s own keys (a study of `runs` runs per cell, tests at level `alpha`).
+fn check_table(c: &mut Checker, spec: &Spec, runs: usize, alpha: f64) -> CheckTable {
     let check = spec.check.as_deref();
     let replications = check.and_then(|t| t.replications);
     if replications == Some(0) {
@@ -1415,7 +1430,109 @@ fn check_table(c: &mut Checker, spec: &Spec) -> (Option<usize>, f64) {
             format!("{max_failed_runs} is not a fraction in [0, 1]"),
         );
     }
-    (replications, max_failed_runs)
+    let sequential = check.and_then(|t| check_sequential(c, spec, t, runs, alpha));
+    CheckTable {
+        replications,
+        max_failed_runs,
+        sequential,
+    }
+}
+
+/// `check.sequential` with `check.looks`, `check.spending` and `check.futility_beta`: the
+/// gate's settings when it is on (the keys are refused without it), validated by building the
+/// gate for the spec's runs.
+fn check_sequential(
+    c: &mut Checker,
+    spec: &Spec,
+    t: &super::spec::CheckSpec,
+    runs: usize,
+    alpha: f64,
+) -> Option<crate::sequential::GateSettings> {
+    use crate::sequential::{GateSettings, Looks, Spending};
+    if t.sequential != Some(true) {
+        let given = [
+            ("looks", t.looks.is_some()),
+            ("spending", t.spending.is_some()),
+            ("futility_beta", t.futility_beta.is_some()),
+        ];
+        c.reject_present(
+            "check",
+            &given,
+            "is a setting of the sequential gate: set check.sequential = true to use it",
+        );
+        return None;
+    }
+    let mut settings = GateSettings::default();
+    let whole = |x: f64| (x.fract() == 0.0 && (1.0..1e9).contains(&x)).then_some(x as usize);
+    match &t.looks {
+        None => {}
+        Some(OneOrMany::One(n)) => match whole(*n) {
+            Some(n) => settings.looks = Looks::Count(n),
+            None => c.err("check.looks", format!("{n} is not a count of looks ≥ 1")),
+        },
+        Some(OneOrMany::Many(v)) => match v.iter().map(|&x| whole(x)).collect::<Option<Vec<_>>>() {
+            Some(counts) => settings.looks = Looks::RunCounts(counts),
+            None => c.err("check.looks", format!("{v:?} are not whole run counts")),
+        },
+    }
+    match t.spending.as_deref() {
+        None | Some("obrien_fleming") => {}
+        Some("pocock") => settings.spending = Spending::Pocock,
+        Some(other) => c.err(
+            "check.spending",
+            format!(
+                "`{other}` is not a spending function: expected \"obrien_fleming\" or \"pocock\""
+            ),
+        ),
+    }
+    settings.futility_beta = t.futility_beta;
+    if spec
+        .consistency
+        .as_deref()
+        .is_some_and(|cs| !cs.subsets.is_empty())
+    {
+        c.err("check.sequential", "cannot be combined with [[consistency.subsets]]: a sequential gate judges each cell at its own looks");
+    }
+    if spec
+        .divergence
+        .as_deref()
+        .is_some_and(|d| d.rmse_thresholds.is_some())
+    {
+        c.err("check.sequential", "cannot be combined with divergence.rmse_thresholds: the divergence tables follow every run across the noise scales, and a sequential gate stops each cell at its own look");
+    }
+    if let Err(e) = settings.gate(runs, alpha) {
+        c.err(gate_error_key(&e), e.to_string());
+    }
+    Some(settings)
+}
+
+/// The `[check]` key a gate's error is about.
+fn gate_error_key(e: &crate::sequential::GateError) -> &'static str {
+    use crate::sequential::GateError;
+    match e {
+        GateError::Looks(_) => "check.looks",
+        GateError::Futility(_) => "check.futility_beta",
+        GateError::Design(_) => "check.sequential",
+    }
+}
+
+impl Plan {
+    /// The sequential gate of `check.sequential` for this plan's runs per cell and
+    /// consistency α (`None` without it); an error names the `[check]` key, as validation
+    /// does (a `--runs` override can make the spec's looks invalid).
+    pub fn check_gate(&self) -> Result<Option<crate::sequential::Gate>, SpecErrors> {
+        let Some(settings) = &self.check_sequential else {
+            return Ok(None);
+        };
+        let alpha = self.consistency.as_ref().map_or(self.alpha, |c| c.alpha);
+        settings.gate(self.runs, alpha).map(Some).map_err(|e| {
+            SpecErrors(vec![SpecError {
+                file: self.spec_path.clone(),
+                key_path: gate_error_key(&e).into(),
+                message: format!("{e} (with {} runs per cell)", self.runs),
+            }])
+        })
+    }
 }
 
 /// The top level's counts within [`limits`]: runs, scenarios, filter variants, steps, and

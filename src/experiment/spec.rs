@@ -53,6 +53,16 @@ pub struct CheckSpec {
     /// The fraction of a cell's declared runs that may fail numerically before its cases are
     /// incomplete rather than judged (default 0: every declared run must complete).
     pub max_failed_runs: Option<f64>,
+    /// Judge the consistency verdicts with a group-sequential gate: each cell stops at the
+    /// first look that settles every verdict in it (default false).
+    pub sequential: Option<bool>,
+    /// The gate's looks: a count of even looks (default 10) or the run counts of the looks,
+    /// increasing and ending at the study's runs.
+    pub looks: Option<OneOrMany>,
+    /// How the gate spends α over its looks: `obrien_fleming` (default) or `pocock`.
+    pub spending: Option<String>,
+    /// Stop a consistent filter early: non-binding futility bounds spending β.
+    pub futility_beta: Option<f64>,
     /// The assertions (`[[check.assert]]`).
     #[serde(default, rename = "assert")]
     pub asserts: Vec<TableOf<AssertSpec>>,

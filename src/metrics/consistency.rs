@@ -350,6 +350,10 @@ pub fn verdict_band(
 /// The name of the combined test row.
 pub const VERDICT: &str = "verdict";
 
+/// The name of the row holding a sequential gate's decision on the verdict (`kfmc check`
+/// with `check.sequential`), after the verdict row of the same cell.
+pub const SEQUENTIAL: &str = "sequential";
+
 /// Every test name [`cell_tests`] can produce for these quantities (the `test` column of
 /// consistency.parquet), so a spec's `test = "…"` can be checked before anything runs.
 pub fn test_names(state_names: &[&str]) -> Vec<String> {
@@ -366,6 +370,7 @@ pub fn test_names(state_names: &[&str]) -> Vec<String> {
     .to_vec();
     out.extend(state_names.iter().map(|s| format!("bias_{s}")));
     out.push(VERDICT.into());
+    out.push(SEQUENTIAL.into());
     out
 }
 
@@ -766,6 +771,26 @@ impl ConsistencyFold {
             self.rows.push(&self.row)?;
         }
         Ok(())
+    }
+
+    /// The first evaluation's sums over the runs pushed so far, after their second pass,
+    /// while the fold goes on: a sequential gate's look at a cell's first runs. Equal bit for
+    /// bit to what [`ConsistencyFold::finish`] gives a fold of those runs alone.
+    pub fn current(&mut self) -> Result<CellSums, OutputError> {
+        let (_, first) = self
+            .evaluations
+            .first()
+            .expect("a fold has at least one evaluation");
+        let mut sums = first.clone();
+        let mut at = 0usize;
+        self.rows.for_each_row(|row| {
+            if at < sums.used {
+                sums.push_deviations(row);
+            }
+            at += 1;
+            Ok(())
+        })?;
+        Ok(sums)
     }
 
     /// The evaluations' sums, in the order of the bounds, after the second pass (which

@@ -48,6 +48,20 @@ pub struct ShardEntry {
     pub end_cell: u64,
 }
 
+/// The sequential gate a study ran under.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SequentialEntry {
+    /// The run counts of the looks; the last is the declared runs per cell.
+    pub looks: Vec<u64>,
+    /// The α-spending function (`obrien_fleming`, `pocock`).
+    pub spending: String,
+    /// The futility bounds' β, when the gate has them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub futility_beta: Option<f64>,
+    /// The gate's overall level (the consistency tests' α).
+    pub alpha: f64,
+}
+
 /// What a simulation folder's tables mean, for the estimators that read them.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ExchangeEntry {
@@ -202,6 +216,10 @@ pub struct Manifest {
     /// Set in the folder of one part of a sharded study (`kfmc run --shard i/n`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<ShardEntry>,
+    /// Set when `kfmc check` ran the study under a sequential gate: each cell then holds the
+    /// runs up to the look that settled it (`sequential.parquet`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sequential: Option<SequentialEntry>,
     /// The spec text, verbatim.
     pub spec: String,
 }

@@ -80,12 +80,13 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 14] = [
+pub const TABLES: [&str; 15] = [
     "runs",
     "steps",
     "summary",
     "sensors",
     "consistency",
+    "sequential",
     "divergence",
     "divergence_runs",
     "traces",
@@ -126,6 +127,7 @@ pub fn row_keys(name: &str) -> Option<&'static [&'static str]> {
             "run",
             "step",
         ],
+        "sequential" => &const { concat5(CELL, "look") },
         "sensors" => &["scenario", "noise_scale", "metric"],
         "divergence" => &["scenario", "filter", "q_scale", "r_scale", "state"],
         "divergence_runs" => &["scenario", "filter", "q_scale", "r_scale", "run", "state"],
@@ -257,6 +259,25 @@ pub fn consistency(blocks: Option<&[&str]>) -> Vec<ColumnDef> {
         }
         c.extend(credibility_indices());
     }
+    c
+}
+
+/// `sequential.parquet` (`kfmc check` with a sequential gate): one row per cell × filter ×
+/// look the gate took for it, up to the look that decided.
+pub fn sequential() -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("look", Dtype::I64),
+        col("runs", Dtype::I64),
+        col("p_value", Dtype::F64),
+        col("efficacy_z", Dtype::F64),
+        col("futility_z", Dtype::F64),
+        col("reject_p", Dtype::F64),
+        col("accept_p", Dtype::F64),
+        col("decision", Dtype::Str),
+        col("direction", Dtype::Str),
+        col("alpha", Dtype::F64),
+    ]);
     c
 }
 

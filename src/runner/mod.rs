@@ -121,71 +121,130 @@ pub fn execute_windowed<R, E>(
     window: usize,
     work: impl Fn(usize) -> R + Sync,
     observer: &dyn RunObserver,
-    mut sink: impl FnMut(R) -> Result<(), E> + Send,
+    sink: impl FnMut(R) -> Result<(), E> + Send,
 ) -> Result<(), E>
 where
     R: Send,
     E: From<KfmcError> + Send,
 {
-    let window_units = window.max(1);
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .map_err(|source| KfmcError::ThreadPool { threads, source })?;
-    observer.on_start(units as u64);
-    let failed = std::sync::atomic::AtomicBool::new(false);
-    let result = std::thread::scope(|scope| {
-        // One window in flight towards the sink bounds memory at two windows.
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<R>>(1);
-        let failed = &failed;
-        let consumer = scope.spawn(move || {
-            for window in rx {
-                for r in window {
-                    if let Err(e) = sink(r) {
-                        failed.store(true, std::sync::atomic::Ordering::Relaxed);
-                        return Err(e);
+    let executor = Executor::new(threads, window, observer, units as u64)?;
+    let result = executor.run(0..units, work, sink);
+    executor.finish();
+    result
+}
+
+/// One pool and one observer for several batches of units run one after the other (a
+/// sequential study decides between its looks which runs come next): the observer sees one
+/// start and one finish, and the batches share the pool instead of building one each.
+pub struct Executor<'o> {
+    pool: rayon::ThreadPool,
+    window: usize,
+    observer: &'o dyn RunObserver,
+}
+
+impl<'o> Executor<'o> {
+    /// A pool of `threads` threads (0 = all cores) running `window` units per window, for at
+    /// most `total_units` units (what the observer is told to expect).
+    pub fn new(
+        threads: usize,
+        window: usize,
+        observer: &'o dyn RunObserver,
+        total_units: u64,
+    ) -> Result<Self, KfmcError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .map_err(|source| KfmcError::ThreadPool { threads, source })?;
+        observer.on_start(total_units);
+        Ok(Executor {
+            pool,
+            window: window.max(1),
+            observer,
+        })
+    }
+
+    /// Tells the observer that `n` expected units will not be run (a batch the caller
+    /// decided to skip), so its rate and ETA stay true.
+    pub fn skip(&self, n: u64) {
+        if n > 0 {
+            self.observer.on_units_done(n);
+        }
+    }
+
+    /// After the last batch.
+    pub fn finish(self) {
+        self.observer.on_finish();
+    }
+
+    /// Runs `work(i)` for every `i` of `units` and feeds each result to `sink` in index
+    /// order, returning once the sink has taken the last one.
+    ///
+    /// The sink runs on its own thread, one window behind the workers: folding and Parquet
+    /// encoding overlap the next window's runs instead of leaving the pool idle, and the
+    /// order the sink sees never changes.
+    pub fn run<R, E>(
+        &self,
+        units: std::ops::Range<usize>,
+        work: impl Fn(usize) -> R + Sync,
+        mut sink: impl FnMut(R) -> Result<(), E> + Send,
+    ) -> Result<(), E>
+    where
+        R: Send,
+        E: From<KfmcError> + Send,
+    {
+        let (pool, observer, window_units) = (&self.pool, self.observer, self.window);
+        let failed = std::sync::atomic::AtomicBool::new(false);
+        std::thread::scope(|scope| {
+            // One window in flight towards the sink bounds memory at two windows.
+            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<R>>(1);
+            let failed = &failed;
+            let consumer = scope.spawn(move || {
+                for window in rx {
+                    for r in window {
+                        if let Err(e) = sink(r) {
+                            failed.store(true, std::sync::atomic::Ordering::Relaxed);
+                            return Err(e);
+                        }
                     }
                 }
-            }
-            Ok(())
-        });
-        let mut stopped = false;
-        for start in (0..units).step_by(window_units) {
-            if failed.load(std::sync::atomic::Ordering::Relaxed) {
-                break;
-            }
-            if interrupted() || observer.cancelled() {
-                stopped = true;
-                break;
-            }
-            let window = start..(start + window_units).min(units);
-            let results: Vec<R> = pool.install(|| {
-                window
-                    .into_par_iter()
-                    .map(|u| {
-                        let r = work(u);
-                        observer.on_units_done(1);
-                        r
-                    })
-                    .collect()
+                Ok(())
             });
-            if tx.send(results).is_err() {
-                break; // the sink stopped on an error; it reports it below
+            let mut stopped = false;
+            for start in units.clone().step_by(window_units) {
+                if failed.load(std::sync::atomic::Ordering::Relaxed) {
+                    break;
+                }
+                if interrupted() || observer.cancelled() {
+                    stopped = true;
+                    break;
+                }
+                let window = start..(start + window_units).min(units.end);
+                let results: Vec<R> = pool.install(|| {
+                    window
+                        .into_par_iter()
+                        .map(|u| {
+                            let r = work(u);
+                            observer.on_units_done(1);
+                            r
+                        })
+                        .collect()
+                });
+                if tx.send(results).is_err() {
+                    break; // the sink stopped on an error; it reports it below
+                }
             }
-        }
-        drop(tx);
-        let sunk = consumer
-            .join()
-            .unwrap_or_else(|p| std::panic::resume_unwind(p));
-        match (sunk, stopped) {
-            (Ok(()), true) => Err(E::from(KfmcError::Output(
-                crate::error::OutputError::Interrupted,
-            ))),
-            (r, _) => r,
-        }
-    });
-    observer.on_finish();
-    result
+            drop(tx);
+            let sunk = consumer
+                .join()
+                .unwrap_or_else(|p| std::panic::resume_unwind(p));
+            match (sunk, stopped) {
+                (Ok(()), true) => Err(E::from(KfmcError::Output(
+                    crate::error::OutputError::Interrupted,
+                ))),
+                (r, _) => r,
+            }
+        })
+    }
 }
 
 /// The number of worker threads `threads = 0` resolves to.

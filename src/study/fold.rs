@@ -7,12 +7,15 @@ use super::rows::*;
 use crate::error::OutputError;
 use crate::experiment::Plan;
 use crate::metrics::blocks::QuantityBlock;
-use crate::metrics::consistency::{BandCache, ConsistencyFold, average_chi2_band};
+use crate::metrics::consistency::{
+    BandCache, ConsistencyFold, SEQUENTIAL, VERDICT, average_chi2_band,
+};
 use crate::metrics::credibility::{CredibilityFold, CredibilityStep, credible_reference};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::spill::Spill;
 use crate::metrics::{RunStatus, StepAccumulator};
 use crate::output::{TableWriter, Value};
+use crate::sequential::{Decision, Gate};
 use crate::trial::{Trial, Unit, UnitResult};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -32,6 +35,36 @@ pub(super) struct CellState {
     pub(super) failed: Vec<u64>,
     /// One row per run: each world metric's value.
     pub(super) world: Spill,
+    /// Per filter, under a sequential gate: its decision once a look made it (or the last
+    /// look left it undecided).
+    pub(super) decisions: Vec<Option<Decided>>,
+}
+
+/// A sequential gate over a study's cells: the gate, which filters it waits for, and the
+/// table of its looks.
+pub(super) struct SequentialState<'a> {
+    pub(super) gate: &'a Gate,
+    /// Per filter: whether its verdict gates the cell (a filter that has a covariance; one
+    /// without has no verdict to wait for).
+    pub(super) gating: Vec<bool>,
+    /// `sequential.parquet`.
+    pub(super) table: TableWriter,
+}
+
+/// The look that settled one filter's verdict in a cell.
+#[derive(Clone, Debug)]
+pub(super) struct Decided {
+    /// The deciding look's runs.
+    pub(super) runs: usize,
+    /// The verdict's Bonferroni p-value at that look, `None` when it could not be computed.
+    pub(super) p_value: Option<f64>,
+    /// The look's boundaries on that p-value ([`Gate::p_boundaries`]).
+    pub(super) reject_p: f64,
+    pub(super) accept_p: Option<f64>,
+    /// Consistent (the gate accepted), inconsistent, or `None`: undecided at the last look.
+    pub(super) pass: Option<bool>,
+    pub(super) direction: &'static str,
+    pub(super) burn_in: Option<usize>,
 }
 
 pub(super) struct Aggregator<'a> {
@@ -56,6 +89,9 @@ pub(super) struct Aggregator<'a> {
     pub(super) scratch: PathBuf,
     /// The checkpoint being kept, when the study is resumable.
     pub(super) checkpoint: Option<Checkpointer>,
+    /// The sequential gate, when the study runs under one: cells then end where it says,
+    /// not at the declared runs.
+    pub(super) sequential: Option<SequentialState<'a>>,
 }
 
 impl Aggregator<'_> {
@@ -113,6 +149,7 @@ impl Aggregator<'_> {
                     },
                     failed: vec![0; nf],
                     world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
+                    decisions: vec![None; nf],
                 },
             ));
         }
@@ -193,7 +230,7 @@ impl Aggregator<'_> {
                 }
             }
         }
-        if run + 1 == plan.runs {
+        if run + 1 == plan.runs && self.sequential.is_none() {
             self.finish_cell()?;
             self.cell_boundary(scenario * plan.noise_scales.len() + scale + 1)?;
         }
@@ -208,6 +245,82 @@ impl Aggregator<'_> {
             .chain(self.estimates.as_mut())
             .chain(self.consistency.as_mut())
             .chain(self.sensors.as_mut())
+            .chain(self.sequential.as_mut().map(|q| &mut q.table))
+    }
+
+    /// Look `k` of the sequential gate at the open cell, whose first `gate.looks[k]` runs
+    /// are folded: judges each gating filter not yet decided and writes its row of
+    /// `sequential.parquet`. Returns whether the cell is settled: every gating filter
+    /// decided (a cell without one runs to the last look), or the last look.
+    pub(super) fn look(&mut self, k: usize) -> Result<bool, OutputError> {
+        let plan = self.plan;
+        let Some(seq) = self.sequential.as_mut() else {
+            return Ok(true);
+        };
+        let Some((scenario, scale, cell)) = self.cell.as_mut() else {
+            return Ok(true);
+        };
+        let (gate, last) = (seq.gate, k + 1 == seq.gate.looks.len());
+        let alpha = plan.consistency.as_ref().map_or(plan.alpha, |c| c.alpha);
+        let (reject_p, accept_p) = gate.p_boundaries(k);
+        for (fi, f) in plan.filters.iter().enumerate() {
+            if !seq.gating[fi] || cell.decisions[fi].is_some() {
+                continue;
+            }
+            let sums = cell.consistency[fi].current()?;
+            let tests = sums.tests(&self.states, alpha, (None, None));
+            let verdict = tests.iter().find(|t| t.test == VERDICT);
+            let p_value = verdict.and_then(|t| t.p_value).filter(|p| p.is_finite());
+            let decision = p_value.map(|p| gate.decide(k, p));
+            let direction = verdict
+                .and_then(|t| t.direction)
+                .filter(|_| decision == Some(Decision::Reject))
+                .map_or("", |d| d.label());
+            let label = match decision {
+                Some(Decision::Reject) => "reject",
+                Some(Decision::Accept) => "accept",
+                Some(Decision::Continue) => "continue",
+                None if last => "undecided",
+                None => "continue",
+            };
+            let mut row = cell_key(
+                &plan.scenarios[*scenario].name,
+                plan.noise_scales[*scale],
+                f,
+            )
+            .to_vec();
+            row.extend([
+                Value::I64(Some(k as i64 + 1)),
+                Value::I64(Some(gate.looks[k] as i64)),
+                Value::F64(p_value),
+                Value::F64(Some(gate.design.efficacy[k])),
+                Value::F64(gate.design.futility.as_ref().map(|b| b[k])),
+                Value::F64(Some(reject_p)),
+                Value::F64(accept_p),
+                Value::Str(label),
+                Value::Str(direction),
+                Value::F64(Some(alpha)),
+            ]);
+            seq.table.push(&row)?;
+            if decision != Some(Decision::Continue) && (decision.is_some() || last) {
+                cell.decisions[fi] = Some(Decided {
+                    runs: gate.looks[k],
+                    p_value,
+                    reject_p,
+                    accept_p,
+                    pass: decision.map(|d| d == Decision::Accept),
+                    direction,
+                    burn_in: sums.burn_in(),
+                });
+            }
+        }
+        let gating = seq.gating.iter().any(|g| *g);
+        let decided = seq
+            .gating
+            .iter()
+            .zip(&cell.decisions)
+            .all(|(g, d)| !g || d.is_some());
+        Ok(last || (gating && decided))
     }
 
     /// After the last row of cell `end_cell − 1`: notes the boundary, and checkpoints when it
@@ -384,6 +497,15 @@ impl Aggregator<'_> {
                         w.push(&row)?;
                     }
                 }
+                if let Some(d) = &cell.decisions[fi] {
+                    let mut row = cell_key(sname, noise, f).to_vec();
+                    row.extend(sequential_values(d, cp.alpha));
+                    if credibility.is_some() {
+                        // The credibility columns describe the whole cell's rows.
+                        row.extend(vec![Value::F64(None); 4 * self.blocks.len() + 4]);
+                    }
+                    w.push(&row)?;
+                }
             }
             let mut means = Vec::with_capacity(self.states.len());
             let sums = cell.rmse[fi].summarise(|_, _| true, &LEVELS)?;
@@ -408,6 +530,25 @@ impl Aggregator<'_> {
         }
         Ok(())
     }
+}
+
+/// The `sequential` row of consistency.parquet after its cell key: the gate's decision as a
+/// test row (statistic and p-value: the verdict's p at the deciding look; lower and upper:
+/// that look's reject and accept boundaries on it; runs: the look's).
+fn sequential_values(d: &Decided, alpha: f64) -> [Value<'static>; 11] {
+    [
+        Value::Str(SEQUENTIAL),
+        Value::F64(d.p_value),
+        Value::F64(Some(d.reject_p)),
+        Value::F64(d.accept_p),
+        Value::F64(None),
+        Value::F64(d.p_value),
+        Value::Bool(d.pass),
+        Value::Str(d.direction),
+        Value::F64(Some(alpha)),
+        Value::I64(Some(d.runs as i64)),
+        Value::I64(d.burn_in.map(|b| b as i64)),
+    ]
 }
 
 /// Writes one run's rows of `estimates.parquet`: every kfmc filter (external ones are what

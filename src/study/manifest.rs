@@ -60,6 +60,15 @@ pub(crate) fn manifest_for(
             first_cell: cells.start as u64,
             end_cell: cells.end as u64,
         }),
+        sequential: plan.sequential.as_ref().map(|gate| {
+            let settings = plan.check_sequential.clone().unwrap_or_default();
+            crate::output::manifest::SequentialEntry {
+                looks: gate.looks.iter().map(|&n| n as u64).collect(),
+                spending: settings.spending_name(),
+                futility_beta: settings.futility_beta,
+                alpha: plan.consistency.as_ref().map_or(plan.alpha, |c| c.alpha),
+            }
+        }),
         spec: plan.spec_text.clone(),
     }
 }

@@ -30,10 +30,10 @@ use crate::metrics::blocks::QuantityBlock;
 use crate::metrics::consistency::BandCache;
 use crate::output::folder::StudyFolder;
 use crate::output::{TableWriter, Value, schema};
-use crate::runner::{RunObserver, execute_windowed, window_for};
+use crate::runner::{Executor, RunObserver, execute_windowed, window_for};
 use crate::trial::{Trial, Unit};
 
-use fold::Aggregator;
+use fold::{Aggregator, SequentialState};
 use resources::credibility_bytes;
 use resume::{Checkpointer, checkpoint_identity, existing_checkpoint};
 
@@ -303,7 +303,26 @@ fn open_aggregator<'a>(
         cell: None,
         scratch: dir.to_path_buf(),
         checkpoint,
+        sequential: match &plan.sequential {
+            Some(gate) => Some(SequentialState {
+                gate,
+                gating: plan.filters.iter().map(|f| has_verdict(plan, f)).collect(),
+                table: opener.open_plain("sequential", schema::sequential())?,
+            }),
+            None => None,
+        },
     })
+}
+
+/// Whether filter `f` has a consistency verdict for a sequential gate to wait for: an
+/// outside filter's estimates carry a covariance, and a built-in kind says whether it has one.
+fn has_verdict(plan: &Plan, f: &crate::experiment::plan::FilterPlan) -> bool {
+    f.external
+        || plan
+            .system
+            .filters()
+            .get(f.entry)
+            .is_none_or(|i| i.has_covariance)
 }
 
 /// Runs the units of `cells` on the executor and folds their results in order.
@@ -330,14 +349,61 @@ fn execute(
     } else {
         0
     } + credibility_bytes(plan);
+    let window = window_for(unit_bytes, opts.threads);
+    if let Some(gate) = &plan.sequential {
+        let executor = Executor::new(
+            opts.threads,
+            window,
+            observer,
+            (cells.len() * n_runs) as u64,
+        )?;
+        let result = execute_looks(gate, &executor, trial, agg, cells, &unit_of);
+        executor.finish();
+        return result;
+    }
     execute_windowed::<_, KfmcError>(
         cells.len() * n_runs,
         opts.threads,
-        window_for(unit_bytes, opts.threads),
+        window,
         |i| trial.run(&unit_of(first_unit + i)),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
     )
+}
+
+/// [`execute`] under a sequential gate: each cell's runs in batches up to the gate's looks,
+/// each look judged once its runs are folded, and the cell finished at the look that
+/// settles it. The runs made are the first runs of each cell, seeded by their index as in
+/// the fixed study, and cells stay in order, so the tables are those of a study that
+/// declared each cell's stopping look as its runs.
+fn execute_looks(
+    gate: &crate::sequential::Gate,
+    executor: &Executor<'_>,
+    trial: &dyn Trial,
+    agg: &mut Aggregator<'_>,
+    cells: std::ops::Range<usize>,
+    unit_of: &(dyn Fn(usize) -> Unit + Sync),
+) -> Result<(), KfmcError> {
+    let n_runs = *gate.looks.last().expect("a gate has looks");
+    for cell in cells {
+        let first_unit = cell * n_runs;
+        let mut done = 0;
+        for (k, &look) in gate.looks.iter().enumerate() {
+            executor.run::<_, KfmcError>(
+                first_unit + done..first_unit + look,
+                |i| trial.run(&unit_of(i)),
+                |r| agg.fold(r).map_err(KfmcError::from),
+            )?;
+            done = look;
+            if agg.look(k)? {
+                break;
+            }
+        }
+        executor.skip((n_runs - done) as u64);
+        agg.finish_cell()?;
+        agg.cell_boundary(cell + 1)?;
+    }
+    Ok(())
 }
 
 /// An interrupted study keeps every cell that completed (the next `--resume` starts after
@@ -384,11 +450,13 @@ fn finish_tables(
         estimates,
         consistency,
         sensors,
+        sequential: agg_sequential,
         ..
     } = agg;
     written.extend([runs, steps, summary]);
     written.extend(sensors);
     written.extend(consistency);
+    written.extend(agg_sequential.map(|q| q.table));
     written.extend(traces);
     written.extend(estimates);
     written.into_iter().map(TableWriter::finish).collect()

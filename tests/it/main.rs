@@ -40,6 +40,7 @@ mod pipeline {
     mod reliability;
     mod reproducibility;
     mod resume;
+    mod sequential_check;
     mod shards;
     mod writers;
 }

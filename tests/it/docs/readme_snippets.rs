@@ -534,6 +534,7 @@ fn tables_reference() -> String {
         ("summary", schema::summary()),
         ("sensors", schema::sensors()),
         ("consistency", schema::consistency(Some(&["<block>"]))),
+        ("sequential", schema::sequential()),
         ("divergence", schema::divergence()),
         ("divergence_runs", schema::divergence_runs()),
         ("traces", schema::traces(q, &["<u>"], &["<z>"], &["<w>"])),
