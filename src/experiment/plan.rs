@@ -175,6 +175,9 @@ pub struct Plan {
     /// every verdict in it. Set by `kfmc check` from [`Plan::check_sequential`] (for the
     /// study's run count); `kfmc run` leaves it `None` and runs every declared run.
     pub sequential: Option<crate::sequential::Gate>,
+    /// `consistency.per_step_runs`: also write `run_steps.parquet`, every run's NEES and NIS
+    /// at every step, for users who draw their own figures.
+    pub per_step_runs: bool,
     /// Whether a run that never crosses its divergence threshold records the largest
     /// multiplier (`divergence.never_crossed = "largest_scale"`) instead of null.
     pub never_crossed_largest: bool,
@@ -657,6 +660,11 @@ pub(crate) fn validate_into(
         check_max_failed_runs: check.max_failed_runs,
         check_sequential: check.sequential,
         sequential: None,
+        per_step_runs: spec
+            .consistency
+            .as_deref()
+            .and_then(|c| c.per_step_runs)
+            .unwrap_or(false),
         never_crossed_largest,
     })
 }

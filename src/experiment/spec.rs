@@ -117,6 +117,8 @@ pub struct ConsistencySpec {
     /// The same tests again on the first `runs` runs at their own α (`[[consistency.subsets]]`).
     #[serde(default)]
     pub subsets: Vec<TableOf<ConsistencySubsetSpec>>,
+    /// Also write every run's NEES and NIS at every step (`run_steps.parquet`; default false).
+    pub per_step_runs: Option<bool>,
 }
 
 /// `[[consistency.subsets]]`: runs are seeded by their index, so the first N runs of a study

@@ -386,6 +386,11 @@ impl StepValues {
         &self.nis
     }
 
+    /// The NIS degrees of freedom per step (0 where no measurement updated the step).
+    pub fn nis_dof(&self) -> &[u8] {
+        &self.nis_dof
+    }
+
     /// e_k,i², row-major by step (NaN where not reached).
     pub fn sq_err(&self) -> &[f64] {
         &self.sq_err

@@ -80,9 +80,10 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 15] = [
+pub const TABLES: [&str; 16] = [
     "runs",
     "steps",
+    "run_steps",
     "summary",
     "sensors",
     "consistency",
@@ -107,6 +108,15 @@ pub fn row_keys(name: &str) -> Option<&'static [&'static str]> {
     Some(match name {
         "runs" => &const { concat5(CELL, "run") },
         "steps" => &const { concat5(CELL, "step") },
+        "run_steps" => &[
+            "scenario",
+            "noise_scale",
+            "filter",
+            "q_scale",
+            "r_scale",
+            "run",
+            "step",
+        ],
         "summary" => &const { concat5(CELL, "state") },
         "consistency" | "power" => &[
             "scenario",
@@ -277,6 +287,21 @@ pub fn sequential() -> Vec<ColumnDef> {
         col("decision", Dtype::Str),
         col("direction", Dtype::Str),
         col("alpha", Dtype::F64),
+    ]);
+    c
+}
+
+/// `run_steps.parquet` (`consistency.per_step_runs`): one row per cell × filter × run × step
+/// the run reached: its NEES and NIS (null where not defined) and the NIS degrees of freedom.
+pub fn run_steps() -> Vec<ColumnDef> {
+    let mut c = cell_keys();
+    c.extend([
+        col("run", Dtype::I64),
+        col("step", Dtype::I64),
+        col("time_s", Dtype::F64),
+        col("nees", Dtype::F64),
+        col("nis", Dtype::F64),
+        col("nis_dof", Dtype::I64),
     ]);
     c
 }

@@ -73,6 +73,8 @@ pub(super) struct Aggregator<'a> {
     pub(super) states: Vec<&'a str>,
     pub(super) runs: TableWriter,
     pub(super) steps: TableWriter,
+    /// `run_steps.parquet` (`consistency.per_step_runs`): every run's NEES and NIS per step.
+    pub(super) run_steps: Option<TableWriter>,
     pub(super) summary: TableWriter,
     pub(super) traces: Option<TableWriter>,
     /// `estimates.parquet` (`--export-estimates`): every run in the exchange format.
@@ -176,6 +178,9 @@ impl Aggregator<'_> {
                 Value::I64(Some(fr.covariance_repairs as i64)),
             ]);
             self.runs.push(&row)?;
+            if let Some(w) = self.run_steps.as_mut() {
+                write_run_steps(w, cell_key(sname, noise, &plan.filters[fi]), run, &fr.steps, plan.dt_s())?;
+            }
             cell.acc[fi].fold(&fr.steps);
             if let Some(c) = &fr.consistency {
                 cell.consistency[fi].push(run, c)?;
@@ -241,6 +246,7 @@ impl Aggregator<'_> {
     pub(super) fn journaled_tables(&mut self) -> impl Iterator<Item = &mut TableWriter> {
         [&mut self.runs, &mut self.steps, &mut self.summary]
             .into_iter()
+            .chain(self.run_steps.as_mut())
             .chain(self.traces.as_mut())
             .chain(self.estimates.as_mut())
             .chain(self.consistency.as_mut())
@@ -530,6 +536,32 @@ impl Aggregator<'_> {
         }
         Ok(())
     }
+}
+
+/// Writes one run's rows of `run_steps.parquet` for one filter: every step it reached, NEES
+/// and NIS as recorded (NaN, "not defined", as null).
+fn write_run_steps(
+    w: &mut TableWriter,
+    key: [Value<'_>; 5],
+    run: usize,
+    steps: &crate::metrics::StepValues,
+    dt: f64,
+) -> Result<(), OutputError> {
+    let defined = |x: f64| (!x.is_nan()).then_some(x);
+    let (nees, nis, dof) = (steps.nees(), steps.nis(), steps.nis_dof());
+    for k in 0..steps.completed() {
+        let mut row = key.to_vec();
+        row.extend([
+            Value::I64(Some(run as i64)),
+            Value::I64(Some(k as i64)),
+            Value::F64(Some(k as f64 * dt)),
+            Value::F64(defined(nees[k])),
+            Value::F64(defined(nis[k])),
+            Value::I64(Some(i64::from(dof[k]))),
+        ]);
+        w.push(&row)?;
+    }
+    Ok(())
 }
 
 /// The `sequential` row of consistency.parquet after its cell key: the gate's decision as a

@@ -267,6 +267,7 @@ fn open_aggregator<'a>(
             schema::steps(&states, plan.consistency.as_ref().map(|_| &block_names[..])),
         )?,
         summary,
+        run_steps: optional(plan.per_step_runs, "run_steps", schema::run_steps())?,
         traces: optional(
             plan.trace_runs > 0,
             "traces",
@@ -445,6 +446,7 @@ fn finish_tables(
     let Aggregator {
         runs,
         steps,
+        run_steps,
         summary,
         traces,
         estimates,
@@ -454,6 +456,7 @@ fn finish_tables(
         ..
     } = agg;
     written.extend([runs, steps, summary]);
+    written.extend(run_steps);
     written.extend(sensors);
     written.extend(consistency);
     written.extend(agg_sequential.map(|q| q.table));

@@ -147,7 +147,8 @@ pub fn resources(plan: &Plan) -> Resources {
         * (row(nq + 12)
             + row(3 * nq + 16)
             + row(12)
-            + (plan.trace_runs > 0) as u128 * row(nq * (nq + 5) / 2 + nz + nu + 8));
+            + (plan.trace_runs > 0) as u128 * row(nq * (nq + 5) / 2 + nz + nu + 8)
+            + plan.per_step_runs as u128 * row(11));
     // The scratch files alive at once: one cell's spills beyond their buffers, and every
     // tracker's crossings (current and previous scale) until the tables are written.
     let scratch = runs.saturating_sub(spill_rows)
@@ -157,7 +158,8 @@ pub fn resources(plan: &Plan) -> Resources {
     let disk = cells * nf * runs * row(nq + 12)
         + cells * nf * max_k * row(3 * nq + 16)
         + cells * nf * 64 * row(12)
-        + (plan.trace_runs as u128) * scales * nf * sum_k * row(nq * (nq + 5) / 2 + nz + nu + 8);
+        + (plan.trace_runs as u128) * scales * nf * sum_k * row(nq * (nq + 5) / 2 + nz + nu + 8)
+        + plan.per_step_runs as u128 * scales * runs * nf * sum_k * row(11);
     Resources {
         runs: cells * runs,
         filter_steps: sum_k.saturating_sub(plan.scenarios.len() as u128) * scales * runs * nf,

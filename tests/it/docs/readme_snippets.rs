@@ -531,6 +531,7 @@ fn tables_reference() -> String {
     let tables: Vec<(&str, Vec<ColumnDef>)> = vec![
         ("runs", schema::runs(q)),
         ("steps", schema::steps(q, Some(&["<block>"]))),
+        ("run_steps", schema::run_steps()),
         ("summary", schema::summary()),
         ("sensors", schema::sensors()),
         ("consistency", schema::consistency(Some(&["<block>"]))),
