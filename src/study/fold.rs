@@ -179,7 +179,13 @@ impl Aggregator<'_> {
             ]);
             self.runs.push(&row)?;
             if let Some(w) = self.run_steps.as_mut() {
-                write_run_steps(w, cell_key(sname, noise, &plan.filters[fi]), run, &fr.steps, plan.dt_s())?;
+                write_run_steps(
+                    w,
+                    cell_key(sname, noise, &plan.filters[fi]),
+                    run,
+                    &fr.steps,
+                    plan.dt_s(),
+                )?;
             }
             cell.acc[fi].fold(&fr.steps);
             if let Some(c) = &fr.consistency {

@@ -12,7 +12,9 @@
 //!   `<!-- test -->` (or `<!-- test: ARGS -->`) has each of its `kfmc …` and
 //!   `cargo run --release -- …` lines (in a console block, the lines after `$ `) run in a
 //!   scratch folder that sees the repository's `experiments/` and `examples/`, in order, and
-//!   each must exit 0. ARGS (e.g. `--runs 5`) are added to the commands that run a study
+//!   each must exit 0; in a `yaml` block (a CI job) the commands are the `- run:` lines,
+//!   whose `python3 …` lines run too (they need the interop packages: skipped without them
+//!   unless KFMC_REQUIRE_INTEROP is set). ARGS (e.g. `--runs 5`) are added to the commands that run a study
 //!   (`run`, `check`, `simulate`, `power`, `tune`), replacing the command's own value of the
 //!   same flag, so the test stays small. The comment is
 //!   invisible in the rendered book.
@@ -424,25 +426,45 @@ fn every_spec_in_the_docs_validates() {
 fn command_lines(lang: &str, block: &str) -> Vec<Vec<String>> {
     let mut out = Vec::new();
     for line in block.lines() {
-        let line = if lang == "console" {
-            match line.strip_prefix("$ ") {
+        let line = match lang {
+            "console" => match line.strip_prefix("$ ") {
                 Some(l) => l,
                 None => continue,
-            }
-        } else {
-            line
+            },
+            "yaml" => match line.trim().strip_prefix("- run: ") {
+                Some(l) => l,
+                None => continue,
+            },
+            _ => line,
         };
         let line = line.split(" #").next().unwrap().trim();
         let args = if let Some(a) = line.strip_prefix("kfmc ") {
             a
         } else if let Some(a) = line.strip_prefix("cargo run --release -- ") {
             a
+        } else if lang == "yaml" && line.starts_with("python3 ") {
+            out.push(line.split_whitespace().map(str::to_string).collect());
+            continue;
         } else {
             continue;
         };
         out.push(args.split_whitespace().map(str::to_string).collect());
     }
     out
+}
+
+/// Whether `python3` can import what the documented Python commands use; with
+/// KFMC_REQUIRE_INTEROP set it must.
+fn python_ready() -> bool {
+    let ok = std::process::Command::new("python3")
+        .args(["-c", "import numpy, polars, pyarrow, filterpy"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    assert!(
+        ok || std::env::var_os("KFMC_REQUIRE_INTEROP").is_none(),
+        "KFMC_REQUIRE_INTEROP is set but python3 cannot import numpy, polars, pyarrow, filterpy"
+    );
+    ok
 }
 
 #[test]
@@ -469,8 +491,8 @@ fn marked_command_blocks_run() {
             let fence = lines.get(i + 1).and_then(|l| l.strip_prefix("```"));
             let lang = fence.map(str::trim).unwrap_or("");
             assert!(
-                ["sh", "bash", "console"].contains(&lang),
-                "{}:{}: a test marker must stand right before a sh, bash or console block",
+                ["sh", "bash", "console", "yaml"].contains(&lang),
+                "{}:{}: a test marker must stand right before a sh, bash, console or yaml block",
                 rel(&page),
                 i + 1
             );
@@ -485,6 +507,28 @@ fn marked_command_blocks_run() {
                 std::os::unix::fs::symlink(repo().join(sub), dir.path().join(sub)).unwrap();
             }
             for mut args in command_lines(lang, &body) {
+                if args[0] == "python3" {
+                    if !python_ready() {
+                        break;
+                    }
+                    commands += 1;
+                    let o = std::process::Command::new("python3")
+                        .args(&args[1..])
+                        .env("KFMC_BIN", env!("CARGO_BIN_EXE_kfmc"))
+                        .current_dir(dir.path())
+                        .output()
+                        .unwrap();
+                    assert!(
+                        o.status.success(),
+                        "{}:{}: `{}` exited with {:?}:\n{}",
+                        rel(&page),
+                        i + 1,
+                        args.join(" "),
+                        o.status.code(),
+                        String::from_utf8_lossy(&o.stderr)
+                    );
+                    continue;
+                }
                 let runs_a_study = ["run", "check", "simulate", "power", "tune"]
                     .contains(&args.first().map_or("", String::as_str));
                 if runs_a_study {

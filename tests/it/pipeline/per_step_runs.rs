@@ -32,7 +32,10 @@ fn every_runs_nees_per_step_agrees_with_the_runs_and_steps_tables() {
     let base = std::fs::read_to_string(repo().join("experiments/ci_consistency.toml")).unwrap();
     let text = base
         .replace("runs = 100", "runs = 12")
-        .replace("whiteness_lags = 5", "whiteness_lags = 5\nper_step_runs = true")
+        .replace(
+            "whiteness_lags = 5",
+            "whiteness_lags = 5\nper_step_runs = true",
+        )
         .replace(
             "[noise]",
             "[[filters]]\nlabel = \"ukf\"\nkind = \"ukf\"\n\n[noise]",
@@ -72,7 +75,10 @@ fn every_runs_nees_per_step_agrees_with_the_runs_and_steps_tables() {
         if step[i] == 0 {
             assert_eq!((nis[i], dof[i]), (None, 0));
         } else {
-            assert!(nees[i].is_some() && nis[i].is_some() && dof[i] == 3, "row {i}");
+            assert!(
+                nees[i].is_some() && nis[i].is_some() && dof[i] == 3,
+                "row {i}"
+            );
         }
     }
 
@@ -119,7 +125,10 @@ fn every_runs_nees_per_step_agrees_with_the_runs_and_steps_tables() {
     );
     for i in 0..steps.height() {
         let (sum, n) = per_k[&(s_s[i].clone(), s_f[i].clone(), s_k[i])];
-        assert!(close(sum / n, s_anees[i].unwrap()), "anees of steps row {i}");
+        assert!(
+            close(sum / n, s_anees[i].unwrap()),
+            "anees of steps row {i}"
+        );
     }
 
     // Opt-in: without the key there is no such table.
