@@ -34,7 +34,7 @@ use crate::runner::{Executor, RunObserver, execute_windowed, window_for};
 use crate::trial::{Trial, Unit};
 
 use fold::{Aggregator, SequentialState};
-use resources::credibility_bytes;
+use resources::window_unit_bytes;
 use resume::{Checkpointer, checkpoint_identity, existing_checkpoint};
 
 /// Runs the study described by `plan`, writing its tables and manifest into `plan.output`.
@@ -343,14 +343,8 @@ fn execute(
         run: i % n_runs,
     };
     let first_unit = cells.start * n_runs;
-    // An exported run's result carries its whole trajectory, and with the consistency tests
-    // each filter's signed errors and block NEES per step: the window holds fewer of them.
-    let unit_bytes = if plan.export_estimates {
-        trajectory_bytes(plan)
-    } else {
-        0
-    } + credibility_bytes(plan);
-    let window = window_for(unit_bytes, opts.threads);
+    // Results that keep trajectories or per-step errors are large: the window holds fewer.
+    let window = window_for(window_unit_bytes(plan), opts.threads);
     if let Some(gate) = &plan.sequential {
         let executor = Executor::new(
             opts.threads,

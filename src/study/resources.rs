@@ -26,6 +26,19 @@ pub(super) fn credibility_bytes(plan: &Plan) -> u64 {
     samples * 8 * per_step * plan.filters.len() as u64
 }
 
+/// Bytes of one unit's result that set the executor's window ([`crate::runner::window_for`]):
+/// an exported run's whole trajectory, and with the consistency tests each filter's signed
+/// errors and block NEES per step. The executor and the estimate both read it, so the window
+/// the estimate assumes is the one the study runs with.
+pub(crate) fn window_unit_bytes(plan: &Plan) -> u64 {
+    if plan.export_estimates {
+        trajectory_bytes(plan)
+    } else {
+        0
+    }
+    .saturating_add(credibility_bytes(plan))
+}
+
 pub(crate) fn trajectory_bytes(plan: &Plan) -> u64 {
     let l = plan.layout();
     let (nq, nz) = (l.quantities.len() as u64, l.measurements.len() as u64);
@@ -101,10 +114,14 @@ pub fn resources(plan: &Plan) -> Resources {
     let sum_k: u128 = samples.iter().sum();
     let cells = plan.scenarios.len() as u128 * scales;
     // Per unit in flight: every filter's per-step values (squared errors, NEES, NIS) plus
-    // the simulated run; two windows of 256 units are alive at once.
+    // the simulated run, and what sets the window (an exported trajectory, the credibility
+    // values); up to three windows are alive at once (being run, queued, being folded), each
+    // of the size the executor will choose for this plan on this machine.
     let unit = nf * max_k * (8 * nq + 17) + max_k * 8 * (2 * nq + nz + nu);
     let traced = (plan.trace_runs > 0) as u128 * nf * max_k * 8 * (nq * (nq + 3) / 2);
-    let executor = 512 * (unit + traced);
+    let window_unit = window_unit_bytes(plan);
+    let window = crate::runner::window_for(window_unit, 0) as u128;
+    let executor = 3 * window * (unit + traced + window_unit as u128);
     // Per cell being folded: per-step sums and the |e| sketches per filter; the per-run
     // RMSE and world metrics in spills (at most SPILL_ROWS rows in memory each, the rest
     // in scratch files) and the selection's counts and candidates while summarising.
