@@ -449,3 +449,83 @@ def test_a_numpy_ukf_on_p1_gives_kfmcs_ukf_transition(tmp_path, script_kfmc):
             worst = max(worst, float(np.abs(A - ref_a[k]).max() / np.abs(ref_a[k]).max()))
     assert run["est_theta"].max() > math.pi, "the roll passes π"
     assert worst < 1e-9, worst
+
+
+DRONE = {
+    "name": "py_estimates_drone",
+    "master_seed": 11,
+    "runs": 3,
+    "output": "unused",
+    "model": {"kind": "drone"},
+    "scenarios": [{"name": "maneuver", "duration_s": 2.0}],
+    "filters": [{"label": "ekf9", "kind": "ekf9"}],
+    "initial_estimate": {"mode": "sampled"},
+    "consistency": {"alpha": 0.05},
+}
+
+
+def test_a_rotation_given_as_a_quaternion_round_trips_the_drones_export(tmp_path, script_kfmc):
+    # The drone's filters export nu without S (they update sensor by sensor), which the
+    # reader refuses where nu reports: the round trip leaves both out.
+    own = export(DRONE, tmp_path, script_kfmc).with_columns(pl.lit("mine").alias("filter"))
+    own = own.select([c for c in own.columns if not c.startswith(("nu_", "S_"))])
+    sim = kfmc.simulate(with_external(DRONE), out=tmp_path / "sim", quiet=True)
+    layout = [
+        c for c in kfmc.schema("estimates", with_external(DRONE))["columns"]
+        if not c.startswith(("nu_", "S_"))
+    ]
+    assert layout == own.columns
+    quat = [c for c in layout if c.startswith("quat_")]
+    assert quat == [f"quat_roll_pitch_yaw_{c}" for c in "wxyz"]
+    # The quantities in order: the rotation's three where its quaternion stands.
+    est_cols = [c for c in layout if c.startswith(("est_", "quat_"))]
+    at = est_cols.index(quat[0])
+    quantities = [c[4:] for c in est_cols[:at]] + ["roll", "pitch", "yaw"] + [c[4:] for c in est_cols[at + 4:]]
+    n = len(quantities)
+    p_cols = [c for c in layout if c.startswith("P_")]
+    a_cols = [c for c in layout if c.startswith("A_")]
+    tri = [(i, j) for i in range(n) for j in range(i + 1)]
+    assert len(p_cols) == len(tri) and len(a_cols) == n * n
+    est = kfmc.Estimates(sim, "mine")
+    for key, g in own.group_by(KEYS, maintain_order=True):
+        g = g.sort("step")
+        k1 = g.height
+        x = np.full((k1, n), np.nan)  # the rotation's Euler angles: not given
+        for i, name in enumerate(quantities):
+            if name not in ("roll", "pitch", "yaw"):
+                x[:, i] = g[f"est_{name}"].to_numpy()
+        P = np.zeros((k1, n, n))
+        for (i, j), c in zip(tri, p_cols):
+            P[:, i, j] = P[:, j, i] = g[c].to_numpy()
+        A = np.stack([g[c].to_numpy().astype(float) for c in a_cols], axis=1).reshape(k1, n, n)
+        est.add_run(*key, x=x, P=P, A=A, quat=g.select(quat).to_numpy())
+    assert est.columns == own.columns
+    assert est.to_polars().equals(own)
+    same_tables(
+        kfmc.score(sim, est, out=tmp_path / "mem", quiet=True),
+        kfmc.score(sim, own, out=tmp_path / "df", quiet=True),
+    )
+    # Without a quaternion the Euler angles are the estimate: a NaN there is refused.
+    with pytest.raises(kfmc.EstimatesError, match="x of run .* nan at step 0, entry"):
+        kfmc.Estimates(sim, "mine").add_run(*key, x=x, P=P, A=A)
+
+
+def test_the_ukf_example_gives_kfmcs_dof_with_the_kept_points_and_fewer_with_sigmas_f(root, tmp_path):
+    pytest.importorskip("filterpy")
+    import sys
+
+    example = root / "examples" / "python" / "filterpy_ukf_transition.py"
+    r = subprocess.run(
+        [sys.executable, str(example), "--runs", "10", "--out", str(tmp_path)],
+        capture_output=True, text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "A_k from ukf.sigmas_f" in r.stdout
+    dof = {}
+    for folder in ("kept", "sigmas_f"):
+        c = kfmc.Study(tmp_path / folder).table("consistency").filter(pl.col("test") == "nees_time_average")
+        dof[folder] = {f: d for f, d in zip(c["filter"], c["dof"])}
+    # The kept points give kfmc's KF's effective dof (the UKF is the KF on L1) …
+    assert abs(dof["kept"]["filterpy_kf"] - dof["kept"]["kf"]) < 1e-9 * dof["kept"]["kf"]
+    # … the redrawn ukf.sigmas_f far fewer: the band is wider than the test's.
+    assert dof["sigmas_f"]["filterpy_kf"] < 0.5 * dof["kept"]["kf"]
