@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import polars as pl
@@ -581,9 +581,11 @@ def _as_stream(x: Any) -> Any:
     )
 
 
-def _estimates(estimates: Any, stamp: Optional[Mapping[str, str]] = None) -> Tuple[List[str], List[Any]]:
+def _estimates(
+    estimates: Any, stamp: Optional[Callable[[], Mapping[str, str]]] = None
+) -> Tuple[List[str], List[Any]]:
     """Paths and Arrow streams of ``estimates``; an :class:`Estimates` is checked against
-    ``stamp`` (the world it is scored on) first."""
+    ``stamp()`` (the world it is scored on) first."""
     if estimates is None:
         return [], []
     if (
@@ -599,11 +601,12 @@ def _estimates(estimates: Any, stamp: Optional[Mapping[str, str]] = None) -> Tup
         if _is_path(e):
             paths.append(os.fspath(e))
         elif isinstance(e, Estimates):
-            if stamp is not None and e.metadata != dict(stamp):
+            ours = None if stamp is None else dict(stamp())
+            if ours is not None and e.metadata != ours:
                 raise EstimatesError(
                     f"the estimates `{e.label}` were made on the simulation {e.folder} (world "
                     f"{e.world_stamp}, master seed {e.master_seed}); this study's runs are world "
-                    f"{stamp.get('kfmc.world_stamp')}, master seed {stamp.get('kfmc.master_seed')}: "
+                    f"{ours.get('kfmc.world_stamp')}, master seed {ours.get('kfmc.master_seed')}: "
                     "score them against the simulation they were made from"
                 )
             streams.append(e.to_polars())
@@ -635,7 +638,7 @@ def score(
     (a file must carry the world stamp for that, a table in memory has nowhere to carry it).
     """
     folder = simulation.folder if isinstance(simulation, Simulation) else Path(simulation)
-    paths, streams = _estimates(estimates, Simulation(folder).stamp)
+    paths, streams = _estimates(estimates, lambda: Simulation(folder).stamp)
     if not paths and not streams:
         raise EstimatesError("no estimates given")
     r = _kfmc.score(
@@ -662,11 +665,13 @@ def check(
     :meth:`CheckResult.raise_for_status` raises it. Estimates files must carry the world
     stamp unless ``allow_unstamped``; in-memory tables are taken as made from the spec's
     runs; a :class:`Estimates` must be made on the spec's world (and seed)."""
-    stamp = None
-    if estimates is not None:
-        stamp = dict(_kfmc.schema("estimates", _spec(spec))["metadata"])
+
+    def stamp() -> Dict[str, str]:
+        s = dict(_kfmc.schema("estimates", _spec(spec))["metadata"])
         if seed is not None:
-            stamp["kfmc.master_seed"] = str(seed)
+            s["kfmc.master_seed"] = str(seed)
+        return s
+
     paths, streams = _estimates(estimates, stamp)
     r = _kfmc.check(
         _spec(spec),

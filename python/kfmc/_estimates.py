@@ -282,11 +282,13 @@ class Estimates:
             self._innovations(cols, _array(nu, "nu", (k1, m), name), _array(S, "S", (k1, m, m), name), end, name)
         if A is not None:
             self._transition(cols, _array(A, "A", (k1, n, n), name), end, name)
-        # Rows from failed_at on carry no estimate: the run failed there.
-        for c in cols:
-            if c != "step":
-                cols[c] = cols[c].astype(np.float64)
-                cols[c][end:] = np.nan
+        # Rows from failed_at on carry no estimate: the run failed there. (Every column is a
+        # copy of the arguments or made here: the caller's arrays are never written.)
+        if end < k1:
+            for c in cols:
+                if c != "step":
+                    cols[c] = cols[c].copy()
+                    cols[c][end:] = np.nan
         if self._parts is None:
             self._parts, self._first = parts, name
         self._runs[key] = cols

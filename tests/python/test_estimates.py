@@ -260,7 +260,10 @@ def test_failed_at_records_the_run_as_a_numerical_failure(world, tmp_path):
         if i == 2:
             x = x.copy()
             x[12:] = np.nan  # the filter blew up at step 12
+            before = [a.copy() for a in (P, nu, S, A)]
             est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A, failed_at=12)
+            # The caller's arrays are left as they were.
+            assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(before, (P, nu, S, A)))
         else:
             est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A)
     runs_table = kfmc.score(sim, est, out=tmp_path / "s", quiet=True).table("runs")
