@@ -10,7 +10,8 @@
 //! | `filter` | the label of a `[[filters]]` entry with `kind = "external"` |
 //! | `est_<q>` | the estimate of every evaluated quantity q |
 //! | `P_<qi>_<qj>` | its covariance, lower triangle (qi at or after qj in the quantity order), or |
-//! | `L_<i>_<j>` | a lower Cholesky factor of it (0-based indices, i ≥ j) |
+//! | `L_<i>_<j>` | a lower Cholesky factor of it (0-based indices, i ≥ j), or |
+//! | `var_<q>`, `corr_<qi>_<qj>` | its diagonal and the correlations below it (qi after qj) |
 //! | `nu_<z>`, `S_<zi>_<zj>` | optional: the innovation (null where z did not report) and its covariance, lower triangle: enable the NIS and whiteness tests |
 //! | `A_<qi>_<qj>` | optional: the error transition (row qi, column qj): enables the calibrated NEES verdict |
 //!
@@ -28,6 +29,10 @@
 //! keys name another world is refused, naming the simulation it belongs to, and a file
 //! without a stamp is read but reported ([`EstimateSet::unstamped`]) for `kfmc score` to warn
 //! and `kfmc check` to refuse.
+//!
+//! A file gives the covariance in one of the three forms ([`CovarianceForm`]); one with
+//! columns of two forms is refused, naming a column of each. Value columns may be float32
+//! (or any float or integer type): they are read as f64, exactly.
 //!
 //! A run's rows cover every step 0..=K or none (a run left out): a run with some steps
 //! missing, or a step outside 0..=K, is an error naming the run and the step, raised before
@@ -107,13 +112,78 @@ pub struct StudyKeys<'a> {
     pub filters: Vec<(&'a str, bool)>,
 }
 
-/// How an estimates file gives the covariance.
+/// How an estimates file gives the covariance. Each form has n(n + 1)/2 columns. A Cholesky
+/// factor however rounded (to float32, say) still gives a positive semi-definite P = L Lᵀ,
+/// and its rounding moves the NEES by about √κ times the rounding where P's entries move it
+/// by about κ times (κ the condition number of P's correlation matrix); the correlations are
+/// the form people read, σ and ρ.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CovarianceForm {
     /// `P_<qi>_<qj>`, the lower triangle.
     Lower,
-    /// `L_<i>_<j>`, a lower Cholesky factor.
+    /// `L_<i>_<j>`, a lower Cholesky factor: P = L Lᵀ.
     Cholesky,
+    /// `var_<q>`, the diagonal, and `corr_<qi>_<qj>`, the correlations below it:
+    /// P_ij = corr_ij √(var_i var_j).
+    Correlation,
+}
+
+impl CovarianceForm {
+    /// The column of entry (i, j), i ≥ j, of the covariance's lower triangle in this form.
+    fn column(self, q: &[&str], i: usize, j: usize) -> String {
+        match self {
+            CovarianceForm::Lower => format!("P_{}_{}", q[i], q[j]),
+            CovarianceForm::Cholesky => format!("L_{i}_{j}"),
+            CovarianceForm::Correlation if i == j => format!("var_{}", q[i]),
+            CovarianceForm::Correlation => format!("corr_{}_{}", q[i], q[j]),
+        }
+    }
+
+    /// This form's columns for these quantities, in the order of the lower triangle
+    /// (row by row): what a file gives in place of the `P_` columns.
+    pub fn columns(self, quantities: &[&str]) -> Vec<String> {
+        (0..quantities.len())
+            .flat_map(|i| (0..=i).map(move |j| (i, j)))
+            .map(|(i, j)| self.column(quantities, i, j))
+            .collect()
+    }
+
+    /// Whether a column name belongs to this form (by its prefix).
+    fn owns(self, name: &str) -> bool {
+        match self {
+            CovarianceForm::Lower => name.starts_with("P_"),
+            CovarianceForm::Cholesky => name.starts_with("L_"),
+            CovarianceForm::Correlation => name.starts_with("var_") || name.starts_with("corr_"),
+        }
+    }
+
+    /// Every form.
+    pub const ALL: [CovarianceForm; 3] = [
+        CovarianceForm::Lower,
+        CovarianceForm::Cholesky,
+        CovarianceForm::Correlation,
+    ];
+}
+
+/// The covariance forms and the float32 columns a file may use instead of what
+/// [`estimate_columns`] lists, for a study with these quantities: the lines `kfmc schema
+/// estimates` prints.
+pub fn covariance_forms_text(quantities: &[&str]) -> String {
+    let n = quantities.len();
+    let list = |form: CovarianceForm| {
+        let all = form.columns(quantities);
+        if all.len() > 4 {
+            format!("{}, {}, …, {}", all[0], all[1], all[all.len() - 1])
+        } else {
+            all.join(", ")
+        }
+    };
+    format!(
+        "\ncovariance, one form per file (n(n+1)/2 = {} columns each):\n  P_<qi>_<qj>: the lower triangle, as listed above\n  L_<i>_<j> (0-based, i >= j): a lower Cholesky factor, P = L L^T: {}\n  var_<q> and corr_<qi>_<qj> (qi after qj): the diagonal and the correlations, P_ij = corr_ij sqrt(var_i var_j): {}\nvalue columns may be float32, read as float64 exactly (keys stay as listed); keep est_ and quat_ float64, since the error truth - estimate needs the estimate's every digit; a float32 L_ still gives a positive semi-definite P = L L^T\n",
+        n * (n + 1) / 2,
+        list(CovarianceForm::Cholesky),
+        list(CovarianceForm::Correlation),
+    )
 }
 
 /// The columns an estimates file has, beyond the keys.
@@ -183,10 +253,10 @@ impl EstimateColumns {
         let mut c: Vec<String> = q.iter().map(|n| format!("est_{n}")).collect();
         match self.covariance {
             CovarianceForm::Lower => c.extend(covariance_columns(&q).into_iter().map(|d| d.name)),
-            CovarianceForm::Cholesky => {
+            form => {
                 for i in 0..q.len() {
                     for j in 0..=i {
-                        c.push(format!("L_{i}_{j}"));
+                        c.push(form.column(&q, i, j));
                     }
                 }
             }
@@ -361,27 +431,24 @@ fn detect_columns(
         transition,
         quaternions: quaternions.clone(),
     };
-    if names.iter().any(|c| c.starts_with("L_")) && names.iter().any(|c| c.starts_with("P_")) {
+    // The first column of each covariance form the file has: one form only.
+    let forms: Vec<(CovarianceForm, &String)> = CovarianceForm::ALL
+        .into_iter()
+        .filter_map(|f| names.iter().find(|c| f.owns(c)).map(|c| (f, c)))
+        .collect();
+    if let [(_, a), (_, b), ..] = forms[..] {
         return Err(format_err(
             path,
-            "both P_* and L_* columns given: give the covariance one way, as the lower triangle P_<qi>_<qj> or as a lower Cholesky factor L_<i>_<j>",
+            format!(
+                "both `{a}` and `{b}`: give the covariance one way, as the lower triangle P_<qi>_<qj>, a lower Cholesky factor L_<i>_<j>, or the variances var_<q> with the correlations corr_<qi>_<qj>"
+            ),
         ));
     }
-    let covariance = if names.iter().any(|c| c.starts_with("L_")) {
-        CovarianceForm::Cholesky
-    } else {
-        CovarianceForm::Lower
-    };
+    let covariance = forms.first().map_or(CovarianceForm::Lower, |(f, _)| *f);
     let innovations = names
         .iter()
         .any(|c| c.starts_with("nu_") || c.starts_with("S_"));
     let transition = names.iter().any(|c| c.starts_with("A_"));
-    if names.iter().any(|c| c.starts_with("var_")) {
-        return Err(format_err(
-            path,
-            "column var_*: a diagonal covariance is not supported yet; give the lower triangle P_<qi>_<qj> (zeros off the diagonal) or L_<i>_<j>",
-        ));
-    }
     let cols = base(covariance, innovations, transition);
     let expected = cols.file_columns();
     for k in key_columns() {
@@ -1158,7 +1225,7 @@ impl UnitRows<'_> {
         for i in 0..NQ {
             for j in 0..=i {
                 m[(i, j)] = tri[t];
-                if self.columns.covariance == CovarianceForm::Lower {
+                if self.columns.covariance != CovarianceForm::Cholesky {
                     m[(j, i)] = tri[t];
                 }
                 t += 1;
@@ -1167,6 +1234,17 @@ impl UnitRows<'_> {
         match self.columns.covariance {
             CovarianceForm::Lower => m,
             CovarianceForm::Cholesky => m * m.transpose(),
+            CovarianceForm::Correlation => {
+                // m holds the variances on its diagonal and the correlations off it.
+                let sd: [f64; NQ] = std::array::from_fn(|i| m[(i, i)].sqrt());
+                Matrix::<NQ, NQ>::from_fn(|i, j| {
+                    if i == j {
+                        m[(i, i)]
+                    } else {
+                        m[(i, j)] * sd[i] * sd[j]
+                    }
+                })
+            }
         }
     }
     /// Why row k cannot be used, if it cannot.
@@ -1190,11 +1268,31 @@ impl UnitRows<'_> {
             }
             return Some(format!("estimates: est_{} is null or non-finite", names[i]));
         }
-        if row[NQ..NQ + NQ * (NQ + 1) / 2]
-            .iter()
-            .any(|v| !v.is_finite())
-        {
+        let tri = &row[NQ..NQ + NQ * (NQ + 1) / 2];
+        if tri.iter().any(|v| !v.is_finite()) {
             return Some("estimates: a covariance entry is null or non-finite".into());
+        }
+        if self.columns.covariance == CovarianceForm::Correlation {
+            let q: Vec<&str> = names.iter().map(String::as_str).collect();
+            let mut t = 0;
+            for i in 0..NQ {
+                for j in 0..=i {
+                    let v = tri[t];
+                    t += 1;
+                    let bad = if i == j { v < 0.0 } else { v.abs() > 1.0 };
+                    if bad {
+                        let what = if i == j {
+                            "is negative"
+                        } else {
+                            "is outside [-1, 1]"
+                        };
+                        return Some(format!(
+                            "estimates: {} = {v} {what}",
+                            CovarianceForm::Correlation.column(&q, i, j)
+                        ));
+                    }
+                }
+            }
         }
         None
     }

@@ -932,6 +932,16 @@ fn schema<'py>(
             }
             d.set_item("metadata", meta)?;
             d.set_item("error_convention", kfmc::score::ERROR_CONVENTION)?;
+            // The covariance forms a file may give instead of the P_ columns listed.
+            let forms = PyDict::new(py);
+            for (name, form) in [
+                ("lower", kfmc::score::CovarianceForm::Lower),
+                ("cholesky", kfmc::score::CovarianceForm::Cholesky),
+                ("correlation", kfmc::score::CovarianceForm::Correlation),
+            ] {
+                forms.set_item(name, form.columns(&q))?;
+            }
+            d.set_item("covariance_forms", forms)?;
         }
         let convention = kfmc::system::filter_model::convention_of(plan.system.as_ref());
         d.set_item("step_convention", convention_dict(py, &convention)?)?;
@@ -1145,6 +1155,61 @@ fn simulation_model(folder: PathBuf) -> PyResult<FilterModel> {
     })
 }
 
+/// What an estimates table of a study holds and is checked against (the study's
+/// [`kfmc::experiment::Plan::study_keys`]): quantities, measurements, rotations (the index of
+/// the first of three and the four quaternion columns that may replace them), scenarios with
+/// their transitions K, noise scales, runs per cell, filters (label, external) and the stamp.
+fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>> {
+    let keys = plan.study_keys();
+    let d = PyDict::new(py);
+    d.set_item("experiment", keys.experiment)?;
+    d.set_item("quantities", keys.quantities.clone())?;
+    d.set_item("measurements", keys.measurements.clone())?;
+    let names: Vec<String> = keys.quantities.iter().map(|q| q.to_string()).collect();
+    let rotations = PyList::empty(py);
+    for r in &keys.rotations {
+        let rd = PyDict::new(py);
+        rd.set_item("first", r.first)?;
+        rd.set_item("quaternion", kfmc::score::quaternion_columns(&names, r))?;
+        rotations.append(rd)?;
+    }
+    d.set_item("rotations", rotations)?;
+    d.set_item("scenarios", keys.scenarios.clone())?;
+    d.set_item("noise_scales", keys.noise_scales.to_vec())?;
+    d.set_item("runs", keys.runs)?;
+    d.set_item("filters", keys.filters.clone())?;
+    d.set_item("world_stamp", &keys.world_stamp)?;
+    d.set_item("master_seed", keys.master_seed)?;
+    let meta = PyDict::new(py);
+    for (k, v) in plan.stamp_metadata() {
+        meta.set_item(k, v)?;
+    }
+    d.set_item("metadata", meta)?;
+    Ok(d)
+}
+
+/// [`layout_dict`] of a `kfmc simulate` folder (`simulation = true`, the spec its manifest
+/// records) or of a spec.
+#[pyfunction]
+#[pyo3(signature = (source, *, simulation))]
+fn estimates_layout<'py>(
+    py: Python<'py>,
+    source: &Bound<'py, PyAny>,
+    simulation: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let registry = kfmc::systems::builtin();
+        let plan = if simulation {
+            let folder: PathBuf = source.extract()?;
+            kfmc::cli::score_plan(&folder, None, &registry)
+                .map_err(|e| Failure::new(Kind::Study, e).into_py())?
+        } else {
+            load_spec(source, &registry)?.0
+        };
+        layout_dict(py, &plan)
+    })
+}
+
 /// The compiled module.
 #[pymodule]
 fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
@@ -1168,6 +1233,7 @@ fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(load_toml, m)?)?;
     m.add_function(wrap_pyfunction!(filter_model, m)?)?;
     m.add_function(wrap_pyfunction!(simulation_model, m)?)?;
+    m.add_function(wrap_pyfunction!(estimates_layout, m)?)?;
     m.add_class::<FilterModel>()?;
     Ok(())
 }

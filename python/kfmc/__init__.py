@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import polars as pl
 
 from kfmc import _kfmc
+from kfmc._estimates import Estimates, sigma_point_transition
 from kfmc._kfmc import (
     CheckFailedError,
     Error,
@@ -35,6 +36,7 @@ __all__ = [
     "CheckFailedError",
     "CheckResult",
     "Error",
+    "Estimates",
     "EstimatesError",
     "IncompleteError",
     "Model",
@@ -49,6 +51,7 @@ __all__ = [
     "run",
     "schema",
     "score",
+    "sigma_point_transition",
     "simulate",
     "validate",
 ]
@@ -436,6 +439,13 @@ class Simulation:
         """``manifest.toml`` as a dict (what the tables mean: the exchange section)."""
         return _kfmc.load_toml(self.folder / "manifest.toml")
 
+    @property
+    def stamp(self) -> Dict[str, str]:
+        """The file metadata an estimates file made on these runs carries:
+        ``{"kfmc.world_stamp": …, "kfmc.master_seed": …}`` (:class:`Estimates` writes it)."""
+        m = self.manifest
+        return {"kfmc.world_stamp": str(m["world_stamp"]), "kfmc.master_seed": str(m["master_seed"])}
+
     def runs(self) -> Iterator[Tuple[Tuple[str, float, int], pl.DataFrame, pl.DataFrame, pl.DataFrame]]:
         """Yields ``((scenario, noise_scale, run), truth, measurements, initial)`` for one run
         at a time, in the tables' order. Each table is scanned with a filter on the run's
@@ -571,31 +581,49 @@ def _as_stream(x: Any) -> Any:
     )
 
 
-def _estimates(estimates: Any) -> Tuple[List[str], List[Any]]:
+def _estimates(
+    estimates: Any, stamp: Optional[Callable[[], Mapping[str, str]]] = None
+) -> Tuple[List[str], List[Any]]:
+    """Paths and Arrow streams of ``estimates``; an :class:`Estimates` is checked against
+    ``stamp()`` (the world it is scored on) first."""
     if estimates is None:
         return [], []
-    if _is_path(estimates) or hasattr(estimates, "__arrow_c_stream__") or type(
-        estimates
-    ).__module__.startswith("pandas"):
+    if (
+        _is_path(estimates)
+        or isinstance(estimates, Estimates)
+        or hasattr(estimates, "__arrow_c_stream__")
+        or type(estimates).__module__.startswith("pandas")
+    ):
         estimates = [estimates]
     paths: List[str] = []
     streams: List[Any] = []
     for e in estimates:
         if _is_path(e):
             paths.append(os.fspath(e))
+        elif isinstance(e, Estimates):
+            ours = None if stamp is None else dict(stamp())
+            if ours is not None and e.metadata != ours:
+                raise EstimatesError(
+                    f"the estimates `{e.label}` were made on the simulation {e.folder} (world "
+                    f"{e.world_stamp}, master seed {e.master_seed}); this study's runs are world "
+                    f"{ours.get('kfmc.world_stamp')}, master seed {ours.get('kfmc.master_seed')}: "
+                    "score them against the simulation they were made from"
+                )
+            streams.append(e.to_polars())
         else:
             streams.append(_as_stream(e))
     return paths, streams
 
 
-Estimates = Any
-"""Estimates: a polars or pandas DataFrame, a pyarrow Table (anything with
-``__arrow_c_stream__``), an iterable of them, a Parquet file's path, or a list of paths."""
+EstimatesInput = Any
+"""Estimates: a :class:`Estimates`, a polars or pandas DataFrame, a pyarrow Table (anything
+with ``__arrow_c_stream__``), an iterable of them, a Parquet file's path, or a list of
+paths."""
 
 
 def score(
     simulation: Union[Simulation, PathLike],
-    estimates: Estimates,
+    estimates: EstimatesInput,
     *,
     out: Optional[PathLike] = None,
     quiet: bool = False,
@@ -610,7 +638,7 @@ def score(
     (a file must carry the world stamp for that, a table in memory has nowhere to carry it).
     """
     folder = simulation.folder if isinstance(simulation, Simulation) else Path(simulation)
-    paths, streams = _estimates(estimates)
+    paths, streams = _estimates(estimates, lambda: Simulation(folder).stamp)
     if not paths and not streams:
         raise EstimatesError("no estimates given")
     r = _kfmc.score(
@@ -622,7 +650,7 @@ def score(
 def check(
     spec: Spec,
     *,
-    estimates: Estimates = None,
+    estimates: EstimatesInput = None,
     out: Optional[PathLike] = None,
     runs: Optional[int] = None,
     seed: Optional[int] = None,
@@ -636,8 +664,15 @@ def check(
     or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
     :meth:`CheckResult.raise_for_status` raises it. Estimates files must carry the world
     stamp unless ``allow_unstamped``; in-memory tables are taken as made from the spec's
-    runs."""
-    paths, streams = _estimates(estimates)
+    runs; a :class:`Estimates` must be made on the spec's world (and seed)."""
+
+    def stamp() -> Dict[str, str]:
+        s = dict(_kfmc.schema("estimates", _spec(spec))["metadata"])
+        if seed is not None:
+            s["kfmc.master_seed"] = str(seed)
+        return s
+
+    paths, streams = _estimates(estimates, stamp)
     r = _kfmc.check(
         _spec(spec),
         paths,

@@ -23,6 +23,7 @@ __all__ = [
     "FilterModel",
     "filter_model",
     "simulation_model",
+    "estimates_layout",
 ]
 
 __version__: str
@@ -148,3 +149,4 @@ class FilterModel:
 
 def filter_model(spec: _Spec) -> FilterModel: ...
 def simulation_model(folder: _Path) -> FilterModel: ...
+def estimates_layout(source: Union[_Spec, _Path], *, simulation: bool) -> Dict[str, Any]: ...

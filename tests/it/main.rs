@@ -81,6 +81,7 @@ mod systems {
 
 /// The estimates exchange and the tables read by other tools.
 mod exchange {
+    mod compact;
     #[allow(clippy::module_inception)]
     mod exchange;
     mod filter_model;

@@ -51,9 +51,9 @@ alpha = 0.05
 rmse_thresholds = [0.5, 0.5, 0.5, 0.5, 0.5, 0.5]
 "#;
 
-struct Study {
+pub(crate) struct Study {
     _tmp: tempfile::TempDir,
-    dir: PathBuf,
+    pub(crate) dir: PathBuf,
     ext_spec: PathBuf,
     /// The stamp of the run's estimates.parquet (its `kfmc.*` metadata).
     stamp: Vec<(String, String)>,
@@ -61,7 +61,7 @@ struct Study {
 
 impl Study {
     /// Writes `df` carrying the run's stamp, as a writer outside kfmc would.
-    fn write(&self, df: &DataFrame, path: &Path) {
+    pub(crate) fn write(&self, df: &DataFrame, path: &Path) {
         write_with(df, path, &self.stamp);
     }
 }
@@ -104,7 +104,7 @@ fn ok(cmd: &mut std::process::Command) -> std::process::Output {
 
 /// Runs kfmc's KF with its estimates exported, keeps the KF's rows as an external filter's
 /// file, and simulates the spec in which `kf` is external.
-fn study() -> Study {
+pub(crate) fn study() -> Study {
     study_of("ekf")
 }
 
@@ -151,7 +151,7 @@ fn write(df: &DataFrame, path: &Path) {
         .unwrap();
 }
 
-fn score(s: &Study, files: &[&Path], out: &str) -> std::process::Output {
+pub(crate) fn score(s: &Study, files: &[&Path], out: &str) -> std::process::Output {
     let mut c = kfmc();
     c.args(["score", "-q"])
         .arg(s.dir.join("sim"))
@@ -293,6 +293,17 @@ fn bad_files_are_refused_naming_file_column_and_key() {
         .with_column(Column::new("bonus".into(), vec![1.0; good.height()]))
         .unwrap();
     cases.push(("extra_column", extra, "unexpected column `bonus`"));
+    // The error transition's dimension: every A_<qi>_<qj> of the study's quantities, no other.
+    cases.push((
+        "a_short",
+        good.drop("A_ydot_z").unwrap(),
+        "missing column `A_ydot_z`",
+    ));
+    let mut a_wide = good.clone();
+    a_wide
+        .with_column(Column::new("A_x_w".into(), vec![0.0; good.height()]))
+        .unwrap();
+    cases.push(("a_wide", a_wide, "unexpected column `A_x_w`"));
     let mut undeclared = good.clone();
     undeclared
         .with_column(Column::new("filter".into(), vec!["mine"; good.height()]))
@@ -1073,7 +1084,10 @@ fn a_csv_both_covariance_forms_and_a_file_for_the_folder_get_messages_that_say_s
     let o = score(&s, &[&path], "score_both");
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("both P_* and L_* columns given"), "{err}");
+    assert!(
+        err.contains("both `P_x_x` and `L_0_0`: give the covariance one way"),
+        "{err}"
+    );
 
     let o = kfmc()
         .arg("score")
