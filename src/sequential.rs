@@ -530,6 +530,9 @@ pub enum GateError {
     /// The futility β is outside (0, 1).
     #[error("β must lie in (0, 1); got {0}")]
     Futility(f64),
+    /// The futility β-spending exponent ρ is not positive.
+    #[error("the β-spending exponent ρ must be positive; got {0}")]
+    FutilityRho(f64),
     /// The design has no boundaries.
     #[error(transparent)]
     Design(#[from] SequentialError),
@@ -559,7 +562,12 @@ pub struct GateSettings {
     pub spending: Spending,
     /// Non-binding futility bounds spending β, when given.
     pub futility_beta: Option<f64>,
+    /// The exponent ρ of the futility bounds' β-spending β·t^ρ (default 2, quadratic).
+    pub futility_rho: f64,
 }
+
+/// The default β-spending exponent of the futility bounds: quadratic.
+pub const QUADRATIC_FUTILITY: f64 = 2.0;
 
 impl Default for GateSettings {
     /// Ten even looks, O'Brien–Fleming-type spending, no futility bounds.
@@ -568,6 +576,7 @@ impl Default for GateSettings {
             looks: Looks::Count(10),
             spending: Spending::OBrienFleming,
             futility_beta: None,
+            futility_rho: QUADRATIC_FUTILITY,
         }
     }
 }
@@ -575,7 +584,13 @@ impl Default for GateSettings {
 impl GateSettings {
     /// The gate of a study of `runs` runs per cell at level `alpha`.
     pub fn gate(&self, runs: usize, alpha: f64) -> Result<Gate, GateError> {
-        Gate::for_study(runs, alpha, &self.looks, &self.spending, self.futility_beta)
+        Gate::for_study_with(
+            runs,
+            alpha,
+            &self.looks,
+            &self.spending,
+            self.futility_beta.map(|b| (b, self.futility_rho)),
+        )
     }
 
     /// The spending function's name as a spec writes it (`obrien_fleming`, `pocock`, …).
@@ -600,6 +615,26 @@ impl Gate {
         spending: &Spending,
         futility_beta: Option<f64>,
     ) -> Result<Gate, GateError> {
+        Gate::for_study_with(
+            runs,
+            alpha,
+            looks,
+            spending,
+            futility_beta.map(|b| (b, QUADRATIC_FUTILITY)),
+        )
+    }
+
+    /// [`Gate::for_study`] with futility bounds spending β by the Kim–DeMets power
+    /// function β·t^ρ: `futility = (β, ρ)`. ρ = 2 (quadratic) spends little early; ρ = 1
+    /// (linear) spends it evenly, so a consistent filter stops earlier, at some power against
+    /// mistunings near the truth.
+    pub fn for_study_with(
+        runs: usize,
+        alpha: f64,
+        looks: &Looks,
+        spending: &Spending,
+        futility: Option<(f64, f64)>,
+    ) -> Result<Gate, GateError> {
         let looks = match looks {
             Looks::Count(0) => {
                 return Err(GateError::Looks("the count of looks must be ≥ 1".into()));
@@ -617,10 +652,18 @@ impl Gate {
                 given.clone()
             }
         };
-        let quadratic = Spending::Power(2.0);
-        let futility = match futility_beta {
-            Some(beta) if !(beta > 0.0 && beta < 1.0) => return Err(GateError::Futility(beta)),
-            Some(beta) => Some((beta, &quadratic)),
+        let beta_spending;
+        let futility = match futility {
+            Some((beta, _)) if !(beta > 0.0 && beta < 1.0) => {
+                return Err(GateError::Futility(beta));
+            }
+            Some((_, rho)) if !(rho > 0.0 && rho.is_finite()) => {
+                return Err(GateError::FutilityRho(rho));
+            }
+            Some((beta, rho)) => {
+                beta_spending = Spending::Power(rho);
+                Some((beta, &beta_spending))
+            }
             None => None,
         };
         Ok(Gate::new(looks, alpha, spending, futility)?)
@@ -955,5 +998,51 @@ mod tests {
         let k = b.iter().position(|&x| x > 0.6745).unwrap();
         assert_eq!(gate.decide(k, 1.0), Decision::Accept);
         assert_eq!(gate.decide(0, 1.0), Decision::Continue);
+    }
+
+    #[test]
+    fn linear_beta_spending_raises_the_early_futility_bounds_and_keeps_the_efficacy_bounds() {
+        let looks = Looks::Count(10);
+        let of = |rho| {
+            Gate::for_study_with(
+                100,
+                0.05,
+                &looks,
+                &Spending::OBrienFleming,
+                Some((0.1, rho)),
+            )
+            .unwrap()
+        };
+        let (quadratic, linear) = (of(QUADRATIC_FUTILITY), of(1.0));
+        // The default is the quadratic gate of `kfmc power --sequential --futility`.
+        let plain = Gate::for_study(100, 0.05, &looks, &Spending::OBrienFleming, Some(0.1));
+        assert_eq!(plain.unwrap(), quadratic);
+        // Non-binding: the efficacy bounds ignore futility, whatever its spending.
+        assert_eq!(linear.design.efficacy, quadratic.design.efficacy);
+        let (bq, bl) = (
+            quadratic.design.futility.unwrap(),
+            linear.design.futility.unwrap(),
+        );
+        // β spent sooner: higher bounds (earlier acceptance) at every look but the last,
+        // where both meet the efficacy bound.
+        for k in 0..9 {
+            assert!(
+                bl[k] > bq[k],
+                "look {k}: linear {} vs quadratic {}",
+                bl[k],
+                bq[k]
+            );
+        }
+        assert!((bl[9] - linear.design.efficacy[9]).abs() < 1e-12);
+        assert!(matches!(
+            Gate::for_study_with(
+                100,
+                0.05,
+                &looks,
+                &Spending::OBrienFleming,
+                Some((0.1, 0.0))
+            ),
+            Err(GateError::FutilityRho(_))
+        ));
     }
 }

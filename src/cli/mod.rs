@@ -167,6 +167,10 @@ pub struct SequentialArgs {
     /// at the design's drift), by a quadratic β-spending function.
     #[arg(long, value_name = "BETA")]
     pub futility: Option<f64>,
+    /// The exponent ρ of the futility bounds' β-spending β·t^ρ: 2 (default, quadratic) or 1
+    /// (linear: a consistent filter stops earlier, at some power near the truth).
+    #[arg(long, value_name = "RHO", requires = "futility")]
+    pub futility_rho: Option<f64>,
 }
 
 /// An α-spending function.
@@ -334,6 +338,9 @@ impl SequentialArgs {
         if self.futility.is_some() {
             settings.futility_beta = self.futility;
         }
+        if let Some(rho) = self.futility_rho {
+            settings.futility_rho = rho;
+        }
         Ok(Some(settings))
     }
 
@@ -360,6 +367,7 @@ fn gate_flag(e: &crate::sequential::GateError) -> &'static str {
     match e {
         GateError::Looks(_) => "--looks",
         GateError::Futility(_) => "--futility",
+        GateError::FutilityRho(_) => "--futility-rho",
         GateError::Design(_) => "--sequential",
     }
 }

@@ -1462,6 +1462,7 @@ fn check_sequential(
             ("looks", t.looks.is_some()),
             ("spending", t.spending.is_some()),
             ("futility_beta", t.futility_beta.is_some()),
+            ("futility_rho", t.futility_rho.is_some()),
         ];
         c.reject_present(
             "check",
@@ -1494,6 +1495,15 @@ fn check_sequential(
         ),
     }
     settings.futility_beta = t.futility_beta;
+    if let Some(rho) = t.futility_rho {
+        if t.futility_beta.is_none() {
+            c.err(
+                "check.futility_rho",
+                "shapes the futility bounds: set check.futility_beta too",
+            );
+        }
+        settings.futility_rho = rho;
+    }
     if spec
         .consistency
         .as_deref()
@@ -1520,6 +1530,7 @@ fn gate_error_key(e: &crate::sequential::GateError) -> &'static str {
     match e {
         GateError::Looks(_) => "check.looks",
         GateError::Futility(_) => "check.futility_beta",
+        GateError::FutilityRho(_) => "check.futility_rho",
         GateError::Design(_) => "check.sequential",
     }
 }

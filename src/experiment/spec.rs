@@ -63,6 +63,9 @@ pub struct CheckSpec {
     pub spending: Option<String>,
     /// Stop a consistent filter early: non-binding futility bounds spending β.
     pub futility_beta: Option<f64>,
+    /// The exponent ρ of the futility bounds' β-spending β·t^ρ (default 2; 1 stops a
+    /// consistent filter earlier).
+    pub futility_rho: Option<f64>,
     /// The assertions (`[[check.assert]]`).
     #[serde(default, rename = "assert")]
     pub asserts: Vec<TableOf<AssertSpec>>,

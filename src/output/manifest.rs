@@ -58,6 +58,9 @@ pub struct SequentialEntry {
     /// The futility bounds' β, when the gate has them.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub futility_beta: Option<f64>,
+    /// The exponent ρ of their β-spending β·t^ρ.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub futility_rho: Option<f64>,
     /// The gate's overall level (the consistency tests' α).
     pub alpha: f64,
 }

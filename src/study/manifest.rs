@@ -66,6 +66,7 @@ pub(crate) fn manifest_for(
                 looks: gate.looks.iter().map(|&n| n as u64).collect(),
                 spending: settings.spending_name(),
                 futility_beta: settings.futility_beta,
+                futility_rho: settings.futility_beta.map(|_| settings.futility_rho),
                 alpha: plan.consistency.as_ref().map_or(plan.alpha, |c| c.alpha),
             }
         }),

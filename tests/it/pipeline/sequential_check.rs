@@ -268,6 +268,11 @@ fn the_gates_settings_are_checked_at_their_key_paths() {
             "",
         ),
         (
+            "[check]\nsequential = true\nfutility_rho = 1.0\n",
+            "check.futility_rho",
+            "set check.futility_beta too",
+        ),
+        (
             "[[consistency.subsets]]\nruns = 50\nalpha = 0.05\n[check]\nsequential = true\n",
             "check.sequential",
             "cannot be combined with [[consistency.subsets]]",
