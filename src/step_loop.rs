@@ -575,12 +575,36 @@ where
 }
 
 /// Writes ν_k and S_k's lower triangle over the reporting components into an export.
+///
+/// A filter that never forms S (the drone's sequential scalar updates) exports its whitened
+/// innovation L⁻¹ν with S = I instead: the pair has the same NIS ‖L⁻¹ν‖² and the same
+/// whitened sequence, so `kfmc score` recomputes exactly the NIS and whiteness tests the
+/// filter's own study computed, where ν alone without S could not be judged at all.
 fn record_innovation<const NZ: usize>(x: &mut ExportTrace, k: usize, inn: &Innovation<NZ>) {
     let ztri = NZ * (NZ + 1) / 2;
     let row = &mut x.nu[k * NZ..(k + 1) * NZ];
+    let values = if inn.covariance.is_some() {
+        &inn.residual
+    } else {
+        &inn.whitened
+    };
     for (i, v) in row.iter_mut().enumerate() {
         if inn.available.has(i) {
-            *v = inn.residual[i];
+            *v = values[i];
+        }
+    }
+    if inn.covariance.is_none() {
+        let row = &mut x.s[k * ztri..(k + 1) * ztri];
+        for i in 0..NZ {
+            if inn.available.has(i) {
+                // The diagonal of the lower triangle: entry i(i+1)/2 + i.
+                row[i * (i + 1) / 2 + i] = 1.0;
+                for j in 0..i {
+                    if inn.available.has(j) {
+                        row[i * (i + 1) / 2 + j] = 0.0;
+                    }
+                }
+            }
         }
     }
     if let Some(s) = &inn.covariance {

@@ -83,6 +83,7 @@ mod systems {
 mod exchange {
     mod compact;
     #[allow(clippy::module_inception)]
+    mod drone_export;
     mod exchange;
     mod filter_model;
     mod interop;
