@@ -24,6 +24,8 @@
 //! and filter variants. A system that is not built on [`crate::model::Model`] may implement
 //! [`crate::system::SystemPlan::describe`] itself, or add its own sections.
 
+use std::fmt::Write as _;
+
 use serde::Serialize;
 
 use crate::linalg::{Matrix, Vector};
@@ -419,7 +421,6 @@ fn fmt_complex(p: &[f64; 2]) -> String {
 }
 
 fn write_matrix(out: &mut String, title: &str, m: &[Vec<f64>], rows: &[&str], cols: &[&str]) {
-    use std::fmt::Write as _;
     if m.is_empty() || m[0].is_empty() {
         let _ = writeln!(out, "    {title}: (empty)");
         return;
@@ -454,6 +455,165 @@ fn write_matrix(out: &mut String, title: &str, m: &[Vec<f64>], rows: &[&str], co
     }
 }
 
+/// Row and column names of the printed matrices.
+struct Names<'a> {
+    /// The quantities without their units.
+    states: Vec<&'a str>,
+    meas: Vec<&'a str>,
+    inputs: Vec<&'a str>,
+}
+
+/// One scenario's analysis: its matrices, observability, steady-state filter and test
+/// calibration.
+fn render_scenario(s: &mut String, a: &ScenarioAnalysis, n: &Names<'_>) {
+    let _ = writeln!(
+        s,
+        "\nscenario {} (K = {}): {}, {}",
+        a.scenario,
+        a.steps,
+        if a.time_invariant {
+            "time-invariant"
+        } else {
+            "time-varying (matrices at the first transition of the clean trajectory)"
+        },
+        if a.single_rate {
+            "single-rate"
+        } else {
+            "multi-rate"
+        }
+    );
+    write_matrix(s, "F", &a.transition, &n.states, &n.states);
+    if !a.input_matrix.is_empty() && !a.input_matrix[0].is_empty() {
+        write_matrix(
+            s,
+            &format!("G ({})", a.input_matrix_method),
+            &a.input_matrix,
+            &n.states,
+            &n.inputs,
+        );
+    }
+    write_matrix(s, "H", &a.measurement_matrix, &n.meas, &n.states);
+    write_matrix(
+        s,
+        "Q (truth, noise scale 1)",
+        &a.process_noise,
+        &n.states,
+        &n.states,
+    );
+    write_matrix(
+        s,
+        "R (truth, noise scale 1)",
+        &a.measurement_noise,
+        &n.meas,
+        &n.meas,
+    );
+    render_observability(s, &a.observability);
+    if let Some(ss) = &a.steady_state {
+        let _ = writeln!(
+            s,
+            "    steady-state Kalman filter (truth Q, R; {} Riccati iterations):",
+            ss.riccati_iterations
+        );
+        write_matrix(s, "  K∞", &ss.gain, &n.states, &n.meas);
+        let poles: Vec<String> = ss.poles.iter().map(fmt_complex).collect();
+        let _ = writeln!(s, "      poles of (I − K∞H)F: {}", poles.join(", "));
+        let _ = writeln!(s, "      spectral radius: {}", fmt_num(ss.spectral_radius));
+    }
+    render_calibration(s, &a.filters);
+    for n in &a.notes {
+        let _ = writeln!(s, "    note: {n}");
+    }
+}
+
+fn render_observability(s: &mut String, o: &Observability) {
+    let _ = writeln!(
+        s,
+        "    observability of x0 from z_1..z_{}: rank {} of {}",
+        o.window_steps, o.rank, o.states
+    );
+    for g in &o.per_component {
+        let _ = writeln!(s, "      {} alone: rank {}", g.components, g.rank);
+    }
+    for g in &o.per_group {
+        let _ = writeln!(s, "      sensor group {}: rank {}", g.components, g.rank);
+    }
+    if !o.unobservable_modes.is_empty() {
+        let modes: Vec<String> = o.unobservable_modes.iter().map(fmt_complex).collect();
+        let _ = writeln!(s, "      unobservable modes of F: {}", modes.join(", "));
+    }
+}
+
+/// Each filter variant's test calibration: ρ and the tests' degrees of freedom.
+fn render_calibration(s: &mut String, filters: &[FilterAnalysis]) {
+    if !filters.is_empty() {
+        let _ = writeln!(s, "    test calibration along the clean trajectory:");
+    }
+    for f in filters {
+        let name = if f.q_scale == 1.0 && f.r_scale == 1.0 {
+            f.filter.clone()
+        } else {
+            format!("{} Q×{} R×{}", f.filter, f.q_scale, f.r_scale)
+        };
+        let rho = f.rho.map_or("— (no error transition)".into(), fmt_num);
+        let _ = writeln!(
+            s,
+            "      {name}: ρ = {rho}, K = {} steps from step {}, NIS dof per run {}",
+            f.nees_steps, f.first_step, f.nis_dof_per_run
+        );
+        for d in &f.dof {
+            let _ = writeln!(
+                s,
+                "        N = {}: NEES effective dof ν = {} (naive N·K·n = {}), NIS dof {}",
+                d.runs,
+                d.nees_effective_dof.map_or("—".into(), fmt_num),
+                fmt_num(d.nees_naive_dof),
+                d.nis_dof
+            );
+        }
+    }
+}
+
+/// The model kfmc's filters use, as its conventions: what is wrapped, what is a rotation.
+fn render_filter_model(s: &mut String, m: &crate::model::exposed::FilterModelRecord) {
+    let c = &m.convention;
+    let _ = writeln!(
+        s,
+        "\nfilter-side model ({}; at full precision: [filter_model] of describe.toml, kfmc.model in Python):",
+        m.form
+    );
+    let _ = writeln!(s, "  {}", c.transition);
+    let _ = writeln!(s, "  {}", c.measurement);
+    let list = |v: &[String]| {
+        if v.is_empty() {
+            "none".to_string()
+        } else {
+            v.join(", ")
+        }
+    };
+    let _ = writeln!(s, "  errors wrapped: {}", list(&c.wrapped_errors));
+    if !c.rotation_errors.is_empty() {
+        let _ = writeln!(
+            s,
+            "  rotations (error = rotation vector): {}",
+            list(&c.rotation_errors)
+        );
+    }
+    if !c.continuous_angles.is_empty() {
+        let _ = writeln!(
+            s,
+            "  continuous angles (truth, z and error not wrapped): {}",
+            list(&c.continuous_angles)
+        );
+    }
+    if !c.wrapped_innovations.is_empty() {
+        let _ = writeln!(
+            s,
+            "  innovations kfmc's filters wrap to [−π, π): {}",
+            list(&c.wrapped_innovations)
+        );
+    }
+}
+
 impl Description {
     /// The description as TOML (`describe.toml`).
     pub fn to_toml(&self) -> String {
@@ -462,7 +622,6 @@ impl Description {
 
     /// The description as text for a terminal.
     pub fn render(&self) -> String {
-        use std::fmt::Write as _;
         let mut s = String::new();
         let _ = writeln!(s, "{} (model.kind = \"{}\")", self.experiment, self.kind);
         let _ = writeln!(s, "  Δt = {} s", fmt_num(self.dt_s));
@@ -471,111 +630,17 @@ impl Description {
         if !self.inputs.is_empty() {
             let _ = writeln!(s, "  inputs: {}", self.inputs.join(", "));
         }
-        let states: Vec<&str> = self
-            .quantities
-            .iter()
-            .map(|q| q.split(' ').next().unwrap_or(q))
-            .collect();
-        let meas: Vec<&str> = self.measurements.iter().map(String::as_str).collect();
-        let inputs: Vec<&str> = self.inputs.iter().map(String::as_str).collect();
+        let names = Names {
+            states: self
+                .quantities
+                .iter()
+                .map(|q| q.split(' ').next().unwrap_or(q))
+                .collect(),
+            meas: self.measurements.iter().map(String::as_str).collect(),
+            inputs: self.inputs.iter().map(String::as_str).collect(),
+        };
         for a in &self.scenarios {
-            let _ = writeln!(
-                s,
-                "\nscenario {} (K = {}): {}, {}",
-                a.scenario,
-                a.steps,
-                if a.time_invariant {
-                    "time-invariant"
-                } else {
-                    "time-varying (matrices at the first transition of the clean trajectory)"
-                },
-                if a.single_rate {
-                    "single-rate"
-                } else {
-                    "multi-rate"
-                }
-            );
-            write_matrix(&mut s, "F", &a.transition, &states, &states);
-            if !a.input_matrix.is_empty() && !a.input_matrix[0].is_empty() {
-                write_matrix(
-                    &mut s,
-                    &format!("G ({})", a.input_matrix_method),
-                    &a.input_matrix,
-                    &states,
-                    &inputs,
-                );
-            }
-            write_matrix(&mut s, "H", &a.measurement_matrix, &meas, &states);
-            write_matrix(
-                &mut s,
-                "Q (truth, noise scale 1)",
-                &a.process_noise,
-                &states,
-                &states,
-            );
-            write_matrix(
-                &mut s,
-                "R (truth, noise scale 1)",
-                &a.measurement_noise,
-                &meas,
-                &meas,
-            );
-            let o = &a.observability;
-            let _ = writeln!(
-                s,
-                "    observability of x0 from z_1..z_{}: rank {} of {}",
-                o.window_steps, o.rank, o.states
-            );
-            for g in &o.per_component {
-                let _ = writeln!(s, "      {} alone: rank {}", g.components, g.rank);
-            }
-            for g in &o.per_group {
-                let _ = writeln!(s, "      sensor group {}: rank {}", g.components, g.rank);
-            }
-            if !o.unobservable_modes.is_empty() {
-                let modes: Vec<String> = o.unobservable_modes.iter().map(fmt_complex).collect();
-                let _ = writeln!(s, "      unobservable modes of F: {}", modes.join(", "));
-            }
-            if let Some(ss) = &a.steady_state {
-                let _ = writeln!(
-                    s,
-                    "    steady-state Kalman filter (truth Q, R; {} Riccati iterations):",
-                    ss.riccati_iterations
-                );
-                write_matrix(&mut s, "  K∞", &ss.gain, &states, &meas);
-                let poles: Vec<String> = ss.poles.iter().map(fmt_complex).collect();
-                let _ = writeln!(s, "      poles of (I − K∞H)F: {}", poles.join(", "));
-                let _ = writeln!(s, "      spectral radius: {}", fmt_num(ss.spectral_radius));
-            }
-            if !a.filters.is_empty() {
-                let _ = writeln!(s, "    test calibration along the clean trajectory:");
-            }
-            for f in &a.filters {
-                let name = if f.q_scale == 1.0 && f.r_scale == 1.0 {
-                    f.filter.clone()
-                } else {
-                    format!("{} Q×{} R×{}", f.filter, f.q_scale, f.r_scale)
-                };
-                let rho = f.rho.map_or("— (no error transition)".into(), fmt_num);
-                let _ = writeln!(
-                    s,
-                    "      {name}: ρ = {rho}, K = {} steps from step {}, NIS dof per run {}",
-                    f.nees_steps, f.first_step, f.nis_dof_per_run
-                );
-                for d in &f.dof {
-                    let _ = writeln!(
-                        s,
-                        "        N = {}: NEES effective dof ν = {} (naive N·K·n = {}), NIS dof {}",
-                        d.runs,
-                        d.nees_effective_dof.map_or("—".into(), fmt_num),
-                        fmt_num(d.nees_naive_dof),
-                        d.nis_dof
-                    );
-                }
-            }
-            for n in &a.notes {
-                let _ = writeln!(s, "    note: {n}");
-            }
+            render_scenario(&mut s, a, &names);
         }
         for sec in &self.sections {
             let _ = writeln!(s, "\n{}:", sec.title);
@@ -590,43 +655,7 @@ impl Description {
             }
         }
         if let Some(m) = &self.filter_model {
-            let c = &m.convention;
-            let _ = writeln!(
-                s,
-                "\nfilter-side model ({}; at full precision: [filter_model] of describe.toml, kfmc.model in Python):",
-                m.form
-            );
-            let _ = writeln!(s, "  {}", c.transition);
-            let _ = writeln!(s, "  {}", c.measurement);
-            let list = |v: &[String]| {
-                if v.is_empty() {
-                    "none".to_string()
-                } else {
-                    v.join(", ")
-                }
-            };
-            let _ = writeln!(s, "  errors wrapped: {}", list(&c.wrapped_errors));
-            if !c.rotation_errors.is_empty() {
-                let _ = writeln!(
-                    s,
-                    "  rotations (error = rotation vector): {}",
-                    list(&c.rotation_errors)
-                );
-            }
-            if !c.continuous_angles.is_empty() {
-                let _ = writeln!(
-                    s,
-                    "  continuous angles (truth, z and error not wrapped): {}",
-                    list(&c.continuous_angles)
-                );
-            }
-            if !c.wrapped_innovations.is_empty() {
-                let _ = writeln!(
-                    s,
-                    "  innovations kfmc's filters wrap to [−π, π): {}",
-                    list(&c.wrapped_innovations)
-                );
-            }
+            render_filter_model(&mut s, m);
         }
         for n in &self.notes {
             let _ = writeln!(s, "\nnote: {n}");

@@ -302,29 +302,31 @@ fn best_overall(points: &[TunePoint], keep: impl Fn(&TunePoint) -> bool) -> (f64
         .unwrap_or((1.0, 1.0, f64::INFINITY))
 }
 
-/// Runs the search and writes `tuning.parquet` into the plan's output folder.
-pub fn tune(
-    plan: &Plan,
-    opts: &TuneOptions,
-    observer: &dyn RunObserver,
-) -> Result<TuneReport, KfmcError> {
+/// A spec error of the `filters` key.
+fn filters_error(plan: &Plan, message: String) -> KfmcError {
+    KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
+        file: plan.spec_path.clone(),
+        key_path: "filters".into(),
+        message,
+    }]))
+}
+
+/// The filter to tune: the one labelled `opts.filter`, else the first with a covariance and
+/// a Q scale.
+fn tuned_filter(plan: &Plan, opts: &TuneOptions) -> Result<FilterPlan, KfmcError> {
     // kfmc does not run an external filter (its estimates come from a file), so it has
     // nothing to tune there.
     if let Some(l) = &opts.filter
         && plan.filters.iter().any(|f| f.external && f.label == *l)
     {
-        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-            crate::error::SpecError {
-                file: plan.spec_path.clone(),
-                key_path: "filters".into(),
-                message: format!(
-                    "filter `{l}` is external (kind = \"external\"): kfmc does not run it, so it cannot tune it"
-                ),
-            },
-        ])));
+        return Err(filters_error(
+            plan,
+            format!(
+                "filter `{l}` is external (kind = \"external\"): kfmc does not run it, so it cannot tune it"
+            ),
+        ));
     }
-    let base = plan
-        .filters
+    plan.filters
         .iter()
         .filter(|f| !f.external)
         .find(|f| {
@@ -335,10 +337,9 @@ pub fn tune(
         })
         .cloned()
         .ok_or_else(|| {
-            KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
-                file: plan.spec_path.clone(),
-                key_path: "filters".into(),
-                message: match &opts.filter {
+            filters_error(
+                plan,
+                match &opts.filter {
                     Some(l) => {
                         format!("no filter with a covariance and a q_scale labelled `{l}` to tune")
                     }
@@ -347,19 +348,13 @@ pub fn tune(
                             .into()
                     }
                 },
-            }]))
-        })?;
-    // Locked for the whole search. The stages are written aside and move into place with the
-    // tuning table in one commit: an interrupted search leaves the earlier one whole.
-    let folder = StudyFolder::open(&plan.output, StudyKind::Tune, opts.force)?;
-    let staging = Staging(plan.output.join(".tune-stages.partial"));
-    let mut stages = Vec::new();
-    let (n, p) = (
-        plan.layout().quantities.len() as f64,
-        plan.layout().measurements.len() as f64,
-    );
+            )
+        })
+}
 
-    let coarse: Vec<(f64, f64)> = if opts.tune_r {
+/// Stage 1's candidates: half-decades from 10⁻³ to 10³ for Q (and R with `tune_r`).
+fn coarse_grid(tune_r: bool) -> Vec<(f64, f64)> {
+    if tune_r {
         let g = log_grid(1.0, 3.0, 13);
         g.iter()
             .flat_map(|&q| g.iter().map(move |&r| (q, r)))
@@ -369,47 +364,28 @@ pub fn tune(
             .into_iter()
             .map(|q| (q, 1.0))
             .collect()
-    };
-    let (mut points, name) = stage(plan, &staging.0, &base, &coarse, "coarse", opts, observer)?;
-    stages.push(name);
-    score(&mut points, opts.objective, n, p);
-
-    for &scale in &plan.noise_scales {
-        let (q0, r0, _) = best_overall(&points, |pt| pt.noise_scale == scale);
-        let refine: Vec<(f64, f64)> = if opts.tune_r {
-            let (gq, gr) = (log_grid(q0, 0.5, 7), log_grid(r0, 0.5, 7));
-            gq.iter()
-                .flat_map(|&q| gr.iter().map(move |&r| (q, r)))
-                .collect()
-        } else {
-            log_grid(q0, 0.5, 11)
-                .into_iter()
-                .map(|q| (q, 1.0))
-                .collect()
-        };
-        let mut sub = plan.clone();
-        sub.noise_scales = vec![scale];
-        let (mut fine, name) = stage(&sub, &staging.0, &base, &refine, "refine", opts, observer)?;
-        points.append(&mut fine);
-        stages.push(name);
     }
-    // Re-score together: the RMSE objective normalises by the best of all candidates.
-    score(&mut points, opts.objective, n, p);
-    // Refined candidates exist for one noise scale each; only the coarse grid was run in
-    // every cell, so it alone can say what is best over all of them.
-    let single = plan.noise_scales.len() == 1;
-    let best = best_overall(&points, |pt| single || pt.stage == "coarse");
-    let per_noise_scale = plan
-        .noise_scales
-        .iter()
-        .map(|&s| {
-            let (q, r, o) = best_overall(&points, |pt| pt.noise_scale == s);
-            (s, q, r, o)
-        })
-        .collect();
+}
 
+/// Stage 2's candidates: ±½ decade around (q0, r0).
+fn refine_grid(tune_r: bool, q0: f64, r0: f64) -> Vec<(f64, f64)> {
+    if tune_r {
+        let (gq, gr) = (log_grid(q0, 0.5, 7), log_grid(r0, 0.5, 7));
+        gq.iter()
+            .flat_map(|&q| gr.iter().map(move |&r| (q, r)))
+            .collect()
+    } else {
+        log_grid(q0, 0.5, 11)
+            .into_iter()
+            .map(|q| (q, 1.0))
+            .collect()
+    }
+}
+
+/// Per (scenario, noise scale): its own best (q_scale, r_scale, objective).
+fn best_per_cell(points: &[TunePoint]) -> Vec<(String, f64, f64, f64, f64)> {
     let mut per_cell: BTreeMap<(String, u64), (f64, f64, f64)> = BTreeMap::new();
-    for pt in &points {
+    for pt in points {
         let e = per_cell
             .entry((pt.scenario.clone(), pt.noise_scale.to_bits()))
             .or_insert((f64::NAN, f64::NAN, f64::INFINITY));
@@ -417,15 +393,26 @@ pub fn tune(
             *e = (pt.q_scale, pt.r_scale, pt.objective);
         }
     }
+    per_cell
+        .into_iter()
+        .map(|((s, n), (q, r, o))| (s, f64::from_bits(n), q, r, o))
+        .collect()
+}
 
+/// Writes every evaluated point into `tuning.parquet` (not yet committed).
+fn tuning_table(
+    plan: &Plan,
+    filter: &str,
+    points: &[TunePoint],
+) -> Result<FinishedTable, KfmcError> {
     let states = plan.quantity_names();
     let mut w = TableWriter::create(&plan.output, "tuning", schema::tuning(&states))?;
-    for pt in &points {
+    for pt in points {
         let mut row = vec![
             Value::Str(pt.stage),
             Value::Str(&pt.scenario),
             Value::F64(Some(pt.noise_scale)),
-            Value::Str(&base.label),
+            Value::Str(filter),
             Value::F64(Some(pt.q_scale)),
             Value::F64(Some(pt.r_scale)),
             Value::F64(pt.anees),
@@ -435,7 +422,18 @@ pub fn tune(
         row.push(Value::F64(Some(pt.objective).filter(|o| o.is_finite())));
         w.push(&row)?;
     }
-    let tuning = w.finish()?;
+    Ok(w.finish()?)
+}
+
+/// Moves the tuning table, the coarse stage's summary and the stage folders into the tune
+/// folder in one commit.
+fn commit(
+    plan: &Plan,
+    folder: &StudyFolder,
+    staging: &Staging,
+    stages: Vec<String>,
+    tuning: FinishedTable,
+) -> Result<(), KfmcError> {
     // The coarse stage's summary beside tuning.parquet makes the folder plottable as it is
     // (`kfmc plot DIR` draws the tuning curves and the coarse grid's RMSE); the folder's own
     // manifest, written last, commits both.
@@ -480,17 +478,65 @@ pub fn tune(
         |name| name.starts_with("tune_"),
         manifest,
     )?;
-    let table = plan.output.join("tuning.parquet");
+    Ok(())
+}
+
+/// Runs the search and writes `tuning.parquet` into the plan's output folder.
+pub fn tune(
+    plan: &Plan,
+    opts: &TuneOptions,
+    observer: &dyn RunObserver,
+) -> Result<TuneReport, KfmcError> {
+    let base = tuned_filter(plan, opts)?;
+    // Locked for the whole search. The stages are written aside and move into place with the
+    // tuning table in one commit: an interrupted search leaves the earlier one whole.
+    let folder = StudyFolder::open(&plan.output, StudyKind::Tune, opts.force)?;
+    let staging = Staging(plan.output.join(".tune-stages.partial"));
+    let mut stages = Vec::new();
+    let (n, p) = (
+        plan.layout().quantities.len() as f64,
+        plan.layout().measurements.len() as f64,
+    );
+
+    let coarse = coarse_grid(opts.tune_r);
+    let (mut points, name) = stage(plan, &staging.0, &base, &coarse, "coarse", opts, observer)?;
+    stages.push(name);
+    score(&mut points, opts.objective, n, p);
+
+    for &scale in &plan.noise_scales {
+        let (q0, r0, _) = best_overall(&points, |pt| pt.noise_scale == scale);
+        let refine = refine_grid(opts.tune_r, q0, r0);
+        let mut sub = plan.clone();
+        sub.noise_scales = vec![scale];
+        let (mut fine, name) = stage(&sub, &staging.0, &base, &refine, "refine", opts, observer)?;
+        points.append(&mut fine);
+        stages.push(name);
+    }
+    // Re-score together: the RMSE objective normalises by the best of all candidates.
+    score(&mut points, opts.objective, n, p);
+    // Refined candidates exist for one noise scale each; only the coarse grid was run in
+    // every cell, so it alone can say what is best over all of them.
+    let single = plan.noise_scales.len() == 1;
+    let best = best_overall(&points, |pt| single || pt.stage == "coarse");
+    let per_noise_scale = plan
+        .noise_scales
+        .iter()
+        .map(|&s| {
+            let (q, r, o) = best_overall(&points, |pt| pt.noise_scale == s);
+            (s, q, r, o)
+        })
+        .collect();
+    let per_cell = best_per_cell(&points);
+
+    let tuning = tuning_table(plan, &base.label, &points)?;
+    commit(plan, &folder, &staging, stages, tuning)?;
     Ok(TuneReport {
         filter: base.label.clone(),
         points,
         best,
         per_noise_scale,
-        per_cell: per_cell
-            .into_iter()
-            .map(|((s, n), (q, r, o))| (s, f64::from_bits(n), q, r, o))
-            .collect(),
-        table,
+        per_cell,
+        table: plan.output.join("tuning.parquet"),
     })
 }
 

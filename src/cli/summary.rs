@@ -42,74 +42,159 @@ fn num(v: Option<f64>) -> String {
     }
 }
 
+/// Whether a row at truth-noise multiplier `nz` is hidden by `--noise-scale`.
+fn hidden(noise_scale: Option<f64>, nz: f64) -> bool {
+    noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0))
+}
+
+/// Why a verified folder without summary.parquet has no summary: what kind of folder it is.
+fn not_a_study(dir: &Path, manifest: &crate::output::manifest::Manifest) -> OutputError {
+    let holds: Vec<&str> = manifest.tables.iter().map(|t| t.name.as_str()).collect();
+    let kind = if manifest.exchange.is_some() {
+        "a simulation (`kfmc simulate`)"
+    } else if holds == ["power"] {
+        "a power study (`kfmc power`)"
+    } else {
+        "a result folder without an RMSE summary"
+    };
+    OutputError::Mismatch {
+        path: dir.to_path_buf(),
+        why: format!(
+            "is {kind} holding {}, not a study with summary.parquet: `kfmc summary` reads the folders of `kfmc run`, `score` and `check`",
+            holds.join(", ")
+        ),
+    }
+}
+
+/// The RMSE table's content: rows (scenario, noise scale, filter variant) in table order, the
+/// states in order of first appearance, and the "mean ± std" text of each (row, state).
+struct RmseTable {
+    states: Vec<String>,
+    rows: Vec<(String, f64, String)>,
+    cells: BTreeMap<(usize, String), String>,
+}
+
+impl RmseTable {
+    /// Reads summary.parquet; also returns every row's noise scale (for the error that none
+    /// matches `noise_scale`).
+    fn read(
+        path: &Path,
+        noise_scale: Option<f64>,
+    ) -> Result<(RmseTable, Vec<Option<f64>>), OutputError> {
+        let df = read(path)?;
+        let scen = strs(&df, "scenario", path)?;
+        let filt = strs(&df, "filter", path)?;
+        let state = strs(&df, "state", path)?;
+        let noise = f64s(&df, "noise_scale", path)?;
+        // Filter variants of one label differ in their Q/R multipliers: show them in the label.
+        let q = f64s(&df, "q_scale", path)?;
+        let r = f64s(&df, "r_scale", path)?;
+        let filt: Vec<String> = filt
+            .iter()
+            .enumerate()
+            .map(|(i, f)| match (q[i], r[i]) {
+                (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{f} q×{q} r×{r}"),
+                _ => f.clone(),
+            })
+            .collect();
+        let mean = f64s(&df, "rmse_mean", path)?;
+        let std = f64s(&df, "rmse_std", path)?;
+
+        let mut t = RmseTable {
+            states: Vec::new(),
+            rows: Vec::new(),
+            cells: BTreeMap::new(),
+        };
+        for i in 0..df.height() {
+            let nz = noise[i].unwrap_or(f64::NAN);
+            if hidden(noise_scale, nz) {
+                continue;
+            }
+            if !t.states.contains(&state[i]) {
+                t.states.push(state[i].clone());
+            }
+            let key = (scen[i].clone(), nz, filt[i].clone());
+            let idx = match t.rows.iter().position(|r| *r == key) {
+                Some(p) => p,
+                None => {
+                    t.rows.push(key);
+                    t.rows.len() - 1
+                }
+            };
+            let text = match std[i] {
+                Some(s) => format!("{} ± {}", num(mean[i]), num(Some(s))),
+                None => num(mean[i]),
+            };
+            t.cells.insert((idx, state[i].clone()), text);
+        }
+        Ok((t, noise))
+    }
+
+    /// Widths of the scenario and filter columns (the divergence section lines up with them).
+    fn key_widths(&self) -> (usize, usize) {
+        let sw = self
+            .rows
+            .iter()
+            .map(|r| r.0.len())
+            .max()
+            .unwrap_or(8)
+            .max(8);
+        let fw = self
+            .rows
+            .iter()
+            .map(|r| r.2.len())
+            .max()
+            .unwrap_or(6)
+            .max(6);
+        (sw, fw)
+    }
+
+    fn render(&self, out: &mut String) {
+        let (states, rows, cells) = (&self.states, &self.rows, &self.cells);
+        let widths: Vec<usize> = states
+            .iter()
+            .map(|s| {
+                (0..rows.len())
+                    .filter_map(|r| cells.get(&(r, s.clone())).map(|c| c.chars().count()))
+                    .chain([s.len() + 5])
+                    .max()
+                    .unwrap_or(8)
+            })
+            .collect();
+        let (sw, fw) = self.key_widths();
+        let _ = write!(
+            out,
+            "RMSE (mean ± std over runs)\n{:<sw$}  {:>11}  {:<fw$}",
+            "scenario", "noise_scale", "filter"
+        );
+        for (s, w) in states.iter().zip(&widths) {
+            let _ = write!(out, "  {:>w$}", format!("rmse_{s}"));
+        }
+        out.push('\n');
+        for (ri, (s, nz, f)) in rows.iter().enumerate() {
+            let _ = write!(out, "{s:<sw$}  {:>11}  {f:<fw$}", format!("{nz}"));
+            for (st, w) in states.iter().zip(&widths) {
+                let c = cells
+                    .get(&(ri, st.clone()))
+                    .cloned()
+                    .unwrap_or_else(|| "—".into());
+                let _ = write!(out, "  {c:>w$}");
+            }
+            out.push('\n');
+        }
+    }
+}
+
 /// Renders the summary of a result folder as text.
 pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
     let manifest = crate::output::folder::verify(dir)?;
     if !manifest.tables.iter().any(|t| t.name == "summary") {
-        let holds: Vec<&str> = manifest.tables.iter().map(|t| t.name.as_str()).collect();
-        let kind = if manifest.exchange.is_some() {
-            "a simulation (`kfmc simulate`)"
-        } else if holds == ["power"] {
-            "a power study (`kfmc power`)"
-        } else {
-            "a result folder without an RMSE summary"
-        };
-        return Err(OutputError::Mismatch {
-            path: dir.to_path_buf(),
-            why: format!(
-                "is {kind} holding {}, not a study with summary.parquet: `kfmc summary` reads the folders of `kfmc run`, `score` and `check`",
-                holds.join(", ")
-            ),
-        });
+        return Err(not_a_study(dir, &manifest));
     }
     let path = dir.join("summary.parquet");
-    let df = read(&path)?;
-    let scen = strs(&df, "scenario", &path)?;
-    let filt = strs(&df, "filter", &path)?;
-    let state = strs(&df, "state", &path)?;
-    let noise = f64s(&df, "noise_scale", &path)?;
-    // Filter variants of one label differ in their Q/R multipliers: show them in the label.
-    let q = f64s(&df, "q_scale", &path)?;
-    let r = f64s(&df, "r_scale", &path)?;
-    let filt: Vec<String> = filt
-        .iter()
-        .enumerate()
-        .map(|(i, f)| match (q[i], r[i]) {
-            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{f} q×{q} r×{r}"),
-            _ => f.clone(),
-        })
-        .collect();
-    let mean = f64s(&df, "rmse_mean", &path)?;
-    let std = f64s(&df, "rmse_std", &path)?;
-
-    let mut states: Vec<String> = Vec::new();
-    // (scenario order, noise, filter order) → state → "mean ± std"
-    let mut rows: Vec<(String, f64, String)> = Vec::new();
-    let mut cells: BTreeMap<(usize, String), String> = BTreeMap::new();
-    for i in 0..df.height() {
-        let nz = noise[i].unwrap_or(f64::NAN);
-        if noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0)) {
-            continue;
-        }
-        if !states.contains(&state[i]) {
-            states.push(state[i].clone());
-        }
-        let key = (scen[i].clone(), nz, filt[i].clone());
-        let idx = match rows.iter().position(|r| *r == key) {
-            Some(p) => p,
-            None => {
-                rows.push(key);
-                rows.len() - 1
-            }
-        };
-        let text = match std[i] {
-            Some(s) => format!("{} ± {}", num(mean[i]), num(Some(s))),
-            None => num(mean[i]),
-        };
-        cells.insert((idx, state[i].clone()), text);
-    }
+    let (rmse, noise) = RmseTable::read(&path, noise_scale)?;
     let mut out = String::new();
-    if rows.is_empty()
+    if rmse.rows.is_empty()
         && let Some(wanted) = noise_scale
     {
         let mut scales: Vec<f64> = noise.iter().flatten().copied().collect();
@@ -124,42 +209,11 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
             ),
         });
     }
-    if rows.is_empty() {
+    if rmse.rows.is_empty() {
         out.push_str("no rows match\n");
         return Ok(out);
     }
-    let widths: Vec<usize> = states
-        .iter()
-        .map(|s| {
-            (0..rows.len())
-                .filter_map(|r| cells.get(&(r, s.clone())).map(|c| c.chars().count()))
-                .chain([s.len() + 5])
-                .max()
-                .unwrap_or(8)
-        })
-        .collect();
-    let sw = rows.iter().map(|r| r.0.len()).max().unwrap_or(8).max(8);
-    let fw = rows.iter().map(|r| r.2.len()).max().unwrap_or(6).max(6);
-    let _ = write!(
-        out,
-        "RMSE (mean ± std over runs)\n{:<sw$}  {:>11}  {:<fw$}",
-        "scenario", "noise_scale", "filter"
-    );
-    for (s, w) in states.iter().zip(&widths) {
-        let _ = write!(out, "  {:>w$}", format!("rmse_{s}"));
-    }
-    out.push('\n');
-    for (ri, (s, nz, f)) in rows.iter().enumerate() {
-        let _ = write!(out, "{s:<sw$}  {:>11}  {f:<fw$}", format!("{nz}"));
-        for (st, w) in states.iter().zip(&widths) {
-            let c = cells
-                .get(&(ri, st.clone()))
-                .cloned()
-                .unwrap_or_else(|| "—".into());
-            let _ = write!(out, "  {c:>w$}");
-        }
-        out.push('\n');
-    }
+    rmse.render(&mut out);
 
     let cpath = dir.join("consistency.parquet");
     if cpath.exists() {
@@ -173,30 +227,36 @@ pub fn render(dir: &Path, noise_scale: Option<f64>) -> Result<String, OutputErro
 
     let dpath = dir.join("divergence.parquet");
     if dpath.exists() {
-        let d = read(&dpath)?;
-        let scen = strs(&d, "scenario", &dpath)?;
-        let filt = strs(&d, "filter", &dpath)?;
-        let state = strs(&d, "state", &dpath)?;
-        let thr = f64s(&d, "threshold", &dpath)?;
-        let mc = f64s(&d, "mc_divergence_scale", &dpath)?;
-        let p50 = f64s(&d, "run_divergence_p50", &dpath)?;
-        let _ = write!(
+        out.push_str(&divergence_section(&dpath, rmse.key_widths())?);
+    }
+    Ok(out)
+}
+
+/// The divergence points, one line per (scenario, filter, state), its scenario and filter
+/// columns `(sw, fw)` wide.
+fn divergence_section(path: &Path, (sw, fw): (usize, usize)) -> Result<String, OutputError> {
+    let d = read(path)?;
+    let scen = strs(&d, "scenario", path)?;
+    let filt = strs(&d, "filter", path)?;
+    let state = strs(&d, "state", path)?;
+    let thr = f64s(&d, "threshold", path)?;
+    let mc = f64s(&d, "mc_divergence_scale", path)?;
+    let p50 = f64s(&d, "run_divergence_p50", path)?;
+    let mut out = format!(
+        "\nDivergence: first noise scale whose RMSE exceeds the threshold (— = none up to the largest scale)\n{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}\n",
+        "scenario", "filter", "state", "threshold", "mc_mean", "run_median"
+    );
+    for i in 0..d.height() {
+        let _ = writeln!(
             out,
-            "\nDivergence: first noise scale whose RMSE exceeds the threshold (— = none up to the largest scale)\n{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}\n",
-            "scenario", "filter", "state", "threshold", "mc_mean", "run_median"
+            "{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}",
+            scen[i],
+            filt[i],
+            state[i],
+            num(thr[i]),
+            num(mc[i]),
+            num(p50[i])
         );
-        for i in 0..d.height() {
-            let _ = writeln!(
-                out,
-                "{:<sw$}  {:<fw$}  {:<9}  {:>9}  {:>11}  {:>15}",
-                scen[i],
-                filt[i],
-                state[i],
-                num(thr[i]),
-                num(mc[i]),
-                num(p50[i])
-            );
-        }
     }
     Ok(out)
 }
@@ -221,7 +281,7 @@ fn sensors_section(path: &Path, noise_scale: Option<f64>) -> Result<String, Outp
     );
     for i in 0..df.height() {
         let nz = noise[i].unwrap_or(f64::NAN);
-        if noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0)) {
+        if hidden(noise_scale, nz) {
             continue;
         }
         let _ = writeln!(
@@ -237,115 +297,178 @@ fn sensors_section(path: &Path, noise_scale: Option<f64>) -> Result<String, Outp
     Ok(out)
 }
 
+/// A consistency line's key: scenario, noise scale, filter variant, runs, α.
+type ConsistencyKey = [String; 5];
+
+/// The columns of consistency.parquet the summary shows.
+struct Consistency {
+    rows: usize,
+    scen: Vec<String>,
+    filt: Vec<String>,
+    test: Vec<String>,
+    dirn: Vec<String>,
+    noise: Vec<Option<f64>>,
+    q: Vec<Option<f64>>,
+    r: Vec<Option<f64>>,
+    stat: Vec<Option<f64>>,
+    lo: Vec<Option<f64>>,
+    hi: Vec<Option<f64>>,
+    alpha: Vec<Option<f64>>,
+    dof: Vec<Option<f64>>,
+    p_value: Vec<Option<f64>>,
+    pass: Vec<Option<bool>>,
+    runs: Vec<Option<i64>>,
+}
+
+impl Consistency {
+    fn read(path: &Path) -> Result<Consistency, OutputError> {
+        let df = read(path)?;
+        let scen = strs(&df, "scenario", path)?;
+        let filt = strs(&df, "filter", path)?;
+        let test = strs(&df, "test", path)?;
+        let dirn = strs(&df, "direction", path)?;
+        let noise = f64s(&df, "noise_scale", path)?;
+        let (q, r) = (f64s(&df, "q_scale", path)?, f64s(&df, "r_scale", path)?);
+        let (stat, lo, hi) = (
+            f64s(&df, "statistic", path)?,
+            f64s(&df, "lower", path)?,
+            f64s(&df, "upper", path)?,
+        );
+        let alpha = f64s(&df, "alpha", path)?;
+        let (dof, p_value) = (f64s(&df, "dof", path)?, f64s(&df, "p_value", path)?);
+        let pass: Vec<Option<bool>> = df
+            .column("pass")
+            .and_then(|c| c.bool().cloned())
+            .map_err(|e| fmt_err(path, e))?
+            .iter()
+            .collect();
+        let runs: Vec<Option<i64>> = df
+            .column("runs")
+            .and_then(|c| c.i64().cloned())
+            .map_err(|e| fmt_err(path, e))?
+            .iter()
+            .collect();
+        Ok(Consistency {
+            rows: df.height(),
+            scen,
+            filt,
+            test,
+            dirn,
+            noise,
+            q,
+            r,
+            stat,
+            lo,
+            hi,
+            alpha,
+            dof,
+            p_value,
+            pass,
+            runs,
+        })
+    }
+
+    fn key_of(&self, i: usize) -> ConsistencyKey {
+        let g = |v: Option<f64>| v.map_or("—".to_string(), |x| format!("{x}"));
+        let label = match (self.q[i], self.r[i]) {
+            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{} q×{q} r×{r}", self.filt[i]),
+            _ => self.filt[i].clone(),
+        };
+        [
+            self.scen[i].clone(),
+            g(self.noise[i]),
+            label,
+            self.runs[i].map_or("—".into(), |n| n.to_string()),
+            g(self.alpha[i]),
+        ]
+    }
+
+    /// The text of row `i`'s verdict.
+    fn verdict(&self, i: usize) -> String {
+        match self.pass[i] {
+            Some(true) => "pass".into(),
+            _ if self.dirn[i].is_empty() => "FAIL".into(),
+            _ => format!("FAIL ({})", self.dirn[i]),
+        }
+    }
+
+    /// The text of row `i`'s statistic in its band; in the verdict's α/2 band when the test is
+    /// one of the verdict's components (`in_verdict`).
+    fn in_band(&self, i: usize, in_verdict: bool) -> String {
+        let (stat, lo, hi, alpha) = (self.stat[i], self.lo[i], self.hi[i], self.alpha[i]);
+        let band = in_verdict
+            .then(|| verdict_band(&self.test[i], lo, hi, self.dof[i], alpha?))
+            .flatten();
+        match band {
+            // The verdict's decision (p > α/2), with the band it is equivalent to.
+            Some(b) => {
+                let out = self.p_value[i].is_none_or(|p| p <= alpha.unwrap_or(0.0) / 2.0);
+                format!(
+                    "{} [{}, {}]{}",
+                    num(stat),
+                    num(Some(b.lo)),
+                    num(Some(b.hi)),
+                    if out { " outside" } else { "" }
+                )
+            }
+            None => format!(
+                "{} [{}, {}]{}",
+                num(stat),
+                num(lo),
+                num(hi),
+                if self.pass[i] == Some(false) {
+                    " outside"
+                } else {
+                    ""
+                }
+            ),
+        }
+    }
+
+    /// The lines' keys in table order, each with its [ANEES, ANIS, x0 NEES, verdict] texts.
+    fn lines(&self, noise_scale: Option<f64>) -> (Vec<ConsistencyKey>, Vec<[String; 4]>) {
+        // Keys with a verdict: their ANEES and ANIS are shown in the α/2 bands it judges by.
+        let judged: Vec<ConsistencyKey> = (0..self.rows)
+            .filter(|&i| self.test[i] == "verdict")
+            .map(|i| self.key_of(i))
+            .collect();
+        let mut keys: Vec<ConsistencyKey> = Vec::new();
+        let mut cols: Vec<[String; 4]> = Vec::new();
+        for i in 0..self.rows {
+            if hidden(noise_scale, self.noise[i].unwrap_or(f64::NAN)) {
+                continue;
+            }
+            let slot = match self.test[i].as_str() {
+                "nees_time_average" => 0,
+                "nis_time_average" => 1,
+                "initial_nees" => 2,
+                "verdict" => 3,
+                _ => continue,
+            };
+            let key = self.key_of(i);
+            let in_verdict = slot < 2 && judged.contains(&key);
+            let idx = match keys.iter().position(|k| *k == key) {
+                Some(p) => p,
+                None => {
+                    keys.push(key);
+                    cols.push(Default::default());
+                    keys.len() - 1
+                }
+            };
+            cols[idx][slot] = if slot == 3 {
+                self.verdict(i)
+            } else {
+                self.in_band(i, in_verdict)
+            };
+        }
+        (keys, cols)
+    }
+}
+
 /// One line per cell × filter × (runs, α): the time-averaged NEES and NIS with their bands,
 /// the initial-estimate NEES when there is one, and the verdict.
 fn consistency_section(path: &Path, noise_scale: Option<f64>) -> Result<String, OutputError> {
-    let df = read(path)?;
-    let scen = strs(&df, "scenario", path)?;
-    let filt = strs(&df, "filter", path)?;
-    let test = strs(&df, "test", path)?;
-    let dirn = strs(&df, "direction", path)?;
-    let noise = f64s(&df, "noise_scale", path)?;
-    let (q, r) = (f64s(&df, "q_scale", path)?, f64s(&df, "r_scale", path)?);
-    let (stat, lo, hi) = (
-        f64s(&df, "statistic", path)?,
-        f64s(&df, "lower", path)?,
-        f64s(&df, "upper", path)?,
-    );
-    let alpha = f64s(&df, "alpha", path)?;
-    let (dof, p_value) = (f64s(&df, "dof", path)?, f64s(&df, "p_value", path)?);
-    let pass: Vec<Option<bool>> = df
-        .column("pass")
-        .and_then(|c| c.bool().cloned())
-        .map_err(|e| fmt_err(path, e))?
-        .iter()
-        .collect();
-    let runs: Vec<Option<i64>> = df
-        .column("runs")
-        .and_then(|c| c.i64().cloned())
-        .map_err(|e| fmt_err(path, e))?
-        .iter()
-        .collect();
-    let g = |v: Option<f64>| v.map_or("—".to_string(), |x| format!("{x}"));
-    let key_of = |i: usize| {
-        let label = match (q[i], r[i]) {
-            (Some(q), Some(r)) if q != 1.0 || r != 1.0 => format!("{} q×{q} r×{r}", filt[i]),
-            _ => filt[i].clone(),
-        };
-        [
-            scen[i].clone(),
-            g(noise[i]),
-            label,
-            runs[i].map_or("—".into(), |n| n.to_string()),
-            g(alpha[i]),
-        ]
-    };
-    // Keys with a verdict: their ANEES and ANIS are shown in the α/2 bands it judges by.
-    let judged: Vec<[String; 5]> = (0..df.height())
-        .filter(|&i| test[i] == "verdict")
-        .map(key_of)
-        .collect();
-    // Row key (in table order) → [ANEES, ANIS, x0 NEES, verdict] texts.
-    let mut keys: Vec<[String; 5]> = Vec::new();
-    let mut cols: Vec<[String; 4]> = Vec::new();
-    for i in 0..df.height() {
-        let nz = noise[i].unwrap_or(f64::NAN);
-        if noise_scale.is_some_and(|s| (s - nz).abs() > 1e-12 * s.abs().max(1.0)) {
-            continue;
-        }
-        let slot = match test[i].as_str() {
-            "nees_time_average" => 0,
-            "nis_time_average" => 1,
-            "initial_nees" => 2,
-            "verdict" => 3,
-            _ => continue,
-        };
-        let key = key_of(i);
-        let in_verdict = slot < 2 && judged.contains(&key);
-        let idx = match keys.iter().position(|k| *k == key) {
-            Some(p) => p,
-            None => {
-                keys.push(key);
-                cols.push(Default::default());
-                keys.len() - 1
-            }
-        };
-        cols[idx][slot] = if slot == 3 {
-            match pass[i] {
-                Some(true) => "pass".into(),
-                _ if dirn[i].is_empty() => "FAIL".into(),
-                _ => format!("FAIL ({})", dirn[i]),
-            }
-        } else {
-            let band = in_verdict
-                .then(|| verdict_band(&test[i], lo[i], hi[i], dof[i], alpha[i]?))
-                .flatten();
-            match band {
-                // The verdict's decision (p > α/2), with the band it is equivalent to.
-                Some(b) => {
-                    let out = p_value[i].is_none_or(|p| p <= alpha[i].unwrap_or(0.0) / 2.0);
-                    format!(
-                        "{} [{}, {}]{}",
-                        num(stat[i]),
-                        num(Some(b.lo)),
-                        num(Some(b.hi)),
-                        if out { " outside" } else { "" }
-                    )
-                }
-                None => format!(
-                    "{} [{}, {}]{}",
-                    num(stat[i]),
-                    num(lo[i]),
-                    num(hi[i]),
-                    if pass[i] == Some(false) {
-                        " outside"
-                    } else {
-                        ""
-                    }
-                ),
-            }
-        };
-    }
+    let (keys, cols) = Consistency::read(path)?.lines(noise_scale);
     let mut out = String::new();
     if keys.is_empty() {
         return Ok(out);

@@ -432,6 +432,192 @@ fn damaged(path: &Path, why: String) -> OutputError {
     }
 }
 
+/// A journal's records as they are read back: every byte of the record in progress is kept in
+/// `raw`, the bytes its checksum covers.
+struct Records<'p, R: Read> {
+    r: BufReader<R>,
+    raw: Vec<u8>,
+    path: &'p Path,
+    /// The length of the journal the index vouches for (for messages).
+    bytes: u64,
+}
+
+impl<R: Read> Records<'_, R> {
+    fn undecodable(&self, e: std::io::Error) -> OutputError {
+        damaged(self.path, format!("cannot be decoded ({e})"))
+    }
+
+    fn truncated(&self) -> OutputError {
+        damaged(
+            self.path,
+            format!("ends inside a record before byte {}", self.bytes),
+        )
+    }
+
+    /// Whether the stream ends here (at a record's start).
+    fn at_end(&mut self) -> Result<bool, OutputError> {
+        match self.r.fill_buf() {
+            Ok(b) => Ok(b.is_empty()),
+            Err(e) => Err(self.undecodable(e)),
+        }
+    }
+
+    /// A failed exact read: the stream ended inside a record, or could not be decoded.
+    fn short_read(&self, e: std::io::Error) -> OutputError {
+        if e.kind() == std::io::ErrorKind::UnexpectedEof {
+            self.truncated()
+        } else {
+            self.undecodable(e)
+        }
+    }
+
+    /// Appends the next `n` bytes to `raw`; returns where they start.
+    fn read_exact(&mut self, n: usize) -> Result<usize, OutputError> {
+        let at = self.raw.len();
+        self.raw.resize(at + n, 0);
+        self.r
+            .read_exact(&mut self.raw[at..])
+            .map_err(|e| self.short_read(e))?;
+        Ok(at)
+    }
+
+    fn u64_at(&self, at: usize) -> u64 {
+        u64::from_le_bytes(self.raw[at..at + 8].try_into().unwrap())
+    }
+
+    /// Reads the checksum that follows the record in `raw` and compares.
+    fn verify_checksum(&mut self, record: u64) -> Result<(), OutputError> {
+        let mut sum = [0u8; 8];
+        self.r
+            .read_exact(&mut sum)
+            .map_err(|e| self.short_read(e))?;
+        if u64::from_le_bytes(sum) != crate::hash::fnv1a64(&self.raw) {
+            return Err(damaged(
+                self.path,
+                format!("has a record {record} that fails its checksum"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The rest of a cell-end record: the cell it ends, which must be `cells_seen + 1` and
+    /// come after `rows` rows.
+    fn cell_end(&mut self, record: u64, cells_seen: u64, rows: u64) -> Result<u64, OutputError> {
+        self.read_exact(16)?;
+        self.verify_checksum(record)?;
+        let (cell, rows_before) = (self.u64_at(1), self.u64_at(9));
+        if cell != cells_seen + 1 || rows_before != rows {
+            return Err(damaged(
+                self.path,
+                format!(
+                    "ends cell {cell} after {rows_before} rows where cell {} ends after {rows}",
+                    cells_seen + 1
+                ),
+            ));
+        }
+        Ok(cell)
+    }
+
+    /// The rest of a row record, decoded into `row`.
+    fn row(
+        &mut self,
+        record: u64,
+        columns: &[ColumnDef],
+        row: &mut RowBuffer,
+    ) -> Result<(), OutputError> {
+        row.text.clear();
+        row.spans.clear();
+        row.decoded.clear();
+        for c in columns {
+            let v = self.value(c, row)?;
+            row.decoded.push(v);
+        }
+        self.verify_checksum(record)
+    }
+
+    /// The next value, of column `c`; a string goes into `row.text` and is filled in by
+    /// [`RowBuffer::values`].
+    fn value(&mut self, c: &ColumnDef, row: &mut RowBuffer) -> Result<Value<'static>, OutputError> {
+        Ok(match c.dtype {
+            Dtype::Str => {
+                let at = self.read_exact(4)?;
+                let n = u32::from_le_bytes(self.raw[at..at + 4].try_into().unwrap()) as usize;
+                // Read as it comes, not allocated up front: a damaged length must not reserve
+                // gigabytes before its checksum can refuse it.
+                let at = self.raw.len();
+                let got = (&mut self.r)
+                    .take(n as u64)
+                    .read_to_end(&mut self.raw)
+                    .map_err(|e| self.undecodable(e))?;
+                if got < n {
+                    return Err(self.truncated());
+                }
+                let s = std::str::from_utf8(&self.raw[at..at + n]).map_err(|_| {
+                    damaged(
+                        self.path,
+                        format!("has a column {} that is not UTF-8", c.name),
+                    )
+                })?;
+                row.spans.push((row.text.len(), row.text.len() + n));
+                row.text.push_str(s);
+                Value::Str("")
+            }
+            Dtype::F64 => {
+                let at = self.read_exact(8)?;
+                let x = f64::from_bits(self.u64_at(at));
+                Value::F64((!x.is_nan()).then_some(x))
+            }
+            Dtype::I64 => {
+                let at = self.read_exact(1)?;
+                if self.raw[at] == 0 {
+                    Value::I64(None)
+                } else {
+                    let at = self.read_exact(8)?;
+                    Value::I64(Some(self.u64_at(at) as i64))
+                }
+            }
+            Dtype::U64 => {
+                let at = self.read_exact(8)?;
+                Value::U64(self.u64_at(at))
+            }
+            Dtype::Bool => {
+                let at = self.read_exact(1)?;
+                Value::Bool(match self.raw[at] {
+                    0 => None,
+                    1 => Some(false),
+                    _ => Some(true),
+                })
+            }
+        })
+    }
+}
+
+/// One replayed row: its strings decoded into one buffer, from which the row's values borrow.
+struct RowBuffer {
+    text: String,
+    spans: Vec<(usize, usize)>,
+    /// The values, each string a placeholder for its span of `text`.
+    decoded: Vec<Value<'static>>,
+}
+
+impl RowBuffer {
+    /// The row, its strings borrowed from `text`.
+    fn values(&self) -> Vec<Value<'_>> {
+        let mut row: Vec<Value<'_>> = Vec::with_capacity(self.decoded.len());
+        let mut next_str = self.spans.iter();
+        for v in &self.decoded {
+            row.push(match v {
+                Value::Str(_) => {
+                    let &(a, b) = next_str.next().expect("one span per string column");
+                    Value::Str(&self.text[a..b])
+                }
+                other => *other,
+            });
+        }
+        row
+    }
+}
+
 /// Replays the first `bytes` bytes of the journal at `path`, whose rows have `columns`,
 /// calling `f` with each row in order, after verifying its checksum. The bytes must end with
 /// the end of cell `cells` (none when `cells` is 0), every cell's end in order before it:
@@ -447,135 +633,44 @@ pub fn replay(
     let file = File::open(path).map_err(io("cannot open the checkpoint journal", path))?;
     let decoder = zstd::stream::read::Decoder::new(file.take(bytes))
         .map_err(io("cannot start decompressing", path))?;
-    let mut r = BufReader::with_capacity(1 << 16, decoder);
-    let undecodable = |e: std::io::Error| damaged(path, format!("cannot be decoded ({e})"));
-    // Every byte read is kept in `raw`, the record's bytes its checksum covers.
-    let read_exact =
-        |r: &mut BufReader<_>, raw: &mut Vec<u8>, n: usize| -> Result<usize, OutputError> {
-            let at = raw.len();
-            raw.resize(at + n, 0);
-            r.read_exact(&mut raw[at..]).map_err(|e| {
-                if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                    damaged(path, format!("ends inside a record before byte {bytes}"))
-                } else {
-                    undecodable(e)
-                }
-            })?;
-            Ok(at)
-        };
-    let u64_at = |raw: &[u8], at: usize| u64::from_le_bytes(raw[at..at + 8].try_into().unwrap());
-    // Strings are decoded into one buffer per row; the row's values borrow from it.
-    let mut text = String::new();
-    let mut spans: Vec<(usize, usize)> = Vec::new();
-    let mut decoded: Vec<Value<'static>> = Vec::with_capacity(columns.len());
-    let mut raw: Vec<u8> = Vec::with_capacity(256);
+    let mut records = Records {
+        r: BufReader::with_capacity(1 << 16, decoder),
+        raw: Vec::with_capacity(256),
+        path,
+        bytes,
+    };
+    let mut row = RowBuffer {
+        text: String::new(),
+        spans: Vec::new(),
+        decoded: Vec::with_capacity(columns.len()),
+    };
     let mut done = 0u64;
     let mut cells_seen = 0u64;
     // Whether the last record read ended a cell (so the bytes may end here).
     let mut at_cell_end = true;
     let mut record = 0u64;
-    // Records until the stream ends at a record's start.
-    while !r.fill_buf().map_err(undecodable)?.is_empty() {
+    while !records.at_end()? {
         record += 1;
-        raw.clear();
-        read_exact(&mut r, &mut raw, 1)?;
-        let tag = raw[0];
-        if tag == TAG_CELL_END {
-            read_exact(&mut r, &mut raw, 16)?;
-            verify_checksum(&mut r, &raw, path, record, &read_exact)?;
-            let (cell, rows_before) = (u64_at(&raw, 1), u64_at(&raw, 9));
-            if cell != cells_seen + 1 || rows_before != done {
+        records.raw.clear();
+        let at = records.read_exact(1)?;
+        match records.raw[at] {
+            TAG_CELL_END => {
+                cells_seen = records.cell_end(record, cells_seen, done)?;
+                at_cell_end = true;
+            }
+            TAG_ROW => {
+                records.row(record, columns, &mut row)?;
+                f(&row.values())?;
+                done += 1;
+                at_cell_end = false;
+            }
+            tag => {
                 return Err(damaged(
                     path,
-                    format!(
-                        "ends cell {cell} after {rows_before} rows where cell {} ends after {done}",
-                        cells_seen + 1
-                    ),
+                    format!("has a record {record} of unknown kind {tag}"),
                 ));
             }
-            cells_seen = cell;
-            at_cell_end = true;
-            continue;
         }
-        if tag != TAG_ROW {
-            return Err(damaged(
-                path,
-                format!("has a record {record} of unknown kind {tag}"),
-            ));
-        }
-        text.clear();
-        spans.clear();
-        decoded.clear();
-        for c in columns {
-            let v = match c.dtype {
-                Dtype::Str => {
-                    let at = read_exact(&mut r, &mut raw, 4)?;
-                    let n = u32::from_le_bytes(raw[at..at + 4].try_into().unwrap()) as usize;
-                    // Read as it comes, not allocated up front: a damaged length must not
-                    // reserve gigabytes before its checksum can refuse it.
-                    let at = raw.len();
-                    let got = (&mut r)
-                        .take(n as u64)
-                        .read_to_end(&mut raw)
-                        .map_err(undecodable)?;
-                    if got < n {
-                        return Err(damaged(
-                            path,
-                            format!("ends inside a record before byte {bytes}"),
-                        ));
-                    }
-                    let s = std::str::from_utf8(&raw[at..at + n]).map_err(|_| {
-                        damaged(path, format!("has a column {} that is not UTF-8", c.name))
-                    })?;
-                    spans.push((text.len(), text.len() + n));
-                    text.push_str(s);
-                    // Filled in below, once `text` no longer grows.
-                    Value::Str("")
-                }
-                Dtype::F64 => {
-                    let at = read_exact(&mut r, &mut raw, 8)?;
-                    let x = f64::from_bits(u64_at(&raw, at));
-                    Value::F64((!x.is_nan()).then_some(x))
-                }
-                Dtype::I64 => {
-                    let at = read_exact(&mut r, &mut raw, 1)?;
-                    if raw[at] == 0 {
-                        Value::I64(None)
-                    } else {
-                        let at = read_exact(&mut r, &mut raw, 8)?;
-                        Value::I64(Some(u64_at(&raw, at) as i64))
-                    }
-                }
-                Dtype::U64 => {
-                    let at = read_exact(&mut r, &mut raw, 8)?;
-                    Value::U64(u64_at(&raw, at))
-                }
-                Dtype::Bool => {
-                    let at = read_exact(&mut r, &mut raw, 1)?;
-                    Value::Bool(match raw[at] {
-                        0 => None,
-                        1 => Some(false),
-                        _ => Some(true),
-                    })
-                }
-            };
-            decoded.push(v);
-        }
-        verify_checksum(&mut r, &raw, path, record, &read_exact)?;
-        let mut row: Vec<Value<'_>> = Vec::with_capacity(columns.len());
-        let mut next_str = spans.iter();
-        for v in &decoded {
-            row.push(match v {
-                Value::Str(_) => {
-                    let &(a, b) = next_str.next().expect("one span per string column");
-                    Value::Str(&text[a..b])
-                }
-                other => *other,
-            });
-        }
-        f(&row)?;
-        done += 1;
-        at_cell_end = false;
     }
     if !at_cell_end || cells_seen != cells {
         return Err(damaged(
@@ -591,26 +686,6 @@ pub fn replay(
         ));
     }
     Ok(done)
-}
-
-/// Reads the checksum that follows the record in `raw` and compares.
-fn verify_checksum<R: Read>(
-    r: &mut BufReader<R>,
-    raw: &[u8],
-    path: &Path,
-    record: u64,
-    read_exact: &impl Fn(&mut BufReader<R>, &mut Vec<u8>, usize) -> Result<usize, OutputError>,
-) -> Result<(), OutputError> {
-    let mut sum = Vec::with_capacity(8);
-    read_exact(r, &mut sum, 8)?;
-    let stored = u64::from_le_bytes(sum[..8].try_into().unwrap());
-    if stored != crate::hash::fnv1a64(raw) {
-        return Err(damaged(
-            path,
-            format!("has a record {record} that fails its checksum"),
-        ));
-    }
-    Ok(())
 }
 
 #[cfg(test)]

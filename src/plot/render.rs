@@ -10,7 +10,7 @@ use plotters::coord::ranged1d::{DefaultFormatting, KeyPointHint};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
-use super::{Figure, Format, Ink, Mark, Panel};
+use super::{Bar, Figure, Format, Ink, Mark, Panel};
 use crate::error::PlotError;
 
 /// DejaVu Sans (Bitstream Vera licence, `assets/fonts/DejaVuSans.LICENSE`).
@@ -504,54 +504,88 @@ impl Axis {
     }
 }
 
-fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> Result<(), String> {
-    let e = |e: DrawingAreaErrorKind<DB::ErrorType>| e.to_string();
-    // Log axes are drawn in log10 units with labels showing 10^v: one coordinate type for
-    // every panel keeps this renderer a single generic function.
-    let tx = |x: f64| {
-        if p.log_x {
+/// Space around a panel's plot area (px): caption, x-axis labels, y-axis labels, margin.
+const CAPTION_H: f64 = CAPTION_PX as f64 + 14.0;
+const X_LABEL_H: f64 = 46.0;
+const Y_LABEL_W: f64 = 72.0;
+const MARGIN: f64 = 10.0;
+
+/// A panel's chart: both axes in plot coordinates ([`Scale`]).
+type Chart<'a, DB> = ChartContext<'a, DB, Cartesian2d<Ticked, Ticked>>;
+
+/// Data to plot coordinates. Log axes are drawn in log10 units with labels showing 10^v: one
+/// coordinate type for every panel keeps this renderer a single generic function. A value a
+/// log axis cannot show (≤ 0) maps to `None`.
+#[derive(Clone, Copy, Debug)]
+struct Scale {
+    log_x: bool,
+    log_y: bool,
+}
+
+impl Scale {
+    fn of(p: &Panel) -> Scale {
+        Scale {
+            log_x: p.log_x,
+            log_y: p.log_y,
+        }
+    }
+
+    fn x(self, x: f64) -> Option<f64> {
+        if self.log_x {
             (x > 0.0).then(|| x.log10())
         } else {
             Some(x)
         }
-    };
-    let ty = |y: f64| {
-        if p.log_y {
+    }
+
+    fn y(self, y: f64) -> Option<f64> {
+        if self.log_y {
             (y > 0.0).then(|| y.log10())
         } else {
             Some(y)
         }
-    };
+    }
+}
+
+/// Every x and y coordinate the panel's marks reach, and whether it has bars.
+fn extent(p: &Panel, s: Scale) -> (Vec<f64>, Vec<f64>, bool) {
     let mut xs: Vec<f64> = Vec::new();
     let mut ys: Vec<f64> = Vec::new();
     let mut has_bars = false;
     for m in &p.marks {
         match m {
             Mark::Line { points, .. } | Mark::Scatter { points, .. } => {
-                xs.extend(points.iter().filter_map(|q| tx(q.0)));
-                ys.extend(points.iter().filter_map(|q| ty(q.1)));
+                xs.extend(points.iter().filter_map(|q| s.x(q.0)));
+                ys.extend(points.iter().filter_map(|q| s.y(q.1)));
             }
             Mark::Band { points, .. } => {
-                xs.extend(points.iter().filter_map(|q| tx(q.0)));
-                ys.extend(points.iter().flat_map(|q| [ty(q.1), ty(q.2)]).flatten());
+                xs.extend(points.iter().filter_map(|q| s.x(q.0)));
+                ys.extend(points.iter().flat_map(|q| [s.y(q.1), s.y(q.2)]).flatten());
             }
-            Mark::HLine { y, .. } => ys.extend(ty(*y)),
+            Mark::HLine { y, .. } => ys.extend(s.y(*y)),
             Mark::Point { x, y, .. } => {
-                xs.extend(tx(*x));
-                ys.extend(ty(*y));
+                xs.extend(s.x(*x));
+                ys.extend(s.y(*y));
             }
             Mark::Bars { bars, .. } => {
                 has_bars = true;
                 for b in bars {
-                    xs.extend([tx(b.x0), tx(b.x1)].into_iter().flatten());
-                    ys.extend(ty(b.y));
+                    xs.extend([s.x(b.x0), s.x(b.x1)].into_iter().flatten());
+                    ys.extend(s.y(b.y));
                     if let Some((lo, hi)) = b.whisker {
-                        ys.extend([ty(lo), ty(hi)].into_iter().flatten());
+                        ys.extend([s.y(lo), s.y(hi)].into_iter().flatten());
                     }
                 }
             }
         }
     }
+    (xs, ys, has_bars)
+}
+
+/// The panel's axis ranges (x0, x1, y0, y1) in plot coordinates, for a drawing area of
+/// `dim` pixels.
+fn ranges(p: &Panel, s: Scale, dim: (u32, u32)) -> (f64, f64, f64, f64) {
+    let (xs, mut ys, has_bars) = extent(p, s);
     let bars_from_zero = has_bars && !p.log_y && ys.iter().all(|v| *v >= 0.0);
     if has_bars && !p.log_y {
         ys.push(0.0);
@@ -568,12 +602,11 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
     if bars_from_zero {
         y0 = 0.0;
     }
-    let (caption_h, x_label_h, y_label_w, margin) = (CAPTION_PX as f64 + 14.0, 46.0, 72.0, 10.0);
     if p.equal_aspect && !p.log_x && !p.log_y {
         // Widen the range of the shorter side so that a metre is as long on both axes.
-        let (w, h) = area.dim_in_pixel();
-        let pw = (w as f64 - y_label_w - 2.0 * margin).max(1.0);
-        let ph = (h as f64 - caption_h - x_label_h - 2.0 * margin).max(1.0);
+        let (w, h) = dim;
+        let pw = (w as f64 - Y_LABEL_W - 2.0 * MARGIN).max(1.0);
+        let ph = (h as f64 - CAPTION_H - X_LABEL_H - 2.0 * MARGIN).max(1.0);
         let (sx, sy) = ((x1 - x0) / pw, (y1 - y0) / ph);
         if sx > sy {
             let c = (y0 + y1) / 2.0;
@@ -583,38 +616,32 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
             (x0, x1) = (c - sy * pw / 2.0, c + sy * pw / 2.0);
         }
     }
-    let xa = match &p.x_categories {
-        Some(c) => Axis {
-            lo: x0,
-            hi: x1,
-            keys: (0..c.len()).map(|i| i as f64).collect(),
-            decimals: 0,
-            log: false,
-        },
-        None => Axis::new(x0, x1, p.log_x, false),
+    (x0, x1, y0, y1)
+}
+
+/// The panel's chart over the axes `xa` and `ya`, with its caption, grid and tick labels
+/// drawn.
+fn chart<'a, DB: DrawingBackend>(
+    area: &'a DrawingArea<DB, Shift>,
+    p: &Panel,
+    xa: &Axis,
+    ya: &Axis,
+) -> Result<Chart<'a, DB>, String> {
+    let e = |e: DrawingAreaErrorKind<DB::ErrorType>| e.to_string();
+    let ticked = |a: &Axis| Ticked {
+        lo: a.lo,
+        hi: a.hi,
+        keys: a.keys.clone(),
     };
-    let ya = Axis::new(y0, y1, p.log_y, p.integer_y);
     let mut chart = ChartBuilder::on(area)
         .caption(&p.title, ("sans-serif", CAPTION_PX))
-        .margin(margin as u32)
-        .x_label_area_size(x_label_h as u32)
-        .y_label_area_size(y_label_w as u32)
-        .build_cartesian_2d(
-            Ticked {
-                lo: xa.lo,
-                hi: xa.hi,
-                keys: xa.keys.clone(),
-            },
-            Ticked {
-                lo: ya.lo,
-                hi: ya.hi,
-                keys: ya.keys.clone(),
-            },
-        )
+        .margin(MARGIN as u32)
+        .x_label_area_size(X_LABEL_H as u32)
+        .y_label_area_size(Y_LABEL_W as u32)
+        .build_cartesian_2d(ticked(xa), ticked(ya))
         .map_err(e)?;
-    let (x0, x1) = (xa.lo, xa.hi);
-    let cats = p.x_categories.clone();
-    let fx = move |v: &f64| match &cats {
+    let cats = &p.x_categories;
+    let fx = |v: &f64| match cats {
         Some(c) => {
             let i = v.round();
             if (v - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < c.len() {
@@ -636,116 +663,190 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
         .x_label_formatter(&fx)
         .y_label_formatter(&fy);
     mesh.draw().map_err(e)?;
+    Ok(chart)
+}
 
-    let base = if p.log_y { ya.lo } else { 0.0 };
-    // Value texts of successive points alternate above and below them, so that two
-    // divergence points close together do not write over each other.
-    let mut nth_point = 0;
-    for m in &p.marks {
+/// Where the marks of one panel are drawn.
+struct Canvas<'c, 'a, DB: DrawingBackend> {
+    chart: &'c mut Chart<'a, DB>,
+    scale: Scale,
+    /// The x axis's ends (horizontal lines span it).
+    x: (f64, f64),
+    /// The y axis's lower end (a whisker to a value a log axis cannot show ends there).
+    y_lo: f64,
+    /// Where bars start: 0, or the bottom of a log axis.
+    base: f64,
+    /// Points drawn so far: their value texts alternate above and below them, so that two
+    /// divergence points close together do not write over each other.
+    nth_point: usize,
+}
+
+impl<DB: DrawingBackend> Canvas<'_, '_, DB> {
+    fn mark(&mut self, m: &Mark) -> Result<(), String> {
         match m {
-            Mark::Band { ink, points, .. } => {
-                let c = color(*ink);
-                let upper = points.iter().filter_map(|q| Some((tx(q.0)?, ty(q.2)?)));
-                let lower = points
-                    .iter()
-                    .rev()
-                    .filter_map(|q| Some((tx(q.0)?, ty(q.1)?)));
-                let poly: Vec<(f64, f64)> = upper.chain(lower).collect();
-                if poly.len() < 3 {
-                    continue;
-                }
-                chart
-                    .draw_series(std::iter::once(Polygon::new(poly, c.mix(0.18).filled())))
-                    .map_err(e)?;
-            }
+            Mark::Band { ink, points, .. } => self.band(*ink, points),
             Mark::Line {
                 ink,
                 dashed,
                 points,
                 ..
-            } => {
-                let c = color(*ink);
-                let style = ShapeStyle {
-                    color: c.to_rgba(),
-                    filled: false,
-                    stroke_width: if *dashed { 1 } else { 2 },
-                };
-                let pts: Vec<(f64, f64)> = points
-                    .iter()
-                    .filter_map(|q| Some((tx(q.0)?, ty(q.1)?)))
-                    .collect();
-                if *dashed {
-                    chart
-                        .draw_series(DashedLineSeries::new(pts, 6, 4, style))
-                        .map_err(e)?;
-                } else {
-                    chart.draw_series(LineSeries::new(pts, style)).map_err(e)?;
-                }
-            }
-            Mark::Scatter { ink, points, .. } => {
-                let c = color(*ink);
-                let dots: Vec<Circle<(f64, f64), i32>> = points
-                    .iter()
-                    .filter_map(|q| Some(Circle::new((tx(q.0)?, ty(q.1)?), 2, c.mix(0.7).filled())))
-                    .collect();
-                chart.draw_series(dots).map_err(e)?;
-            }
-            Mark::HLine { ink, y, .. } => {
-                let Some(y) = ty(*y) else { continue };
-                let style = ShapeStyle {
-                    color: color(*ink).to_rgba(),
-                    filled: false,
-                    stroke_width: 1,
-                };
-                chart
-                    .draw_series(DashedLineSeries::new([(x0, y), (x1, y)], 6, 4, style))
-                    .map_err(e)?;
-            }
+            } => self.line(*ink, *dashed, points),
+            Mark::Scatter { ink, points, .. } => self.scatter(*ink, points),
+            Mark::HLine { ink, y, .. } => self.hline(*ink, *y),
             Mark::Point {
                 ink, x, y, text, ..
-            } => {
-                let (Some(x), Some(y)) = (tx(*x), ty(*y)) else {
-                    continue;
-                };
-                let c = color(*ink);
-                let font = ("sans-serif", TICK_PX).into_font().color(&c);
-                let note = text.clone().unwrap_or_default();
-                let dy = if nth_point % 2 == 0 { -20 } else { 6 };
-                nth_point += 1;
-                chart
-                    .draw_series(std::iter::once(
-                        EmptyElement::at((x, y))
-                            + Circle::new((0, 0), 5, c.filled())
-                            + Text::new(note, (7, dy), font),
-                    ))
-                    .map_err(e)?;
-            }
-            Mark::Bars { ink, bars, .. } => {
-                let c = color(*ink);
-                let rects: Vec<Rectangle<(f64, f64)>> = bars
-                    .iter()
-                    .filter_map(|b| {
-                        Some(Rectangle::new(
-                            [(tx(b.x0)?, base), (tx(b.x1)?, ty(b.y)?)],
-                            c.mix(0.85).filled(),
-                        ))
-                    })
-                    .collect();
-                chart.draw_series(rects).map_err(e)?;
-                let whiskers: Vec<PathElement<(f64, f64)>> = bars
-                    .iter()
-                    .filter_map(|b| {
-                        let (lo, hi) = b.whisker?;
-                        let xm = tx((b.x0 + b.x1) / 2.0)?;
-                        Some(PathElement::new(
-                            vec![(xm, ty(lo).unwrap_or(ya.lo)), (xm, ty(hi)?)],
-                            BLACK.stroke_width(1),
-                        ))
-                    })
-                    .collect();
-                chart.draw_series(whiskers).map_err(e)?;
-            }
+            } => self.point(*ink, (*x, *y), text.as_deref()),
+            Mark::Bars { ink, bars, .. } => self.bars(*ink, bars),
         }
+    }
+
+    fn band(&mut self, ink: Ink, points: &[(f64, f64, f64)]) -> Result<(), String> {
+        let s = self.scale;
+        let upper = points.iter().filter_map(|q| Some((s.x(q.0)?, s.y(q.2)?)));
+        let lower = points
+            .iter()
+            .rev()
+            .filter_map(|q| Some((s.x(q.0)?, s.y(q.1)?)));
+        let poly: Vec<(f64, f64)> = upper.chain(lower).collect();
+        if poly.len() < 3 {
+            return Ok(());
+        }
+        let fill = color(ink).mix(0.18).filled();
+        self.chart
+            .draw_series(std::iter::once(Polygon::new(poly, fill)))
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    }
+
+    fn line(&mut self, ink: Ink, dashed: bool, points: &[(f64, f64)]) -> Result<(), String> {
+        let s = self.scale;
+        let style = ShapeStyle {
+            color: color(ink).to_rgba(),
+            filled: false,
+            stroke_width: if dashed { 1 } else { 2 },
+        };
+        let pts: Vec<(f64, f64)> = points
+            .iter()
+            .filter_map(|q| Some((s.x(q.0)?, s.y(q.1)?)))
+            .collect();
+        if dashed {
+            self.chart
+                .draw_series(DashedLineSeries::new(pts, 6, 4, style))
+                .map_err(|e| e.to_string())?;
+        } else {
+            self.chart
+                .draw_series(LineSeries::new(pts, style))
+                .map_err(|e| e.to_string())?;
+        }
+        Ok(())
+    }
+
+    fn scatter(&mut self, ink: Ink, points: &[(f64, f64)]) -> Result<(), String> {
+        let s = self.scale;
+        let fill = color(ink).mix(0.7).filled();
+        let dots: Vec<Circle<(f64, f64), i32>> = points
+            .iter()
+            .filter_map(|q| Some(Circle::new((s.x(q.0)?, s.y(q.1)?), 2, fill)))
+            .collect();
+        self.chart.draw_series(dots).map_err(|e| e.to_string())?;
+        Ok(())
+    }
+
+    fn hline(&mut self, ink: Ink, y: f64) -> Result<(), String> {
+        let Some(y) = self.scale.y(y) else {
+            return Ok(());
+        };
+        let style = ShapeStyle {
+            color: color(ink).to_rgba(),
+            filled: false,
+            stroke_width: 1,
+        };
+        let (x0, x1) = self.x;
+        self.chart
+            .draw_series(DashedLineSeries::new([(x0, y), (x1, y)], 6, 4, style))
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    }
+
+    fn point(&mut self, ink: Ink, (x, y): (f64, f64), text: Option<&str>) -> Result<(), String> {
+        let (Some(x), Some(y)) = (self.scale.x(x), self.scale.y(y)) else {
+            return Ok(());
+        };
+        let c = color(ink);
+        let font = ("sans-serif", TICK_PX).into_font().color(&c);
+        let note = text.unwrap_or_default().to_string();
+        let dy = if self.nth_point.is_multiple_of(2) {
+            -20
+        } else {
+            6
+        };
+        self.nth_point += 1;
+        self.chart
+            .draw_series(std::iter::once(
+                EmptyElement::at((x, y))
+                    + Circle::new((0, 0), 5, c.filled())
+                    + Text::new(note, (7, dy), font),
+            ))
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    }
+
+    fn bars(&mut self, ink: Ink, bars: &[Bar]) -> Result<(), String> {
+        let (s, base, y_lo) = (self.scale, self.base, self.y_lo);
+        let fill = color(ink).mix(0.85).filled();
+        let rects: Vec<Rectangle<(f64, f64)>> = bars
+            .iter()
+            .filter_map(|b| {
+                Some(Rectangle::new(
+                    [(s.x(b.x0)?, base), (s.x(b.x1)?, s.y(b.y)?)],
+                    fill,
+                ))
+            })
+            .collect();
+        self.chart.draw_series(rects).map_err(|e| e.to_string())?;
+        let whiskers: Vec<PathElement<(f64, f64)>> = bars
+            .iter()
+            .filter_map(|b| {
+                let (lo, hi) = b.whisker?;
+                let xm = s.x((b.x0 + b.x1) / 2.0)?;
+                Some(PathElement::new(
+                    vec![(xm, s.y(lo).unwrap_or(y_lo)), (xm, s.y(hi)?)],
+                    BLACK.stroke_width(1),
+                ))
+            })
+            .collect();
+        self.chart
+            .draw_series(whiskers)
+            .map_err(|e| e.to_string())?;
+        Ok(())
+    }
+}
+
+fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> Result<(), String> {
+    let scale = Scale::of(p);
+    let (x0, x1, y0, y1) = ranges(p, scale, area.dim_in_pixel());
+    let xa = match &p.x_categories {
+        Some(c) => Axis {
+            lo: x0,
+            hi: x1,
+            keys: (0..c.len()).map(|i| i as f64).collect(),
+            decimals: 0,
+            log: false,
+        },
+        None => Axis::new(x0, x1, p.log_x, false),
+    };
+    let ya = Axis::new(y0, y1, p.log_y, p.integer_y);
+    let mut chart = chart(area, p, &xa, &ya)?;
+    let mut canvas = Canvas {
+        chart: &mut chart,
+        scale,
+        x: (xa.lo, xa.hi),
+        y_lo: ya.lo,
+        base: if p.log_y { ya.lo } else { 0.0 },
+        nth_point: 0,
+    };
+    for m in &p.marks {
+        canvas.mark(m)?;
     }
     Ok(())
 }

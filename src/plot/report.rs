@@ -252,67 +252,202 @@ fn rmse_table(t: &Tables) -> Result<String, PlotError> {
     Ok(h)
 }
 
+/// The consistency tests the verdict table gives a column, with their headings.
+const VERDICT_COLUMNS: [(&str, &str); 4] = [
+    ("nees_time_average", "NEES time average"),
+    ("nis_time_average", "NIS time average"),
+    ("nees_run_average_t", "NEES run averages (t)"),
+    ("innovation_whiteness", "innovation whiteness"),
+];
+
+/// A row of the verdict table: (scenario, noise scale's bits, filter variant).
+type VerdictKey = (String, u64, String);
+
+/// The CSS class of a cell: pass, fail, or not judged.
+fn class(ok: Option<bool>) -> &'static str {
+    match ok {
+        Some(true) => "pass",
+        Some(false) => "fail",
+        None => "na",
+    }
+}
+
+/// The columns of consistency.parquet that the verdict table shows.
+struct Verdicts {
+    rows: usize,
+    scen: Vec<String>,
+    filt: Vec<String>,
+    test: Vec<String>,
+    noise: Vec<Option<f64>>,
+    stat: Vec<Option<f64>>,
+    lo: Vec<Option<f64>>,
+    hi: Vec<Option<f64>>,
+    p: Vec<Option<f64>>,
+    dof: Vec<Option<f64>>,
+    alpha: Vec<Option<f64>>,
+    pass: Vec<Option<bool>>,
+    direction: Vec<String>,
+}
+
+impl Verdicts {
+    fn read(c: &Table) -> Result<Verdicts, PlotError> {
+        let (scen, filt, test) = (c.strs("scenario")?, c.strs("filter")?, c.strs("test")?);
+        let noise = c.f64s("noise_scale")?;
+        let (stat, lo, hi, p) = (
+            c.f64s("statistic")?,
+            c.f64s("lower")?,
+            c.f64s("upper")?,
+            c.f64s("p_value")?,
+        );
+        let (dof, alpha) = (c.f64s("dof")?, c.f64s("alpha")?);
+        let pass: Vec<Option<bool>> =
+            c.df.column("pass")
+                .ok()
+                .and_then(|col| col.bool().ok().map(|b| b.iter().collect()))
+                .unwrap_or_else(|| vec![None; c.height()]);
+        let direction = if c.has("direction") {
+            c.strs("direction")?
+        } else {
+            vec![String::new(); c.height()]
+        };
+        Ok(Verdicts {
+            rows: c.height(),
+            scen,
+            filt,
+            test,
+            noise,
+            stat,
+            lo,
+            hi,
+            p,
+            dof,
+            alpha,
+            pass,
+            direction,
+        })
+    }
+
+    fn in_row(&self, i: usize, k: &VerdictKey) -> bool {
+        self.scen[i] == k.0
+            && self.noise[i].unwrap_or(f64::NAN).to_bits() == k.1
+            && self.filt[i] == k.2
+    }
+
+    /// The table's rows, in order of first appearance.
+    fn keys(&self) -> Vec<VerdictKey> {
+        let mut keys: Vec<VerdictKey> = Vec::new();
+        for i in 0..self.rows {
+            let k = (
+                self.scen[i].clone(),
+                self.noise[i].unwrap_or(f64::NAN).to_bits(),
+                self.filt[i].clone(),
+            );
+            if !keys.contains(&k) {
+                keys.push(k);
+            }
+        }
+        keys
+    }
+
+    /// The row of test `name` in table row `k`.
+    fn find(&self, k: &VerdictKey, name: &str) -> Option<usize> {
+        (0..self.rows).find(|&i| self.in_row(i, k) && self.test[i] == name)
+    }
+
+    /// The verdict cell: consistent or not (with the direction), and its p-value.
+    fn verdict_cell(&self, k: &VerdictKey) -> String {
+        let Some(i) = self.find(k, "verdict") else {
+            return "<td class=\"na\">—</td>".into();
+        };
+        let word = match self.pass[i] {
+            Some(true) => "consistent".to_string(),
+            Some(false) if !self.direction[i].is_empty() => {
+                format!("inconsistent ({})", self.direction[i])
+            }
+            Some(false) => "inconsistent".to_string(),
+            None => "—".to_string(),
+        };
+        format!(
+            "<td class=\"{}\"><b>{}</b><small>p = {}</small></td>",
+            class(self.pass[i]),
+            escape(&word),
+            escape(&num(self.p[i]))
+        )
+    }
+
+    /// The cell of test `name`: its statistic against its acceptance band.
+    fn test_cell(&self, k: &VerdictKey, name: &str) -> String {
+        let Some(i) = self.find(k, name) else {
+            return "<td class=\"na\">—</td>".into();
+        };
+        // The verdict's components (the NEES time average, or the run-average t-test standing
+        // in for it, and the NIS time average) are drawn with the α/2 band and the α/2
+        // decision the verdict uses; the other columns are their own tests at α.
+        let component = self.find(k, "verdict").is_some()
+            && match name {
+                "nees_time_average" | "nis_time_average" => true,
+                "nees_run_average_t" => self.find(k, "nees_time_average").is_none(),
+                _ => false,
+            };
+        let half = component
+            .then(|| {
+                let a = self.alpha[i]?;
+                let band = verdict_band(name, self.lo[i], self.hi[i], self.dof[i], a)?;
+                Some((band, self.p[i].map(|p| p > a / 2.0)))
+            })
+            .flatten();
+        let (l, u, ok) = match half {
+            Some((band, ok)) => (Some(band.lo), Some(band.hi), ok),
+            None => (self.lo[i], self.hi[i], self.pass[i]),
+        };
+        let inside = match ok {
+            Some(true) => "∈",
+            _ => "∉",
+        };
+        // Statistic and band with one number of decimals: 4 significant digits of the band's
+        // larger end.
+        let scale = u.or(l).or(self.stat[i]).unwrap_or(1.0).abs();
+        let d = (decimals_for(scale) + 1).min(6);
+        format!(
+            "<td class=\"{}\">{}<small>{} [{}, {}]</small></td>",
+            class(ok),
+            escape(&fixed(self.stat[i], d)),
+            inside,
+            escape(&fixed(l, d)),
+            escape(&fixed(u, d))
+        )
+    }
+
+    /// The bias tests' cell: how many of them pass.
+    fn bias_cell(&self, k: &VerdictKey) -> String {
+        let bias: Vec<usize> = (0..self.rows)
+            .filter(|&i| self.in_row(i, k) && self.test[i].starts_with("bias_"))
+            .collect();
+        if bias.is_empty() {
+            return "<td class=\"na\">—</td>".into();
+        }
+        let ok = bias.iter().filter(|&&i| self.pass[i] == Some(true)).count();
+        format!(
+            "<td class=\"{}\">{ok} of {}</td>",
+            class(Some(ok == bias.len())),
+            bias.len()
+        )
+    }
+}
+
 /// The consistency verdicts: one row per (scenario, noise scale, filter variant), the verdict
 /// first (pass/fail in colour, with its direction and p-value), then each calibrated test's
 /// statistic against its acceptance band, and the bias tests as a count.
 fn verdict_table(c: &Table) -> Result<String, PlotError> {
-    let (scen, filt, test) = (c.strs("scenario")?, c.strs("filter")?, c.strs("test")?);
-    let noise = c.f64s("noise_scale")?;
-    let (stat, lo, hi, p) = (
-        c.f64s("statistic")?,
-        c.f64s("lower")?,
-        c.f64s("upper")?,
-        c.f64s("p_value")?,
-    );
-    let (dof, alpha) = (c.f64s("dof")?, c.f64s("alpha")?);
-    let pass: Vec<Option<bool>> =
-        c.df.column("pass")
-            .ok()
-            .and_then(|col| col.bool().ok().map(|b| b.iter().collect()))
-            .unwrap_or_else(|| vec![None; c.height()]);
-    let direction = if c.has("direction") {
-        c.strs("direction")?
-    } else {
-        vec![String::new(); c.height()]
-    };
-    let mut keys: Vec<(String, u64, String)> = Vec::new();
-    for i in 0..c.height() {
-        let k = (
-            scen[i].clone(),
-            noise[i].unwrap_or(f64::NAN).to_bits(),
-            filt[i].clone(),
-        );
-        if !keys.contains(&k) {
-            keys.push(k);
-        }
-    }
-    let find = |k: &(String, u64, String), name: &str| {
-        (0..c.height()).find(|&i| {
-            scen[i] == k.0
-                && noise[i].unwrap_or(f64::NAN).to_bits() == k.1
-                && filt[i] == k.2
-                && test[i] == name
-        })
-    };
-    let class = |ok: Option<bool>| match ok {
-        Some(true) => "pass",
-        Some(false) => "fail",
-        None => "na",
-    };
-    let columns = [
-        ("nees_time_average", "NEES time average"),
-        ("nis_time_average", "NIS time average"),
-        ("nees_run_average_t", "NEES run averages (t)"),
-        ("innovation_whiteness", "innovation whiteness"),
-    ];
+    let v = Verdicts::read(c)?;
     let mut h = String::from(
         "<div class=\"scroll\"><table class=\"verdicts\" id=\"verdict-table\">\n<thead><tr><th>scenario</th><th>noise ×</th><th>filter</th><th>verdict</th>",
     );
-    for (_, title) in columns {
+    for (_, title) in VERDICT_COLUMNS {
         let _ = write!(h, "<th>{}</th>", escape(title));
     }
     h.push_str("<th>bias tests passed</th></tr></thead>\n<tbody>\n");
-    for k in &keys {
+    for k in &v.keys() {
         let _ = write!(
             h,
             "<tr><td>{}</td><td>{}</td><td>{}</td>",
@@ -320,91 +455,11 @@ fn verdict_table(c: &Table) -> Result<String, PlotError> {
             escape(&short(f64::from_bits(k.1))),
             escape(&k.2)
         );
-        match find(k, "verdict") {
-            Some(i) => {
-                let word = match pass[i] {
-                    Some(true) => "consistent".to_string(),
-                    Some(false) if !direction[i].is_empty() => {
-                        format!("inconsistent ({})", direction[i])
-                    }
-                    Some(false) => "inconsistent".to_string(),
-                    None => "—".to_string(),
-                };
-                let _ = write!(
-                    h,
-                    "<td class=\"{}\"><b>{}</b><small>p = {}</small></td>",
-                    class(pass[i]),
-                    escape(&word),
-                    escape(&num(p[i]))
-                );
-            }
-            None => h.push_str("<td class=\"na\">—</td>"),
+        h.push_str(&v.verdict_cell(k));
+        for (name, _) in VERDICT_COLUMNS {
+            h.push_str(&v.test_cell(k, name));
         }
-        // The verdict's components (the NEES time average, or the run-average t-test standing
-        // in for it, and the NIS time average) are drawn with the α/2 band and the α/2
-        // decision the verdict uses; the other columns are their own tests at α.
-        let has_verdict = find(k, "verdict").is_some();
-        let calibrated_nees = find(k, "nees_time_average").is_some();
-        for (name, _) in columns {
-            match find(k, name) {
-                Some(i) => {
-                    let component = has_verdict
-                        && match name {
-                            "nees_time_average" | "nis_time_average" => true,
-                            "nees_run_average_t" => !calibrated_nees,
-                            _ => false,
-                        };
-                    let half = component
-                        .then(|| {
-                            let a = alpha[i]?;
-                            let band = verdict_band(name, lo[i], hi[i], dof[i], a)?;
-                            Some((band, p[i].map(|p| p > a / 2.0)))
-                        })
-                        .flatten();
-                    let (l, u, ok) = match half {
-                        Some((band, ok)) => (Some(band.lo), Some(band.hi), ok),
-                        None => (lo[i], hi[i], pass[i]),
-                    };
-                    let inside = match ok {
-                        Some(true) => "∈",
-                        _ => "∉",
-                    };
-                    // Statistic and band with one number of decimals: 4 significant
-                    // digits of the band's larger end.
-                    let scale = u.or(l).or(stat[i]).unwrap_or(1.0).abs();
-                    let d = (decimals_for(scale) + 1).min(6);
-                    let _ = write!(
-                        h,
-                        "<td class=\"{}\">{}<small>{} [{}, {}]</small></td>",
-                        class(ok),
-                        escape(&fixed(stat[i], d)),
-                        inside,
-                        escape(&fixed(l, d)),
-                        escape(&fixed(u, d))
-                    );
-                }
-                None => h.push_str("<td class=\"na\">—</td>"),
-            }
-        }
-        let bias: Vec<usize> = (0..c.height())
-            .filter(|&i| {
-                scen[i] == k.0
-                    && noise[i].unwrap_or(f64::NAN).to_bits() == k.1
-                    && filt[i] == k.2
-                    && test[i].starts_with("bias_")
-            })
-            .collect();
-        if bias.is_empty() {
-            h.push_str("<td class=\"na\">—</td>");
-        } else {
-            let ok = bias.iter().filter(|&&i| pass[i] == Some(true)).count();
-            let _ = write!(
-                h,
-                "<td class=\"{}\">{ok} of {}</td>",
-                class(Some(ok == bias.len())),
-                bias.len()
-            );
-        }
+        h.push_str(&v.bias_cell(k));
         h.push_str("</tr>\n");
     }
     h.push_str("</tbody>\n</table></div>\n");
@@ -515,27 +570,24 @@ fn anchor(prefix: &str, i: usize) -> String {
     format!("{prefix}-{i}")
 }
 
-/// The whole report as HTML text: the question and the answer first (verdicts, headline RMSE),
-/// then the figures by scenario, the divergence tables, and provenance with the spec folded.
-pub fn render_html(t: &Tables) -> Result<String, PlotError> {
-    let name = t
-        .manifest
-        .as_ref()
-        .map_or_else(|| t.dir.display().to_string(), |m| m.experiment.clone());
+/// The report's figures grouped by scenario, in order of first appearance.
+fn by_scenario(figs: &[super::Figure]) -> Vec<(String, Vec<&super::Figure>)> {
+    let mut out: Vec<(String, Vec<&super::Figure>)> = Vec::new();
+    for f in figs {
+        match out.iter_mut().find(|(s, _)| *s == f.scenario) {
+            Some((_, v)) => v.push(f),
+            None => out.push((f.scenario.clone(), vec![f])),
+        }
+    }
+    out
+}
+
+/// The question the study asks: its description and its size.
+fn lead(t: &Tables) -> String {
     let spec: Option<toml::Table> = t.manifest.as_ref().and_then(|m| m.spec.parse().ok());
     let description = spec
         .as_ref()
         .and_then(|s| s.get("description")?.as_str().map(str::to_string));
-    let figs = super::all_figures(t, &[])?;
-    let blocks = block_table(t)?;
-
-    let mut h = String::new();
-    let _ = write!(
-        h,
-        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n<title>kfmc report: {n}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n<h1>kfmc report: {n}</h1>\n",
-        n = escape(&name)
-    );
-    // The question.
     let mut lead = String::new();
     if let Some(d) = &description {
         let _ = write!(lead, "{}. ", escape(d.trim_end_matches('.')));
@@ -554,25 +606,20 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
             m.runs_per_cell
         );
     }
-    let _ = writeln!(h, "<p class=\"lead\">{lead}</p>");
+    lead
+}
 
-    // Table of contents.
-    let mut by_scenario: Vec<(String, Vec<&super::Figure>)> = Vec::new();
-    for f in &figs {
-        match by_scenario.iter_mut().find(|(s, _)| *s == f.scenario) {
-            Some((_, v)) => v.push(f),
-            None => by_scenario.push((f.scenario.clone(), vec![f])),
-        }
-    }
-    h.push_str("<nav class=\"toc\"><b>Contents</b>\n<ol>\n");
+/// The table of contents: the sections the report has, and the figures' scenarios.
+fn contents(t: &Tables, has_blocks: bool, by_scenario: &[(String, Vec<&super::Figure>)]) -> String {
+    let mut h = String::from("<nav class=\"toc\"><b>Contents</b>\n<ol>\n");
     if t.consistency.is_some() {
         h.push_str("<li><a href=\"#verdicts\">Consistency verdicts</a></li>\n");
     }
     h.push_str("<li><a href=\"#rmse\">RMSE</a></li>\n");
-    if blocks.is_some() {
+    if has_blocks {
         h.push_str("<li><a href=\"#blocks\">ANEES per block</a></li>\n");
     }
-    if !figs.is_empty() {
+    if !by_scenario.is_empty() {
         h.push_str("<li><a href=\"#figures\">Figures</a>\n<ol>\n");
         for (i, (s, v)) in by_scenario.iter().enumerate() {
             let _ = writeln!(
@@ -590,8 +637,11 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
         h.push_str("<li><a href=\"#divergence\">Divergence points</a></li>\n");
     }
     h.push_str("<li><a href=\"#provenance\">Provenance and spec</a></li>\n</ol>\n</nav>\n");
+    h
+}
 
-    // The answer.
+/// The answer: the consistency verdicts, the RMSE and the per-block ANEES.
+fn answer(h: &mut String, t: &Tables, blocks: Option<&str>) -> Result<(), PlotError> {
     if let Some(c) = &t.consistency {
         h.push_str("<h2 id=\"verdicts\">Consistency verdicts</h2>\n<p>A filter is consistent when the NEES and the NIS time averages both lie in their χ² bands at α/2 each (Bonferroni: the verdict’s p = 2·min(p<sub>NEES</sub>, p<sub>NIS</sub>) exceeds α; see kfmc’s book, “What the verdict means”). The NEES and NIS cells (and the NEES run-average t-test where it stands in for a NEES test) show the statistic in those α/2 bands; the whiteness cell and a t-test that is not part of the verdict show their own test at α. Green passes, red fails.</p>\n");
         h.push_str(&verdict_table(c)?);
@@ -603,92 +653,125 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
     }
     h.push_str("<h2 id=\"rmse\">RMSE over runs</h2>\n<p>Mean over runs, with the 5th–95th percentile over runs below it.</p>\n");
     h.push_str(&rmse_table(t)?);
-    if let Some(b) = &blocks {
+    if let Some(b) = blocks {
         h.push_str("<h2 id=\"blocks\">ANEES per block</h2>\n<p>NEES of each block of quantities, averaged over the traced runs (smallest noise scale) and over steps ≥ 1, and the share of steps whose ANEES lies in the per-step χ² band. A block size near the average is consistent; descriptive only (steps are correlated and few runs are traced).</p>\n");
         h.push_str(b);
     }
+    Ok(())
+}
 
-    if !figs.is_empty() {
-        h.push_str("<h2 id=\"figures\">Figures</h2>\n");
-        for (i, (s, v)) in by_scenario.iter().enumerate() {
-            let _ = writeln!(h, "<h3 id=\"{}\">{}</h3>", anchor("scenario", i), escape(s));
-            for f in v {
-                let svg = render::to_svg_string(f)?;
-                // Never wider than drawn: scaled up, a one-panel figure would fill a screen.
-                let _ = writeln!(
-                    h,
-                    "<figure id=\"fig-{}\" style=\"max-width:{}px\">\n{}\n<figcaption>{} <code>{}</code></figcaption>\n</figure>",
-                    escape(&f.name),
-                    render::size(f).0,
-                    inline_svg(&svg),
-                    escape(&f.title),
-                    escape(&f.name)
-                );
-            }
+/// Every figure as inline SVG, under a heading per scenario.
+fn figures(h: &mut String, by_scenario: &[(String, Vec<&super::Figure>)]) -> Result<(), PlotError> {
+    if by_scenario.is_empty() {
+        return Ok(());
+    }
+    h.push_str("<h2 id=\"figures\">Figures</h2>\n");
+    for (i, (s, v)) in by_scenario.iter().enumerate() {
+        let _ = writeln!(h, "<h3 id=\"{}\">{}</h3>", anchor("scenario", i), escape(s));
+        for f in v {
+            let svg = render::to_svg_string(f)?;
+            // Never wider than drawn: scaled up, a one-panel figure would fill a screen.
+            let _ = writeln!(
+                h,
+                "<figure id=\"fig-{}\" style=\"max-width:{}px\">\n{}\n<figcaption>{} <code>{}</code></figcaption>\n</figure>",
+                escape(&f.name),
+                render::size(f).0,
+                inline_svg(&svg),
+                escape(&f.title),
+                escape(&f.name)
+            );
         }
     }
-    if let Some(d) = &t.divergence {
-        h.push_str("<h2 id=\"divergence\">Divergence points</h2>\n<p>The first truth-noise multiplier whose RMSE exceeds the state's threshold: for the mean over runs (<code>mc_divergence_scale</code>) and as quantiles over runs (— = not reached within the sweep).</p>\n");
-        let _ = writeln!(h, "<div class=\"scroll\">{}</div>", html_table(d)?);
-    }
+    Ok(())
+}
 
+/// Where the numbers come from: the folder, the command that reproduces it, the manifest's
+/// facts and the spec.
+fn provenance(h: &mut String, t: &Tables) {
     h.push_str("<h2 id=\"provenance\">Provenance</h2>\n");
     let _ = writeln!(
         h,
         "<p>Result folder <code>{}</code>. Every number and figure above is read from its Parquet tables.</p>",
         escape(&t.dir.display().to_string())
     );
-    match &t.manifest {
-        Some(m) => {
-            if let Some(c) = reproduce_command(t) {
-                let _ = writeln!(
-                    h,
-                    "<p>Reproduce the tables bit for bit (any thread count), then this report:</p>\n<pre>{}\nkfmc report {}</pre>",
-                    escape(&c),
-                    escape(&t.dir.display().to_string())
-                );
-            }
-            let tables = m
-                .tables
-                .iter()
-                .map(|e| format!("{} ({} rows)", e.name, e.rows))
-                .collect::<Vec<_>>()
-                .join(", ");
-            let rows: [(&str, String); 13] = [
-                ("kfmc version", m.kfmc_version.clone()),
-                ("experiment", m.experiment.clone()),
-                ("spec file", m.spec_path.clone()),
-                ("spec hash (FNV-1a 64)", m.spec_hash.clone()),
-                ("master seed", m.master_seed.to_string()),
-                ("runs per cell", m.runs_per_cell.to_string()),
-                ("cells", m.cells.to_string()),
-                (
-                    "runs / filter runs",
-                    format!("{} / {}", m.runs, m.filter_runs),
-                ),
-                ("filter steps", m.filter_steps.to_string()),
-                ("threads", m.threads.to_string()),
-                ("started", utc(m.started_unix_s)),
-                (
-                    "wall time",
-                    format!("{:.2} s ({:.0} runs/s)", m.wall_s, m.runs_per_s),
-                ),
-                ("tables", tables),
-            ];
-            h.push_str("<table class=\"kv\">\n<tbody>\n");
-            for (k, v) in rows {
-                let _ = writeln!(h, "<tr><th>{}</th><td>{}</td></tr>", escape(k), escape(&v));
-            }
-            h.push_str("</tbody>\n</table>\n");
-            let _ = writeln!(
-                h,
-                "<details><summary>Spec ({})</summary>\n<pre>{}</pre>\n</details>",
-                escape(&m.spec_path),
-                escape(&m.spec)
-            );
-        }
-        None => h.push_str("<p>manifest.toml is missing or unreadable.</p>\n"),
+    let Some(m) = &t.manifest else {
+        h.push_str("<p>manifest.toml is missing or unreadable.</p>\n");
+        return;
+    };
+    if let Some(c) = reproduce_command(t) {
+        let _ = writeln!(
+            h,
+            "<p>Reproduce the tables bit for bit (any thread count), then this report:</p>\n<pre>{}\nkfmc report {}</pre>",
+            escape(&c),
+            escape(&t.dir.display().to_string())
+        );
     }
+    let tables = m
+        .tables
+        .iter()
+        .map(|e| format!("{} ({} rows)", e.name, e.rows))
+        .collect::<Vec<_>>()
+        .join(", ");
+    let rows: [(&str, String); 13] = [
+        ("kfmc version", m.kfmc_version.clone()),
+        ("experiment", m.experiment.clone()),
+        ("spec file", m.spec_path.clone()),
+        ("spec hash (FNV-1a 64)", m.spec_hash.clone()),
+        ("master seed", m.master_seed.to_string()),
+        ("runs per cell", m.runs_per_cell.to_string()),
+        ("cells", m.cells.to_string()),
+        (
+            "runs / filter runs",
+            format!("{} / {}", m.runs, m.filter_runs),
+        ),
+        ("filter steps", m.filter_steps.to_string()),
+        ("threads", m.threads.to_string()),
+        ("started", utc(m.started_unix_s)),
+        (
+            "wall time",
+            format!("{:.2} s ({:.0} runs/s)", m.wall_s, m.runs_per_s),
+        ),
+        ("tables", tables),
+    ];
+    h.push_str("<table class=\"kv\">\n<tbody>\n");
+    for (k, v) in rows {
+        let _ = writeln!(h, "<tr><th>{}</th><td>{}</td></tr>", escape(k), escape(&v));
+    }
+    h.push_str("</tbody>\n</table>\n");
+    let _ = writeln!(
+        h,
+        "<details><summary>Spec ({})</summary>\n<pre>{}</pre>\n</details>",
+        escape(&m.spec_path),
+        escape(&m.spec)
+    );
+}
+
+/// The whole report as HTML text: the question and the answer first (verdicts, headline RMSE),
+/// then the figures by scenario, the divergence tables, and provenance with the spec folded.
+pub fn render_html(t: &Tables) -> Result<String, PlotError> {
+    let name = t
+        .manifest
+        .as_ref()
+        .map_or_else(|| t.dir.display().to_string(), |m| m.experiment.clone());
+    let figs = super::all_figures(t, &[])?;
+    let blocks = block_table(t)?;
+    let by_scenario = by_scenario(&figs);
+
+    let mut h = String::new();
+    let _ = write!(
+        h,
+        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n<title>kfmc report: {n}</title>\n<style>{STYLE}</style>\n</head>\n<body>\n<h1>kfmc report: {n}</h1>\n",
+        n = escape(&name)
+    );
+    let _ = writeln!(h, "<p class=\"lead\">{}</p>", lead(t));
+    h.push_str(&contents(t, blocks.is_some(), &by_scenario));
+    answer(&mut h, t, blocks.as_deref())?;
+    figures(&mut h, &by_scenario)?;
+    if let Some(d) = &t.divergence {
+        h.push_str("<h2 id=\"divergence\">Divergence points</h2>\n<p>The first truth-noise multiplier whose RMSE exceeds the state's threshold: for the mean over runs (<code>mc_divergence_scale</code>) and as quantiles over runs (— = not reached within the sweep).</p>\n");
+        let _ = writeln!(h, "<div class=\"scroll\">{}</div>", html_table(d)?);
+    }
+    provenance(&mut h, t);
     h.push_str("</body>\n</html>\n");
     Ok(h)
 }

@@ -29,7 +29,8 @@ use crate::system::settings::InitialMode;
 use crate::system::spec_values::OneOrMany;
 use crate::system::world::{NoiseSettings, Realisation, WorldFilter, WorldFilterEntry, WorldPlan};
 use crate::system::{
-    Catalogue, FilterInfo, Layout, Quantity, ScenarioInfo, System, SystemPlan, SystemSpec,
+    Catalogue, FilterInfo, FilterTable, Layout, Quantity, ScenarioInfo, System, SystemPlan,
+    SystemSpec,
 };
 use crate::trial::{Prior, RunContext, run_filter};
 use filters::{Augmentation, Degrees, PaperModel, Principled, SeqEkf, clone_prior};
@@ -239,145 +240,27 @@ impl System for DroneSystem {
     fn configure(&self, spec: &SystemSpec<'_>, c: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
         let params = params(spec.model, c);
         let scenarios = scenarios(spec.scenarios, &params, c);
-        if spec.initial.mode != InitialMode::Sampled {
-            // Name a key that is in the file: the mode, the section, or the file itself.
-            let key = if c.has("initial_estimate.mode") {
-                "initial_estimate.mode"
-            } else if c.has("initial_estimate") {
-                "initial_estimate"
-            } else {
-                ""
-            };
-            c.err(
-                key,
-                "the drone's filters start from the first GPS fix, a draw of the initial error: set initial_estimate.mode = \"sampled\"",
-            );
-        }
-        if spec.initial.p0_std.is_some() {
-            c.err(
-                "initial_estimate.p0_std",
-                "not used by the drone: each filter's P0 is its own (the paper's I, the principled filters' initial-error distribution)",
-            );
-        }
+        check_initial(spec, c);
         let mut entries: Vec<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>> = Vec::new();
         for (i, f) in spec.filters.iter().enumerate() {
             let key = format!("filters[{i}]");
-            match f.kind.as_str() {
-                "paper" => {
-                    let Some(k) = c.parse::<PaperKeys>(&key, &f.keys) else {
-                        continue;
-                    };
-                    let grid = c.choice(
-                        &format!("{key}.protocol"),
-                        k.protocol.as_deref(),
-                        "grid",
-                        &["grid", "native"],
-                    ) == "grid";
-                    let r_std = k.r_std.as_ref().map(|v| {
-                        c.vector(
-                            &format!("{key}.r_std"),
-                            Some(v),
-                            NZ,
-                            &SEED_TABLES[0],
-                            positive,
-                            "a positive number",
-                        )
-                    });
-                    entries.push(Arc::new(PaperEntry {
-                        grid,
-                        r_std,
-                        tables: scenarios.iter().map(|s| s.seed_table).collect(),
-                        params: params.clone(),
-                    }));
+            let entry = match f.kind.as_str() {
+                "paper" => paper_entry(&key, f, &params, &scenarios, c),
+                "ekf9" => ekf9_entry(&key, f, &params, c),
+                "error_state" => error_state_entry(key, f, &params, c),
+                other => {
+                    c.err(
+                        format!("{key}.kind"),
+                        format!(
+                            "unknown value `{other}` for the drone; expected one of: paper, ekf9, error_state"
+                        ),
+                    );
+                    None
                 }
-                "ekf9" => {
-                    let Some(k) = c.parse::<Ekf9Keys>(&key, &f.keys) else {
-                        continue;
-                    };
-                    let latency = k.latency.unwrap_or(false);
-                    let mut clones = 0;
-                    if latency {
-                        let (l, period) = (
-                            params.gps_velocity_latency_s / params.dt_s,
-                            params.gps_period(),
-                        );
-                        let per = l / period as f64;
-                        if (per - per.round()).abs() > 1e-6 || per.round() > 2.0 {
-                            c.err(
-                                format!("{key}.latency"),
-                                format!(
-                                    "velocity cloning needs model.gps_velocity_latency_s to be 0, 1 or 2 GPS periods; it is {} s with a period of {} s",
-                                    params.gps_velocity_latency_s,
-                                    period as f64 * params.dt_s
-                                ),
-                            );
-                        } else {
-                            clones = per.round() as usize;
-                        }
-                    }
-                    entries.push(Arc::new(Ekf9Entry {
-                        baro_drift: k.baro_drift.unwrap_or(false),
-                        latency,
-                        clones,
-                        params: params.clone(),
-                    }));
-                }
-                "error_state" => {
-                    if c.parse::<ErrorStateKeys>(&key, &f.keys).is_some() {
-                        let entry = error_state::ErrorStateEntry {
-                            params: params.clone(),
-                        };
-                        if entry.clones() > error_state::MAX_CLONES {
-                            c.err(
-                                key,
-                                format!(
-                                    "error_state carries one velocity clone per GPS epoch within the latency, at most {}: model.gps_velocity_latency_s = {} s needs {} with a GPS period of {} s",
-                                    error_state::MAX_CLONES,
-                                    params.gps_velocity_latency_s,
-                                    entry.clones(),
-                                    params.gps_period() as f64 * params.dt_s
-                                ),
-                            );
-                        } else {
-                            entries.push(Arc::new(entry));
-                        }
-                    }
-                }
-                other => c.err(
-                    format!("{key}.kind"),
-                    format!(
-                        "unknown value `{other}` for the drone; expected one of: paper, ekf9, error_state"
-                    ),
-                ),
-            }
+            };
+            entries.extend(entry);
         }
-        let layout = Layout {
-            quantities: vec![
-                Quantity::new("px", "m"),
-                Quantity::new("py", "m"),
-                Quantity::new("pz", "m"),
-                Quantity::new("vx", "m/s"),
-                Quantity::new("vy", "m/s"),
-                Quantity::new("vz", "m/s"),
-            ]
-            .into_iter()
-            .chain(match params.attitude_error {
-                None => [
-                    Quantity::angle("roll", "deg"),
-                    Quantity::angle("pitch", "deg"),
-                    Quantity::angle("yaw", "deg"),
-                ],
-                Some(side) => Quantity::rotation(["roll", "pitch", "yaw"], "deg", side),
-            })
-            .collect(),
-            inputs: ["f_x", "f_y", "f_z", "w_x", "w_y", "w_z"]
-                .iter()
-                .map(|s| s.to_string())
-                .collect(),
-            measurements: MEASUREMENTS.iter().map(|s| s.to_string()).collect(),
-            world_states: WORLD_STATES.iter().map(|s| s.to_string()).collect(),
-            dt_s: params.dt_s,
-        };
+        let layout = layout(&params);
         let info = scenarios
             .iter()
             .map(|s| ScenarioInfo {
@@ -399,30 +282,191 @@ impl System for DroneSystem {
     }
 }
 
-fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
-    let m: ModelKeys = c.parse("model", table).unwrap_or_default();
-    let d = DroneParams::default();
-    let scalar =
-        |c: &mut Checker, key: &str, v: Option<f64>, def: f64, ok: fn(f64) -> bool, what: &str| {
-            let x = v.unwrap_or(def);
-            if v.is_some() && !c.number(&format!("model.{key}"), x, ok, what) {
-                return def;
-            }
-            x
+/// The drone's filters start from the first GPS fix and carry their own P0: reports an
+/// `[initial_estimate]` that asks for anything else.
+fn check_initial(spec: &SystemSpec<'_>, c: &mut Checker) {
+    if spec.initial.mode != InitialMode::Sampled {
+        // Name a key that is in the file: the mode, the section, or the file itself.
+        let key = if c.has("initial_estimate.mode") {
+            "initial_estimate.mode"
+        } else if c.has("initial_estimate") {
+            "initial_estimate"
+        } else {
+            ""
         };
-    let nn = "a non-negative number";
-    let pos = "a positive number";
-    let dt_s = scalar(c, "dt_s", m.dt_s, d.dt_s, positive, pos);
-    let mut p = DroneParams {
-        dt_s,
-        gravity_m_s2: scalar(
-            c,
-            "gravity_m_s2",
-            m.gravity_m_s2,
-            d.gravity_m_s2,
-            non_negative,
-            nn,
-        ),
+        c.err(
+            key,
+            "the drone's filters start from the first GPS fix, a draw of the initial error: set initial_estimate.mode = \"sampled\"",
+        );
+    }
+    if spec.initial.p0_std.is_some() {
+        c.err(
+            "initial_estimate.p0_std",
+            "not used by the drone: each filter's P0 is its own (the paper's I, the principled filters' initial-error distribution)",
+        );
+    }
+}
+
+/// A `kind = "paper"` filter: the seed's EKF, on the grid or native protocol.
+fn paper_entry(
+    key: &str,
+    f: &FilterTable,
+    params: &DroneParams,
+    scenarios: &[DroneScenario],
+    c: &mut Checker,
+) -> Option<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>> {
+    let k = c.parse::<PaperKeys>(key, &f.keys)?;
+    let grid = c.choice(
+        &format!("{key}.protocol"),
+        k.protocol.as_deref(),
+        "grid",
+        &["grid", "native"],
+    ) == "grid";
+    let r_std = k.r_std.as_ref().map(|v| {
+        c.vector(
+            &format!("{key}.r_std"),
+            Some(v),
+            NZ,
+            &SEED_TABLES[0],
+            positive,
+            "a positive number",
+        )
+    });
+    Some(Arc::new(PaperEntry {
+        grid,
+        r_std,
+        tables: scenarios.iter().map(|s| s.seed_table).collect(),
+        params: params.clone(),
+    }))
+}
+
+/// A `kind = "ekf9"` filter; with `latency`, the GPS velocity latency must be a whole number
+/// (at most 2) of GPS periods, one velocity clone per period.
+fn ekf9_entry(
+    key: &str,
+    f: &FilterTable,
+    params: &DroneParams,
+    c: &mut Checker,
+) -> Option<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>> {
+    let k = c.parse::<Ekf9Keys>(key, &f.keys)?;
+    let latency = k.latency.unwrap_or(false);
+    let mut clones = 0;
+    if latency {
+        let (l, period) = (
+            params.gps_velocity_latency_s / params.dt_s,
+            params.gps_period(),
+        );
+        let per = l / period as f64;
+        if (per - per.round()).abs() > 1e-6 || per.round() > 2.0 {
+            c.err(
+                format!("{key}.latency"),
+                format!(
+                    "velocity cloning needs model.gps_velocity_latency_s to be 0, 1 or 2 GPS periods; it is {} s with a period of {} s",
+                    params.gps_velocity_latency_s,
+                    period as f64 * params.dt_s
+                ),
+            );
+        } else {
+            clones = per.round() as usize;
+        }
+    }
+    Some(Arc::new(Ekf9Entry {
+        baro_drift: k.baro_drift.unwrap_or(false),
+        latency,
+        clones,
+        params: params.clone(),
+    }))
+}
+
+/// A `kind = "error_state"` filter, when the GPS latency needs no more clones than it carries.
+fn error_state_entry(
+    key: String,
+    f: &FilterTable,
+    params: &DroneParams,
+    c: &mut Checker,
+) -> Option<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>> {
+    c.parse::<ErrorStateKeys>(&key, &f.keys)?;
+    let entry = error_state::ErrorStateEntry {
+        params: params.clone(),
+    };
+    if entry.clones() > error_state::MAX_CLONES {
+        c.err(
+            key,
+            format!(
+                "error_state carries one velocity clone per GPS epoch within the latency, at most {}: model.gps_velocity_latency_s = {} s needs {} with a GPS period of {} s",
+                error_state::MAX_CLONES,
+                params.gps_velocity_latency_s,
+                entry.clones(),
+                params.gps_period() as f64 * params.dt_s
+            ),
+        );
+        return None;
+    }
+    Some(Arc::new(entry))
+}
+
+/// The evaluated quantities (the attitude as Euler angles or as a rotation error), the IMU
+/// inputs and the measurement components.
+fn layout(params: &DroneParams) -> Layout {
+    Layout {
+        quantities: vec![
+            Quantity::new("px", "m"),
+            Quantity::new("py", "m"),
+            Quantity::new("pz", "m"),
+            Quantity::new("vx", "m/s"),
+            Quantity::new("vy", "m/s"),
+            Quantity::new("vz", "m/s"),
+        ]
+        .into_iter()
+        .chain(match params.attitude_error {
+            None => [
+                Quantity::angle("roll", "deg"),
+                Quantity::angle("pitch", "deg"),
+                Quantity::angle("yaw", "deg"),
+            ],
+            Some(side) => Quantity::rotation(["roll", "pitch", "yaw"], "deg", side),
+        })
+        .collect(),
+        inputs: ["f_x", "f_y", "f_z", "w_x", "w_y", "w_z"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
+        measurements: MEASUREMENTS.iter().map(|s| s.to_string()).collect(),
+        world_states: WORLD_STATES.iter().map(|s| s.to_string()).collect(),
+        dt_s: params.dt_s,
+    }
+}
+
+const NON_NEGATIVE: &str = "a non-negative number";
+const POSITIVE: &str = "a positive number";
+
+/// A scalar key of `[model]`: its value, or `def` when it is absent or fails `ok` (reported).
+fn scalar(
+    c: &mut Checker,
+    key: &str,
+    v: Option<f64>,
+    def: f64,
+    ok: fn(f64) -> bool,
+    what: &str,
+) -> f64 {
+    let x = v.unwrap_or(def);
+    if v.is_some() && !c.number(&format!("model.{key}"), x, ok, what) {
+        return def;
+    }
+    x
+}
+
+/// The scalar and choice keys of `[model]` over the defaults `d`.
+fn scalar_params(m: &ModelKeys, d: &DroneParams, c: &mut Checker) -> DroneParams {
+    let pos = |c: &mut Checker, key: &str, v: Option<f64>, def: f64| {
+        scalar(c, key, v, def, positive, POSITIVE)
+    };
+    let nn = |c: &mut Checker, key: &str, v: Option<f64>, def: f64| {
+        scalar(c, key, v, def, non_negative, NON_NEGATIVE)
+    };
+    DroneParams {
+        dt_s: pos(c, "dt_s", m.dt_s, d.dt_s),
+        gravity_m_s2: nn(c, "gravity_m_s2", m.gravity_m_s2, d.gravity_m_s2),
         imu_output: match c.choice(
             "model.imu_output",
             m.imu_output.as_deref(),
@@ -432,55 +476,18 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
             "specific_force" => ImuOutput::SpecificForce,
             _ => ImuOutput::GravitySubtracted,
         },
-        gps_rate_hz: scalar(
-            c,
-            "gps_rate_hz",
-            m.gps_rate_hz,
-            d.gps_rate_hz,
-            positive,
-            pos,
-        ),
-        gps_drift_tau_s: scalar(
-            c,
-            "gps_drift_tau_s",
-            m.gps_drift_tau_s,
-            d.gps_drift_tau_s,
-            positive,
-            pos,
-        ),
-        gps_velocity_latency_s: scalar(
+        gps_rate_hz: pos(c, "gps_rate_hz", m.gps_rate_hz, d.gps_rate_hz),
+        gps_drift_tau_s: pos(c, "gps_drift_tau_s", m.gps_drift_tau_s, d.gps_drift_tau_s),
+        gps_velocity_latency_s: nn(
             c,
             "gps_velocity_latency_s",
             m.gps_velocity_latency_s,
             d.gps_velocity_latency_s,
-            non_negative,
-            nn,
         ),
-        baro_rate_hz: scalar(
-            c,
-            "baro_rate_hz",
-            m.baro_rate_hz,
-            d.baro_rate_hz,
-            positive,
-            pos,
-        ),
-        baro_std: scalar(c, "baro_std", m.baro_std, d.baro_std, non_negative, nn),
-        baro_drift_rw: scalar(
-            c,
-            "baro_drift_rw",
-            m.baro_drift_rw,
-            d.baro_drift_rw,
-            non_negative,
-            nn,
-        ),
-        baro_delay_s: scalar(
-            c,
-            "baro_delay_s",
-            m.baro_delay_s,
-            d.baro_delay_s,
-            non_negative,
-            nn,
-        ),
+        baro_rate_hz: pos(c, "baro_rate_hz", m.baro_rate_hz, d.baro_rate_hz),
+        baro_std: nn(c, "baro_std", m.baro_std, d.baro_std),
+        baro_drift_rw: nn(c, "baro_drift_rw", m.baro_drift_rw, d.baro_drift_rw),
+        baro_delay_s: nn(c, "baro_delay_s", m.baro_delay_s, d.baro_delay_s),
         attitude_error: match c.choice(
             "model.attitude_error",
             m.attitude_error.as_deref(),
@@ -492,7 +499,11 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
             _ => Some(ErrorSide::Right),
         },
         ..d.clone()
-    };
+    }
+}
+
+/// The per-axis noise keys of `[model]` (three non-negative numbers each) into `p`.
+fn noise_vectors(p: &mut DroneParams, m: &ModelKeys, d: &DroneParams, c: &mut Checker) {
     let mut v3 = |key: &str, v: &Option<OneOrMany>, def: [f64; 3]| {
         arr3(&c.vector(
             &format!("model.{key}"),
@@ -500,7 +511,7 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
             3,
             &def,
             non_negative,
-            nn,
+            NON_NEGATIVE,
         ))
     };
     p.accel_white_std = v3("accel_white_std", &m.accel_white_std, d.accel_white_std);
@@ -517,6 +528,11 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
         &m.initial_attitude_std_deg,
         d.initial_attitude_std_deg,
     );
+}
+
+/// Reports sensors the filters cannot model: no white noise, or a rate that is not a whole
+/// number of steps (which then falls back to the default rate, or one report per step).
+fn check_sensors(p: &mut DroneParams, d: &DroneParams, c: &mut Checker) {
     // The filters assume white noise where the world has it: a sensor with none would make
     // its R zero and the update exact, which no real sensor is.
     for (key, v) in [
@@ -562,6 +578,15 @@ fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
             }
         }
     }
+}
+
+/// `[model]` over the defaults, every problem reported.
+fn params(table: &toml::Table, c: &mut Checker) -> DroneParams {
+    let m: ModelKeys = c.parse("model", table).unwrap_or_default();
+    let d = DroneParams::default();
+    let mut p = scalar_params(&m, &d, c);
+    noise_vectors(&mut p, &m, &d, c);
+    check_sensors(&mut p, &d, c);
     p
 }
 

@@ -270,9 +270,20 @@ fn measurement_noise(c: &mut Checker, m: &DMatrix<f64>) -> Option<Vec<f64>> {
 const DISCRETE: &str = "the discrete form (f, g, h, q)";
 const CONTINUOUS: &str = "the continuous form (a, b, c, gamma, q_tilde)";
 
-/// Validates `[model]`; `None` after reporting every problem found.
-pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> {
-    let m: ModelKeys = c.parse("model", table)?;
+/// A matrix as a spec gives it: rows of numbers.
+type Rows = Option<Vec<Vec<f64>>>;
+
+/// The names and the sample time of `[model]`.
+struct Header {
+    states: Vec<String>,
+    units: Vec<String>,
+    inputs: Vec<String>,
+    measurements: Vec<String>,
+    dt_s: f64,
+}
+
+/// Reads the names and the sample time; `None` unless they are valid and of a compiled size.
+fn header(c: &mut Checker, m: &ModelKeys) -> Option<Header> {
     let states = names(c, "model.states", m.states.as_ref(), true, MAX_STATES);
     let inputs = names(c, "model.inputs", m.inputs.as_ref(), false, super::NU_MAX);
     let measurements = names(
@@ -282,7 +293,7 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         true,
         super::MAX_MEASUREMENTS,
     );
-    let (nx, nu, nz) = (states.len(), inputs.len(), measurements.len());
+    let (nx, nz) = (states.len(), measurements.len());
     let units = match &m.state_units {
         None => vec![String::new(); nx],
         Some(u) if u.len() == nx => u.clone(),
@@ -323,7 +334,27 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         );
         return None;
     }
+    Some(Header {
+        states,
+        units,
+        inputs,
+        measurements,
+        dt_s,
+    })
+}
 
+/// The form the dynamics are given in, with the keys (and values) of F, G and H: a, b and c
+/// in the continuous form.
+struct Form<'m> {
+    continuous: bool,
+    f: (&'static str, &'m Rows),
+    g: (&'static str, &'m Rows),
+    h: (&'static str, &'m Rows),
+}
+
+/// Which form `[model]` gives, with every key that form requires present; `None` when the
+/// forms are mixed, absent, or incomplete.
+fn form<'m>(c: &mut Checker, m: &'m ModelKeys, nu: usize) -> Option<Form<'m>> {
     let discrete = [("f", &m.f), ("g", &m.g), ("h", &m.h), ("q", &m.q)];
     let continuous = [
         ("a", &m.a),
@@ -332,7 +363,7 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         ("gamma", &m.gamma),
         ("q_tilde", &m.q_tilde),
     ];
-    let any = |keys: &[(&str, &Option<Vec<Vec<f64>>>)]| keys.iter().any(|(_, v)| v.is_some());
+    let any = |keys: &[(&str, &Rows)]| keys.iter().any(|(_, v)| v.is_some());
     let is_continuous = match (any(&discrete), any(&continuous)) {
         (true, true) => {
             for (k, v) in continuous {
@@ -356,24 +387,32 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         }
         (_, c) => c,
     };
-    let require = |c: &mut Checker, key: &str, v: &Option<Vec<Vec<f64>>>, form: &str| {
+    let require = |c: &mut Checker, key: &str, v: &Rows, form: &str| {
         if v.is_none() {
             c.err(format!("model.{key}"), format!("required by {form}"));
         }
     };
     let form = if is_continuous { CONTINUOUS } else { DISCRETE };
-    let (fk, gk, hk) = if is_continuous {
-        ("a", "b", "c")
-    } else {
-        ("f", "g", "h")
+    let f = Form {
+        continuous: is_continuous,
+        f: if is_continuous {
+            ("a", &m.a)
+        } else {
+            ("f", &m.f)
+        },
+        g: if is_continuous {
+            ("b", &m.b)
+        } else {
+            ("g", &m.g)
+        },
+        h: if is_continuous {
+            ("c", &m.c)
+        } else {
+            ("h", &m.h)
+        },
     };
-    let (fv, gv, hv) = if is_continuous {
-        (&m.a, &m.b, &m.c)
-    } else {
-        (&m.f, &m.g, &m.h)
-    };
-    require(c, fk, fv, form);
-    require(c, hk, hv, form);
+    require(c, f.f.0, f.f.1, form);
+    require(c, f.h.0, f.h.1, form);
     require(
         c,
         if is_continuous { "q_tilde" } else { "q" },
@@ -381,24 +420,76 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         form,
     );
     require(c, "r", &m.r, "both forms (R is always discrete)");
-    match (nu, gv) {
+    match (nu, f.g.1) {
         (0, Some(_)) => c.err(
-            format!("model.{gk}"),
+            format!("model.{}", f.g.0),
             "the model has no inputs (model.inputs); omit it",
         ),
         (_, None) if nu > 0 => c.err(
-            format!("model.{gk}"),
+            format!("model.{}", f.g.0),
             format!("required: the model has {nu} inputs"),
         ),
         _ => {}
     }
-    if !c.is_clean() {
-        return None;
-    }
+    c.is_clean().then_some(f)
+}
+
+/// The continuous dynamics from A (`a`), B (`b`), Γ and Q̃; `None` when any is invalid.
+fn continuous(
+    c: &mut Checker,
+    m: &ModelKeys,
+    a: Option<DMatrix<f64>>,
+    b: Option<DMatrix<f64>>,
+    nx: usize,
+) -> Option<Dynamics> {
+    let state = (nx, "state");
+    let (gamma, nw) = match &m.gamma {
+        Some(gm) => {
+            let nw = gm.first().map_or(0, Vec::len);
+            if nw == 0 {
+                c.err(
+                    "model.gamma",
+                    "expected a matrix with one column per noise input",
+                );
+                return None;
+            }
+            (matrix(c, "model.gamma", gm, state, (nw, "noise input")), nw)
+        }
+        None => (Some(DMatrix::identity(nx, nx)), nx),
+    };
+    let q_tilde = matrix(
+        c,
+        "model.q_tilde",
+        m.q_tilde.as_ref()?,
+        (nw, "noise input"),
+        (nw, "noise input"),
+    )
+    .and_then(|q| covariance(c, "model.q_tilde", q));
+    let (a, b, gamma, q_tilde) = (a?, b?, gamma?, q_tilde?);
+    Some(Dynamics::Continuous {
+        w: &gamma * q_tilde * gamma.transpose(),
+        a,
+        b,
+    })
+}
+
+/// Validates `[model]`; `None` after reporting every problem found.
+pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> {
+    let m: ModelKeys = c.parse("model", table)?;
+    let head = header(c, &m)?;
+    let (nx, nu, nz) = (
+        head.states.len(),
+        head.inputs.len(),
+        head.measurements.len(),
+    );
+    let form = form(c, &m, nu)?;
 
     let state = (nx, "state");
     let input = (nu, "input");
     let meas = (nz, "measurement component");
+    let (fk, fv) = form.f;
+    let (gk, gv) = form.g;
+    let (hk, hv) = form.h;
     let fm = matrix(c, &format!("model.{fk}"), fv.as_ref()?, state, state);
     let gm = match gv {
         Some(g) => matrix(c, &format!("model.{gk}"), g, state, input),
@@ -406,35 +497,8 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
     };
     let hm = matrix(c, &format!("model.{hk}"), hv.as_ref()?, meas, state);
     let rm = matrix(c, "model.r", m.r.as_ref()?, meas, meas).and_then(|r| measurement_noise(c, &r));
-    let dynamics = if is_continuous {
-        let (gamma, nw) = match &m.gamma {
-            Some(gm) => {
-                let nw = gm.first().map_or(0, Vec::len);
-                if nw == 0 {
-                    c.err(
-                        "model.gamma",
-                        "expected a matrix with one column per noise input",
-                    );
-                    return None;
-                }
-                (matrix(c, "model.gamma", gm, state, (nw, "noise input")), nw)
-            }
-            None => (Some(DMatrix::identity(nx, nx)), nx),
-        };
-        let q_tilde = matrix(
-            c,
-            "model.q_tilde",
-            m.q_tilde.as_ref()?,
-            (nw, "noise input"),
-            (nw, "noise input"),
-        )
-        .and_then(|q| covariance(c, "model.q_tilde", q));
-        let (a, b, gamma, q_tilde) = (fm?, gm?, gamma?, q_tilde?);
-        Dynamics::Continuous {
-            w: &gamma * q_tilde * gamma.transpose(),
-            a,
-            b,
-        }
+    let dynamics = if form.continuous {
+        continuous(c, &m, fm, gm, nx)?
     } else {
         let q = matrix(c, "model.q", m.q.as_ref()?, state, state)
             .and_then(|q| covariance(c, "model.q", q));
@@ -444,13 +508,13 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
             q: q?,
         }
     };
-    let groups = sensor_groups(c, m.sensor_groups.as_deref(), &measurements, dt_s);
+    let groups = sensor_groups(c, m.sensor_groups.as_deref(), &head.measurements, head.dt_s);
     Some(LinearSpec {
-        states,
-        units,
-        inputs,
-        measurements,
-        dt_s,
+        states: head.states,
+        units: head.units,
+        inputs: head.inputs,
+        measurements: head.measurements,
+        dt_s: head.dt_s,
         dynamics,
         h: hm?,
         r_diag: rm?,

@@ -177,38 +177,7 @@ impl LinearQuadrotorSystem {
             non_negative,
             "a non-negative number",
         );
-
-        let mut scenarios = Vec::new();
-        for (i, t) in spec.scenarios.iter().enumerate() {
-            let key = format!("scenarios[{i}]");
-            let t = c.reject_foreign(
-                &key,
-                t,
-                &["base", "stages", "ripple", "ripple_rad_s"],
-                "a planar_quadrotor scenario key, not used by linear_quadrotor (its scenarios are x0 and duration_s, unforced)",
-            );
-            let Some(s) = c.parse::<ScenarioKeys>(&key, &t) else {
-                continue;
-            };
-            let mut x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0];
-            match &s.x0 {
-                Some(v) if v.len() != 6 || !v.iter().all(|v| v.is_finite()) => c.err(
-                    format!("{key}.x0"),
-                    format!("expected 6 finite numbers, got {v:?}"),
-                ),
-                Some(v) => x0.copy_from_slice(v),
-                None => {}
-            }
-            let Some(steps) = c.scenario_steps(&key, s.duration_s.unwrap_or(40.0), dt_s) else {
-                continue;
-            };
-            scenarios.push(Scenario::unforced(
-                &s.name,
-                Vector::<6>::from_column_slice(&x0),
-                steps,
-            ));
-        }
-
+        let scenarios = scenarios(spec.scenarios, dt_s, c);
         let entries = kinds.configure_all(
             spec.filters,
             &model,
@@ -218,82 +187,14 @@ impl LinearQuadrotorSystem {
             &|_| None,
             c,
         );
-
         let batch_ls = spec.initial.mode == InitialMode::BatchLs;
-        if batch_ls {
-            if sensor != LinearSensor::Positions {
-                c.err(
-                    "initial_estimate.mode",
-                    "batch_ls needs model.kind = \"linear_quadrotor\" with sensor = \"positions\": the other sensor sets leave x0 undetermined (observability rank 3 or 4 of 6)",
-                );
-            }
-            c.reject_present(
-                "initial_estimate",
-                &[("p0_std", spec.initial.p0_std.is_some())],
-                "not used with mode = \"batch_ls\" (P0 is the least-squares covariance)",
-            );
-        }
-        let p0_std = c.vector(
-            "initial_estimate.p0_std",
-            spec.initial.p0_std.as_ref(),
-            6,
-            &[1.0; 6],
-            positive,
-            "a positive number",
-        );
-        let mut batch = None;
-        if batch_ls && sensor == LinearSensor::Positions && c.is_clean() {
-            // Build each scenario's estimator now: a sensor schedule or noise level that
-            // cannot determine x0 is a spec error, and the study can then rely on it.
-            let r = Matrix::<NZ, NZ>::from_fn(|i, j| {
-                if i == j {
-                    measurement_std[i].powi(2)
-                } else {
-                    0.0
-                }
-            });
-            let mut all = Vec::new();
-            let max_rows = crate::system::limits::MAX_BATCH_LS_ROWS;
-            for (i, sc) in scenarios.iter().enumerate() {
-                let rows = sc.steps() * NZ;
-                if rows > max_rows {
-                    c.err(
-                        "initial_estimate.mode",
-                        format!(
-                            "batch_ls for scenarios[{i}] (`{}`) stacks K·n_z = {rows} measurements; at most {max_rows} (the fit's covariance is dense, {rows}² numbers): shorten duration_s or use mode = \"sampled\"",
-                            sc.name
-                        ),
-                    );
-                    continue;
-                }
-                match BatchInitial::new(&model, &sc.controls, &model.discrete().q, &r) {
-                    Ok(b) => all.push(b),
-                    Err(e) => c.err(
-                        "initial_estimate.mode",
-                        format!("batch_ls for scenarios[{i}] (`{}`): {e}", sc.name),
-                    ),
-                }
-            }
-            batch = Some(all);
-        }
+        let p0_std = initial_std(spec, sensor, batch_ls, c);
+        let batch = (batch_ls && sensor == LinearSensor::Positions && c.is_clean())
+            .then(|| batch_estimators(&model, &scenarios, &measurement_std, c));
         if !c.is_clean() {
             return None;
         }
-        let layout = Layout {
-            quantities: LINEAR_STATES
-                .iter()
-                .zip(["m", "m/s", "m", "m/s", "m", "m/s"])
-                .map(|(n, u)| Quantity::new(*n, u))
-                .collect(),
-            inputs: ["t1", "t2", "t3", "t4"].map(String::from).to_vec(),
-            measurements: model
-                .measurement_names()
-                .iter()
-                .map(|s| s.to_string())
-                .collect(),
-            world_states: Vec::new(),
-            dt_s,
-        };
+        let layout = layout(&model, dt_s);
         let noise = TruthNoise {
             process_std: Vector::<6>::from_column_slice(&process_std),
             measurement_std: Vector::<NZ>::from_column_slice(&measurement_std),
@@ -309,6 +210,131 @@ impl LinearQuadrotorSystem {
         plan.batch = batch;
         plan.analysis_sections.push(sensor_set_ranks(dt_s, sensor));
         Some(Arc::new(plan))
+    }
+}
+
+/// The scenarios: x0 (default [1, 0, 1, 0, 1, 0]) and a duration (default 40 s), unforced.
+fn scenarios(tables: &[toml::Table], dt_s: f64, c: &mut Checker) -> Vec<Scenario<6, 4>> {
+    let mut scenarios = Vec::new();
+    for (i, t) in tables.iter().enumerate() {
+        let key = format!("scenarios[{i}]");
+        let t = c.reject_foreign(
+            &key,
+            t,
+            &["base", "stages", "ripple", "ripple_rad_s"],
+            "a planar_quadrotor scenario key, not used by linear_quadrotor (its scenarios are x0 and duration_s, unforced)",
+        );
+        let Some(s) = c.parse::<ScenarioKeys>(&key, &t) else {
+            continue;
+        };
+        let mut x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0];
+        match &s.x0 {
+            Some(v) if v.len() != 6 || !v.iter().all(|v| v.is_finite()) => c.err(
+                format!("{key}.x0"),
+                format!("expected 6 finite numbers, got {v:?}"),
+            ),
+            Some(v) => x0.copy_from_slice(v),
+            None => {}
+        }
+        let Some(steps) = c.scenario_steps(&key, s.duration_s.unwrap_or(40.0), dt_s) else {
+            continue;
+        };
+        scenarios.push(Scenario::unforced(
+            &s.name,
+            Vector::<6>::from_column_slice(&x0),
+            steps,
+        ));
+    }
+    scenarios
+}
+
+/// The initial estimate's standard deviations `initial_estimate.p0_std`; with `batch_ls`,
+/// reports a sensor set that cannot determine x0 and a p0_std it would not use.
+fn initial_std(
+    spec: &SystemSpec<'_>,
+    sensor: LinearSensor,
+    batch_ls: bool,
+    c: &mut Checker,
+) -> Vec<f64> {
+    if batch_ls {
+        if sensor != LinearSensor::Positions {
+            c.err(
+                "initial_estimate.mode",
+                "batch_ls needs model.kind = \"linear_quadrotor\" with sensor = \"positions\": the other sensor sets leave x0 undetermined (observability rank 3 or 4 of 6)",
+            );
+        }
+        c.reject_present(
+            "initial_estimate",
+            &[("p0_std", spec.initial.p0_std.is_some())],
+            "not used with mode = \"batch_ls\" (P0 is the least-squares covariance)",
+        );
+    }
+    c.vector(
+        "initial_estimate.p0_std",
+        spec.initial.p0_std.as_ref(),
+        6,
+        &[1.0; 6],
+        positive,
+        "a positive number",
+    )
+}
+
+/// Each scenario's batch least-squares estimator of x0, built now: a sensor schedule or noise
+/// level that cannot determine x0 is a spec error, and the study can then rely on it.
+fn batch_estimators<const NZ: usize>(
+    model: &Linear<NZ>,
+    scenarios: &[Scenario<6, 4>],
+    measurement_std: &[f64],
+    c: &mut Checker,
+) -> Vec<BatchInitial<6>> {
+    let r = Matrix::<NZ, NZ>::from_fn(|i, j| {
+        if i == j {
+            measurement_std[i].powi(2)
+        } else {
+            0.0
+        }
+    });
+    let mut all = Vec::new();
+    let max_rows = crate::system::limits::MAX_BATCH_LS_ROWS;
+    for (i, sc) in scenarios.iter().enumerate() {
+        let rows = sc.steps() * NZ;
+        if rows > max_rows {
+            c.err(
+                "initial_estimate.mode",
+                format!(
+                    "batch_ls for scenarios[{i}] (`{}`) stacks K·n_z = {rows} measurements; at most {max_rows} (the fit's covariance is dense, {rows}² numbers): shorten duration_s or use mode = \"sampled\"",
+                    sc.name
+                ),
+            );
+            continue;
+        }
+        match BatchInitial::new(model, &sc.controls, &model.discrete().q, &r) {
+            Ok(b) => all.push(b),
+            Err(e) => c.err(
+                "initial_estimate.mode",
+                format!("batch_ls for scenarios[{i}] (`{}`): {e}", sc.name),
+            ),
+        }
+    }
+    all
+}
+
+/// The six states with their units, the four rotor thrusts and the sensor's components.
+fn layout<const NZ: usize>(model: &Linear<NZ>, dt_s: f64) -> Layout {
+    Layout {
+        quantities: LINEAR_STATES
+            .iter()
+            .zip(["m", "m/s", "m", "m/s", "m", "m/s"])
+            .map(|(n, u)| Quantity::new(*n, u))
+            .collect(),
+        inputs: ["t1", "t2", "t3", "t4"].map(String::from).to_vec(),
+        measurements: model
+            .measurement_names()
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
+        world_states: Vec::new(),
+        dt_s,
     }
 }
 
