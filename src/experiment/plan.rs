@@ -346,6 +346,25 @@ impl Plan {
                 ));
             }
             self.runs = r;
+            // A subset of N ≥ the study's runs evaluates all of them: if the whole cell or an
+            // earlier subset already evaluates those runs at that α, its rows would repeat
+            // (two rows with one key, which every reader refuses).
+            if let Some(c) = &self.settings.consistency {
+                let mut seen = vec![(r, c.alpha)];
+                for (i, &(n, alpha)) in c.subsets.iter().enumerate() {
+                    let effective = (n.min(r), alpha);
+                    if seen.contains(&effective) {
+                        errs.push(self.err(
+                            "--runs",
+                            format!(
+                                "with {r} runs per cell, consistency.subsets[{i}] ({n} runs at α = {alpha}) would repeat the evaluation of the first {} runs at that α; pass --runs above {n} or remove the subset",
+                                effective.0
+                            ),
+                        ));
+                    }
+                    seen.push(effective);
+                }
+            }
         }
         if let Some(s) = o.master_seed {
             self.master_seed = s;

@@ -82,8 +82,8 @@ mod systems {
 /// The estimates exchange and the tables read by other tools.
 mod exchange {
     mod compact;
-    #[allow(clippy::module_inception)]
     mod drone_export;
+    #[allow(clippy::module_inception)]
     mod exchange;
     mod filter_model;
     mod interop;

@@ -4,7 +4,6 @@
 //! `nu_` without `S_` made every scored run a numerical failure).
 
 use crate::common::{kfmc, read, repo};
-use polars::prelude::*;
 
 /// `experiments/drone_principled.toml` with its `error_state` filter alone, of `kind`.
 fn spec(kind: &str) -> String {

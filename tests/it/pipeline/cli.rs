@@ -581,3 +581,27 @@ fn summary_and_plot_say_what_a_folder_lacks() {
     );
     assert!(!figs.exists(), "a refused plot drew figures");
 }
+
+/// A `--runs` at or below a `[[consistency.subsets]]` run count would evaluate the subset
+/// on the whole study, writing consistency rows with the same key twice (which every reader
+/// then refuses): the override is refused naming the subset.
+#[test]
+fn runs_override_below_a_subset_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = crate::common::repo().join("experiments/linear_power.toml");
+    let (code, _, err) = crate::common::run_cli(&[
+        "run",
+        spec.to_str().unwrap(),
+        "--runs",
+        "20",
+        "--out",
+        tmp.path().join("o").to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("--runs") && err.contains("consistency.subsets[0] (50 runs at α = 0.05)"),
+        "{err}"
+    );
+    assert!(!tmp.path().join("o/consistency.parquet").exists());
+}
