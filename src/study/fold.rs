@@ -387,160 +387,204 @@ impl Aggregator<'_> {
         };
         let sname = plan.scenarios[scenario].name.as_str();
         let noise = plan.noise_scales[scale];
-        let dt = plan.dt_s();
-        let nf = plan.filters.len();
-        let n = self.states.len() as u64;
-        if let Some(w) = self.sensors.as_mut() {
-            let sums = cell.world.summarise(|_, x| x.is_finite(), &LEVELS)?;
-            for (name, s) in self.trial.world_metrics().iter().zip(&sums) {
-                w.push(&[
-                    Value::Str(sname),
-                    Value::F64(Some(noise)),
-                    Value::Str(name),
-                    Value::I64(Some(s.n as i64)),
-                    Value::F64(s.mean),
-                    Value::F64(s.std),
-                    Value::F64(s.quantiles[0]),
-                    Value::F64(s.quantiles[1]),
-                    Value::F64(s.quantiles[2]),
-                ])?;
-            }
-        }
+        self.write_sensors(&mut cell, sname, noise)?;
         for (fi, f) in plan.filters.iter().enumerate() {
+            let key = cell_key(sname, noise, f);
             let credibility = match cell.credibility.get_mut(fi) {
                 Some(c) => Some(c.finish()?),
                 None => None,
             };
-            let acc = &cell.acc[fi];
-            let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
-            for k in 0..acc.len() {
-                let s = acc.row(k);
-                let nees_band = s
-                    .anees
-                    .and_then(|_| self.bands.band(s.nees_runs as u64 * n, s.nees_runs as u64));
-                let nis_band = s
-                    .anis
-                    .and_then(|_| self.bands.band(s.nis_dof, s.nis_runs as u64));
-                let nees_inside = s.anees.zip(nees_band).map(|(a, b)| b.contains(a));
-                let nis_inside = s.anis.zip(nis_band).map(|(a, b)| b.contains(a));
-                // Step 0 is the prior, not a filter output: the descriptive fractions skip it.
-                if k > 0 {
-                    if let Some(i) = nees_inside {
-                        nees_steps += 1;
-                        nees_in += i as u64;
-                    }
-                    if let Some(i) = nis_inside {
-                        nis_steps += 1;
-                        nis_in += i as u64;
-                    }
-                }
-                let mut row = cell_key(sname, noise, f).to_vec();
-                row.extend([
-                    Value::I64(Some(k as i64)),
-                    Value::F64(Some(k as f64 * dt)),
-                    Value::I64(Some(s.runs as i64)),
-                    Value::F64(s.anees),
-                    Value::F64(nees_band.map(|b| b.lo)),
-                    Value::F64(nees_band.map(|b| b.hi)),
-                    Value::Bool(nees_inside),
-                    Value::F64(s.anis),
-                    Value::F64(nis_band.map(|b| b.lo)),
-                    Value::F64(nis_band.map(|b| b.hi)),
-                    Value::Bool(nis_inside),
-                ]);
-                row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
-                for q in 0..3 {
-                    row.extend(s.abs_err.iter().map(|a| Value::F64(a[q])));
-                }
-                if let Some(c) = &credibility {
-                    row.extend(credibility_step_values(
-                        &c[k],
-                        &self.blocks,
-                        &mut self.bands,
-                        self.states.len(),
-                    ));
-                }
-                self.steps.push(&row)?;
-            }
-            if let (Some(w), Some(cp)) = (self.consistency.as_mut(), plan.consistency.as_ref()) {
-                let frac = |i: u64, n: u64| (n > 0).then(|| i as f64 / n as f64);
-                // The whole cell at the study's α, then each subset: its first N runs at its α
-                // (the per-step fractions are descriptive and kept for the whole cell only).
-                let mut evaluations = vec![(
-                    cp.alpha,
-                    (frac(nees_in, nees_steps), frac(nis_in, nis_steps)),
-                )];
-                evaluations.extend(cp.subsets.iter().map(|&(_, alpha)| (alpha, (None, None))));
-                let folded = cell.consistency[fi].finish()?;
-                for (ev, (sums, (alpha, inside))) in folded.into_iter().zip(evaluations).enumerate()
-                {
-                    let burn_in = sums.burn_in();
-                    // The credibility columns describe the whole cell; a subset's rows leave
-                    // them null.
-                    let cred: Vec<Value<'static>> = match &credibility {
-                        Some(c) if ev == 0 => credibility_averages(
-                            c,
-                            &self.blocks,
-                            alpha,
-                            burn_in.map_or(1, |b| b + 1).max(1),
-                            self.states.len(),
-                        ),
-                        Some(_) => {
-                            vec![Value::F64(None); 4 * self.blocks.len() + 4]
-                        }
-                        None => Vec::new(),
-                    };
-                    for t in sums.tests(&self.states, alpha, inside) {
-                        let mut row = cell_key(sname, noise, f).to_vec();
-                        row.extend([
-                            Value::Str(&t.test),
-                            Value::F64(Some(t.statistic)),
-                            Value::F64(t.lower),
-                            Value::F64(t.upper),
-                            Value::F64(t.dof),
-                            Value::F64(t.p_value),
-                            Value::Bool(Some(t.pass)),
-                            Value::Str(t.direction.map_or("", |d| d.label())),
-                            Value::F64(Some(alpha)),
-                            Value::I64(Some(sums.runs() as i64)),
-                            Value::I64(burn_in.map(|b| b as i64)),
-                        ]);
-                        row.extend(cred.iter().cloned());
-                        w.push(&row)?;
-                    }
-                }
-                if let Some(d) = &cell.decisions[fi] {
-                    let mut row = cell_key(sname, noise, f).to_vec();
-                    row.extend(sequential_values(d, cp.alpha));
-                    if credibility.is_some() {
-                        // The credibility columns describe the whole cell's rows.
-                        row.extend(vec![Value::F64(None); 4 * self.blocks.len() + 4]);
-                    }
-                    w.push(&row)?;
-                }
-            }
-            let mut means = Vec::with_capacity(self.states.len());
-            let sums = cell.rmse[fi].summarise(|_, _| true, &LEVELS)?;
-            for (state, s) in self.states.iter().zip(&sums) {
-                means.push(s.mean.unwrap_or(f64::NAN));
-                let mut row = cell_key(sname, noise, f).to_vec();
-                row.extend([
-                    Value::Str(state),
-                    Value::I64(Some(s.n as i64)),
-                    Value::I64(Some(cell.failed[fi] as i64)),
-                    Value::F64(s.mean),
-                    Value::F64(s.std),
-                    Value::F64(s.quantiles[0]),
-                    Value::F64(s.quantiles[1]),
-                    Value::F64(s.quantiles[2]),
-                ]);
-                self.summary.push(&row)?;
-            }
+            let inside = self.write_steps(&key, &cell.acc[fi], credibility.as_deref())?;
+            self.write_consistency(&key, fi, &mut cell, credibility.as_deref(), inside)?;
+            let means = self.write_summary(&key, fi, &mut cell)?;
             if let Some(thr) = &plan.rmse_thresholds {
-                self.divergence[scenario * nf + fi].observe_mean(scale, &means, thr);
+                self.divergence[scenario * plan.filters.len() + fi]
+                    .observe_mean(scale, &means, thr);
             }
         }
         Ok(())
+    }
+
+    /// The cell's rows of `sensors.parquet`: each world metric summarised over its runs.
+    fn write_sensors(
+        &mut self,
+        cell: &mut CellState,
+        sname: &str,
+        noise: f64,
+    ) -> Result<(), OutputError> {
+        let Some(w) = self.sensors.as_mut() else {
+            return Ok(());
+        };
+        let sums = cell.world.summarise(|_, x| x.is_finite(), &LEVELS)?;
+        for (name, s) in self.trial.world_metrics().iter().zip(&sums) {
+            w.push(&[
+                Value::Str(sname),
+                Value::F64(Some(noise)),
+                Value::Str(name),
+                Value::I64(Some(s.n as i64)),
+                Value::F64(s.mean),
+                Value::F64(s.std),
+                Value::F64(s.quantiles[0]),
+                Value::F64(s.quantiles[1]),
+                Value::F64(s.quantiles[2]),
+            ])?;
+        }
+        Ok(())
+    }
+
+    /// One filter's rows of `steps.parquet`; returns the fractions of steps 1..K whose ANEES
+    /// and ANIS lie inside their per-step bands (the descriptive `*_steps_inside` tests).
+    fn write_steps(
+        &mut self,
+        key: &[Value<'_>],
+        acc: &StepAccumulator,
+        credibility: Option<&[CredibilityStep]>,
+    ) -> Result<(Option<f64>, Option<f64>), OutputError> {
+        let dt = self.plan.dt_s();
+        let n = self.states.len() as u64;
+        let (mut nees_in, mut nees_steps, mut nis_in, mut nis_steps) = (0u64, 0u64, 0u64, 0u64);
+        for k in 0..acc.len() {
+            let s = acc.row(k);
+            let nees_band = s
+                .anees
+                .and_then(|_| self.bands.band(s.nees_runs as u64 * n, s.nees_runs as u64));
+            let nis_band = s
+                .anis
+                .and_then(|_| self.bands.band(s.nis_dof, s.nis_runs as u64));
+            let nees_inside = s.anees.zip(nees_band).map(|(a, b)| b.contains(a));
+            let nis_inside = s.anis.zip(nis_band).map(|(a, b)| b.contains(a));
+            // Step 0 is the prior, not a filter output: the descriptive fractions skip it.
+            if k > 0 {
+                if let Some(i) = nees_inside {
+                    nees_steps += 1;
+                    nees_in += i as u64;
+                }
+                if let Some(i) = nis_inside {
+                    nis_steps += 1;
+                    nis_in += i as u64;
+                }
+            }
+            let mut row = key.to_vec();
+            row.extend([
+                Value::I64(Some(k as i64)),
+                Value::F64(Some(k as f64 * dt)),
+                Value::I64(Some(s.runs as i64)),
+                Value::F64(s.anees),
+                Value::F64(nees_band.map(|b| b.lo)),
+                Value::F64(nees_band.map(|b| b.hi)),
+                Value::Bool(nees_inside),
+                Value::F64(s.anis),
+                Value::F64(nis_band.map(|b| b.lo)),
+                Value::F64(nis_band.map(|b| b.hi)),
+                Value::Bool(nis_inside),
+            ]);
+            row.extend(s.mse.iter().map(|v| Value::F64(Some(*v))));
+            for q in 0..3 {
+                row.extend(s.abs_err.iter().map(|a| Value::F64(a[q])));
+            }
+            if let Some(c) = credibility {
+                row.extend(credibility_step_values(
+                    &c[k],
+                    &self.blocks,
+                    &mut self.bands,
+                    self.states.len(),
+                ));
+            }
+            self.steps.push(&row)?;
+        }
+        let frac = |i: u64, n: u64| (n > 0).then(|| i as f64 / n as f64);
+        Ok((frac(nees_in, nees_steps), frac(nis_in, nis_steps)))
+    }
+
+    /// One filter's rows of `consistency.parquet`: the whole cell at the study's α, then each
+    /// subset (its first N runs at its α), then a sequential gate's decision.
+    fn write_consistency(
+        &mut self,
+        key: &[Value<'_>],
+        fi: usize,
+        cell: &mut CellState,
+        credibility: Option<&[CredibilityStep]>,
+        inside: (Option<f64>, Option<f64>),
+    ) -> Result<(), OutputError> {
+        let (Some(w), Some(cp)) = (self.consistency.as_mut(), self.plan.consistency.as_ref())
+        else {
+            return Ok(());
+        };
+        // The per-step fractions are descriptive and kept for the whole cell only, as are the
+        // credibility columns (null on a subset's and the gate's rows).
+        let mut evaluations = vec![(cp.alpha, inside)];
+        evaluations.extend(cp.subsets.iter().map(|&(_, alpha)| (alpha, (None, None))));
+        let nulls = vec![Value::F64(None); 4 * self.blocks.len() + 4];
+        let folded = cell.consistency[fi].finish()?;
+        for (ev, (sums, (alpha, inside))) in folded.into_iter().zip(evaluations).enumerate() {
+            let burn_in = sums.burn_in();
+            let cred: Vec<Value<'static>> = match credibility {
+                Some(c) if ev == 0 => credibility_averages(
+                    c,
+                    &self.blocks,
+                    alpha,
+                    burn_in.map_or(1, |b| b + 1).max(1),
+                    self.states.len(),
+                ),
+                Some(_) => nulls.clone(),
+                None => Vec::new(),
+            };
+            for t in sums.tests(&self.states, alpha, inside) {
+                let mut row = key.to_vec();
+                row.extend([
+                    Value::Str(&t.test),
+                    Value::F64(Some(t.statistic)),
+                    Value::F64(t.lower),
+                    Value::F64(t.upper),
+                    Value::F64(t.dof),
+                    Value::F64(t.p_value),
+                    Value::Bool(Some(t.pass)),
+                    Value::Str(t.direction.map_or("", |d| d.label())),
+                    Value::F64(Some(alpha)),
+                    Value::I64(Some(sums.runs() as i64)),
+                    Value::I64(burn_in.map(|b| b as i64)),
+                ]);
+                row.extend(cred.iter().cloned());
+                w.push(&row)?;
+            }
+        }
+        if let Some(d) = &cell.decisions[fi] {
+            let mut row = key.to_vec();
+            row.extend(sequential_values(d, cp.alpha));
+            if credibility.is_some() {
+                row.extend(nulls);
+            }
+            w.push(&row)?;
+        }
+        Ok(())
+    }
+
+    /// One filter's rows of `summary.parquet`; returns each state's mean RMSE over the runs
+    /// (NaN where none completed) for the divergence trackers.
+    fn write_summary(
+        &mut self,
+        key: &[Value<'_>],
+        fi: usize,
+        cell: &mut CellState,
+    ) -> Result<Vec<f64>, OutputError> {
+        let mut means = Vec::with_capacity(self.states.len());
+        let sums = cell.rmse[fi].summarise(|_, _| true, &LEVELS)?;
+        for (state, s) in self.states.iter().zip(&sums) {
+            means.push(s.mean.unwrap_or(f64::NAN));
+            let mut row = key.to_vec();
+            row.extend([
+                Value::Str(state),
+                Value::I64(Some(s.n as i64)),
+                Value::I64(Some(cell.failed[fi] as i64)),
+                Value::F64(s.mean),
+                Value::F64(s.std),
+                Value::F64(s.quantiles[0]),
+                Value::F64(s.quantiles[1]),
+                Value::F64(s.quantiles[2]),
+            ]);
+            self.summary.push(&row)?;
+        }
+        Ok(means)
     }
 }
 
