@@ -18,7 +18,9 @@ use crate::experiment::{self, Overrides};
 use crate::output::folder::{FolderLock, StudyFolder, verify};
 use crate::output::manifest::Manifest;
 use crate::output::schema;
-use crate::output::table::{TableWriter, columns_of, for_each_row, for_each_row_group};
+use crate::output::table::{
+    FinishedTable, TableWriter, columns_of, for_each_row, for_each_row_group,
+};
 use crate::study::{DivergenceFeed, Shard, divergence_tables};
 use crate::system::Registry;
 
@@ -298,6 +300,51 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
             format!("has a part that is not complete: {p}"),
         ));
     }
+    let ordered = parts_in_order(dir, &found)?;
+    let m0 = &ordered[0].manifest;
+    let next_cell = ordered
+        .last()
+        .and_then(|p| p.manifest.shard.as_ref())
+        .map_or(0, |s| s.end_cell);
+    let mut plan = experiment::parse_with(&m0.spec, Path::new(&m0.spec_path), registry)?;
+    plan.apply(&Overrides {
+        runs: Some(m0.runs_per_cell as usize),
+        master_seed: Some(m0.master_seed),
+        output: Some(dir.to_path_buf()),
+        trace_runs: Some(0),
+    })?;
+    if next_cell as usize != plan.scenarios.len() * plan.noise_scales.len() {
+        return Err(mismatch(
+            dir,
+            format!(
+                "parts cover {next_cell} cells of {}",
+                plan.scenarios.len() * plan.noise_scales.len()
+            ),
+        ));
+    }
+    // A sharded `kfmc simulate`: its tables concatenate, and there is nothing to fold.
+    let simulation = m0.exchange.is_some();
+    if simulation {
+        plan.filters.clear();
+        plan.rmse_thresholds = None;
+    }
+    folder.prepare(m0.kind(), force)?;
+    let mut finished = concatenate_tables(dir, &ordered, &plan)?;
+    finished.extend(divergence_from_parts(dir, &ordered, &plan)?);
+    let manifest = merged_manifest(&ordered, &plan);
+    // The last moment a stop can be honoured without a commit.
+    stop_if_interrupted()?;
+    let tables = folder.commit(finished, manifest)?;
+    Ok(MergeReport {
+        parts: ordered.len(),
+        tables,
+        wall_s: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// The parts of one study, by index, covering consecutive cells from the first: refuses a
+/// part of another kind, spec, seed, run count or part count, a missing part or a gap.
+fn parts_in_order<'p>(dir: &Path, found: &'p [Part]) -> Result<Vec<&'p Part>, KfmcError> {
     let Some(first) = found.first() else {
         return Err(mismatch(
             dir,
@@ -306,7 +353,7 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
     };
     let m0 = &first.manifest;
     let n = m0.shard.as_ref().map_or(0, |s| s.count);
-    for p in &found {
+    for p in found {
         let m = &p.manifest;
         let s = m.shard.as_ref().expect("parts() keeps shards only");
         // The kind first: a simulation's part among a run's has another spec too, and the
@@ -339,7 +386,7 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
         }
     }
     let mut by_index: Vec<Option<&Part>> = vec![None; n as usize];
-    for p in &found {
+    for p in found {
         let i = p.manifest.shard.as_ref().map_or(0, |s| s.index) as usize;
         by_index[i] = Some(p);
     }
@@ -362,30 +409,16 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
         next_cell = s.end_cell;
     }
 
-    let mut plan = experiment::parse_with(&m0.spec, Path::new(&m0.spec_path), registry)?;
-    plan.apply(&Overrides {
-        runs: Some(m0.runs_per_cell as usize),
-        master_seed: Some(m0.master_seed),
-        output: Some(dir.to_path_buf()),
-        trace_runs: Some(0),
-    })?;
-    if next_cell as usize != plan.scenarios.len() * plan.noise_scales.len() {
-        return Err(mismatch(
-            dir,
-            format!(
-                "parts cover {next_cell} cells of {}",
-                plan.scenarios.len() * plan.noise_scales.len()
-            ),
-        ));
-    }
-    // A sharded `kfmc simulate`: its tables concatenate, and there is nothing to fold.
-    let simulation = m0.exchange.is_some();
-    if simulation {
-        plan.filters.clear();
-        plan.rmse_thresholds = None;
-    }
-    folder.prepare(m0.kind(), force)?;
+    Ok(ordered)
+}
 
+/// Every table of the parts, concatenated in part order row group by row group (memory does
+/// not grow with the parts' sizes).
+fn concatenate_tables(
+    dir: &Path,
+    ordered: &[&Part],
+    plan: &experiment::Plan,
+) -> Result<Vec<FinishedTable>, KfmcError> {
     let mut finished = Vec::new();
     for name in schema::TABLES {
         let files: Vec<PathBuf> = ordered
@@ -415,10 +448,20 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
         }
         finished.push(writer.expect("at least one part").finish()?);
     }
+    Ok(finished)
+}
 
+/// The divergence tables, which look across every noise scale of a scenario and so are
+/// rebuilt from the parts' runs and summary rows (none for a study without thresholds).
+fn divergence_from_parts(
+    dir: &Path,
+    ordered: &[&Part],
+    plan: &experiment::Plan,
+) -> Result<Vec<FinishedTable>, KfmcError> {
+    let mut finished = Vec::new();
     if let Some(thr) = plan.rmse_thresholds.clone() {
-        let mut feed = DivergenceFeed::new(&plan, dir);
-        for p in &ordered {
+        let mut feed = DivergenceFeed::new(plan, dir);
+        for p in ordered {
             for runs in [true, false] {
                 let (name, columns) = if runs {
                     ("runs", feed.runs_columns().to_vec())
@@ -447,11 +490,17 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
             }
         }
         let mut trackers = feed.into_trackers();
-        let (d, dr) = divergence_tables(&plan, dir, &mut trackers, &plan.quantity_names(), &thr)?;
+        let (d, dr) = divergence_tables(plan, dir, &mut trackers, &plan.quantity_names(), &thr)?;
         finished.push(d.finish()?);
         finished.push(dr.finish()?);
     }
+    Ok(finished)
+}
 
+/// The merged folder's manifest: the first part's, for the whole plan, with the parts' wall
+/// times summed.
+fn merged_manifest(ordered: &[&Part], plan: &experiment::Plan) -> Manifest {
+    let m0 = &ordered[0].manifest;
     let mut manifest = m0.clone();
     manifest.shard = None;
     let size = plan.size();
@@ -462,14 +511,7 @@ pub fn merge(dir: &Path, force: bool, registry: &Registry) -> Result<MergeReport
     manifest.wall_s = ordered.iter().map(|p| p.manifest.wall_s).sum();
     manifest.runs_per_s = size.runs as f64 / manifest.wall_s.max(1e-9);
     manifest.tables.clear();
-    // The last moment a stop can be honoured without a commit.
-    stop_if_interrupted()?;
-    let tables = folder.commit(finished, manifest)?;
-    Ok(MergeReport {
-        parts: ordered.len(),
-        tables,
-        wall_s: started.elapsed().as_secs_f64(),
-    })
+    manifest
 }
 
 /// Options of `kfmc slurm`.
