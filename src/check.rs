@@ -508,16 +508,6 @@ impl<'a> Judge<'a> {
         )
     }
 
-    fn has_covariance(&self, f: &FilterPlan) -> bool {
-        f.external
-            || self
-                .plan
-                .system
-                .filters()
-                .get(f.entry)
-                .is_none_or(|i| i.has_covariance)
-    }
-
     /// Consistency tests named by `tests` pass, in every evaluation of every covered cell.
     fn tests(
         &self,
@@ -546,7 +536,7 @@ impl<'a> Judge<'a> {
         // filter without a covariance has none, by its kind).
         let covered = |c: &&PlannedCell<'_>| {
             select.covers_variant(c.scenario, c.filter)
-                && (select.filter.is_some() || self.has_covariance(c.filter))
+                && (select.filter.is_some() || self.plan.has_covariance(c.filter))
         };
         for c in self.cells.iter().filter(covered) {
             for (e, ev) in evaluations.iter().enumerate() {

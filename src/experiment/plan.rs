@@ -1555,6 +1555,17 @@ fn gate_error_key(e: &crate::sequential::GateError) -> &'static str {
 }
 
 impl Plan {
+    /// Whether filter `f` carries a covariance, so has consistency tests and a verdict: an
+    /// outside filter's estimates do, and a built-in kind says whether it does.
+    pub fn has_covariance(&self, f: &FilterPlan) -> bool {
+        f.external
+            || self
+                .system
+                .filters()
+                .get(f.entry)
+                .is_none_or(|i| i.has_covariance)
+    }
+
     /// The sequential gate of `check.sequential` for this plan's runs per cell and
     /// consistency α (`None` without it); an error names the `[check]` key, as validation
     /// does (a `--runs` override can make the spec's looks invalid).

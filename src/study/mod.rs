@@ -307,23 +307,16 @@ fn open_aggregator<'a>(
         sequential: match &plan.sequential {
             Some(gate) => Some(SequentialState {
                 gate,
-                gating: plan.filters.iter().map(|f| has_verdict(plan, f)).collect(),
+                gating: plan
+                    .filters
+                    .iter()
+                    .map(|f| plan.has_covariance(f))
+                    .collect(),
                 table: opener.open_plain("sequential", schema::sequential())?,
             }),
             None => None,
         },
     })
-}
-
-/// Whether filter `f` has a consistency verdict for a sequential gate to wait for: an
-/// outside filter's estimates carry a covariance, and a built-in kind says whether it has one.
-fn has_verdict(plan: &Plan, f: &crate::experiment::plan::FilterPlan) -> bool {
-    f.external
-        || plan
-            .system
-            .filters()
-            .get(f.entry)
-            .is_none_or(|i| i.has_covariance)
 }
 
 /// Runs the units of `cells` on the executor and folds their results in order.
