@@ -95,15 +95,18 @@ pub trait FilterEntry<const NX: usize, const NU: usize, const NZ: usize, M>:
     }
 }
 
-/// Runs [`FilterEntry::check_scenarios`] on every entry; `entries` must be the spec's filters
-/// in order (as [`FilterKinds::configure_all`] returns them when no entry failed).
+/// Runs [`FilterEntry::check_scenarios`] on every entry; `entries` must be the system's
+/// filter tables `tables` in order (as [`FilterKinds::configure_all`] returns them when no
+/// entry failed). Each problem is named at its table's key, the entry's place in the spec's
+/// list (which differs from its place in `tables` when external filters precede it).
 pub fn check_scenarios<const NX: usize, const NU: usize, const NZ: usize, M>(
     entries: &[Arc<dyn FilterEntry<NX, NU, NZ, M>>],
+    tables: &[super::FilterTable],
     samples: usize,
     c: &mut Checker,
 ) {
-    for (i, e) in entries.iter().enumerate() {
-        e.check_scenarios(&format!("filters[{i}]"), samples, c);
+    for (e, table) in entries.iter().zip(tables) {
+        e.check_scenarios(&table.key, samples, c);
     }
 }
 

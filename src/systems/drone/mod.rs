@@ -242,8 +242,10 @@ impl System for DroneSystem {
         let scenarios = scenarios(spec.scenarios, &params, c);
         check_initial(spec, c);
         let mut entries: Vec<Arc<dyn WorldFilterEntry<NQ, NU, NZ>>> = Vec::new();
-        for (i, f) in spec.filters.iter().enumerate() {
-            let key = format!("filters[{i}]");
+        for f in spec.filters {
+            // The entry's place in the spec's list, not in this one: external filters are
+            // not passed to the system.
+            let key = f.key.clone();
             let entry = match f.kind.as_str() {
                 "paper" => paper_entry(&key, f, &params, &scenarios, c),
                 "ekf9" => ekf9_entry(&key, f, &params, c),

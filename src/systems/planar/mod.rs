@@ -276,7 +276,7 @@ impl System for PlanarSystem {
                 c,
             );
             if entries.len() == spec.filters.len() && samples > 0 {
-                check_scenarios(&entries, samples, c);
+                check_scenarios(&entries, spec.filters, samples, c);
             }
             let noise = truth_noise::<4>(&process_std, &measurement_std);
             (c.is_clean()).then(|| {
@@ -305,7 +305,7 @@ impl System for PlanarSystem {
                 c,
             );
             if entries.len() == spec.filters.len() && samples > 0 {
-                check_scenarios(&entries, samples, c);
+                check_scenarios(&entries, spec.filters, samples, c);
             }
             let noise = truth_noise::<3>(&process_std, &measurement_std);
             (c.is_clean()).then(|| {

@@ -102,3 +102,60 @@ fn a_problem_others_depend_on_is_reported_alone() {
     keys.sort();
     assert_eq!(keys, ["filters[0].label", "noise.scalez"], "{errors:#?}");
 }
+
+/// The drone validates its own filter entries; an external entry before them is not passed
+/// to it, yet a problem must still be named at the entry's place in the spec's list.
+#[test]
+fn a_drone_filter_problem_is_named_at_its_place_in_the_spec_after_an_external_filter() {
+    let text = r#"name = "drone_keys"
+initial_estimate.mode = "sampled"
+[model]
+kind = "drone"
+[[scenarios]]
+name = "linear"
+[[filters]]
+label = "mine"
+kind = "external"
+[[filters]]
+label = "ekf9"
+kind = "ekf9"
+baro_drfit = true
+[[filters]]
+label = "nine"
+kind = "nine"
+"#;
+    let errors = kfmc::experiment::parse(text, Path::new("drone_keys.toml"))
+        .expect_err("a misspelt key and an unknown kind")
+        .0;
+    let keys: Vec<&str> = errors.iter().map(|e| e.key_path.as_str()).collect();
+    assert_eq!(
+        keys,
+        ["filters[1].baro_drfit", "filters[2].kind"],
+        "{errors:#?}"
+    );
+}
+
+/// The same for a check made after every entry is configured (the running mean's window
+/// against the scenarios' length), which names entries through the shared mechanism.
+#[test]
+fn a_scenario_check_names_the_entry_at_its_place_in_the_spec_after_an_external_filter() {
+    let text = r#"name = "window_keys"
+[model]
+kind = "planar_quadrotor"
+[[scenarios]]
+name = "basic"
+duration_s = 0.5
+[[filters]]
+label = "mine"
+kind = "external"
+[[filters]]
+label = "mean"
+kind = "running_mean"
+window = 1000
+"#;
+    let errors = kfmc::experiment::parse(text, Path::new("window_keys.toml"))
+        .expect_err("the window never fills")
+        .0;
+    let keys: Vec<&str> = errors.iter().map(|e| e.key_path.as_str()).collect();
+    assert_eq!(keys, ["filters[1].window"], "{errors:#?}");
+}
