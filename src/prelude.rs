@@ -32,7 +32,7 @@ pub use crate::scenario::Scenario;
 pub use crate::sim::TruthNoise;
 pub use crate::system::additive::{
     AdditivePlan, AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds,
-    RunFilter, common_kinds, linear_kinds,
+    FnKind, RunFilter, common_kinds, linear_kinds,
 };
 pub use crate::system::checker::{non_negative, positive};
 pub use crate::system::world::{

@@ -39,6 +39,6 @@ fn main() -> ExitCode {
         kfmc::systems::builtin()
             .with(system::TargetSystem::new())
             // Same kind as the built-in planar system, so this one replaces it.
-            .with(PlanarSystem::new().with_p1_filter(sequential::SequentialKind)),
+            .with(PlanarSystem::new().with_p1_filter(sequential::sequential_kind())),
     )
 }

@@ -8,11 +8,9 @@
 //! S = L Lᵀ (sequential processing is a Cholesky factorisation of S), so NIS and the
 //! whiteness test see the same numbers as for a batch filter.
 
-use std::sync::Arc;
-
 use kfmc::prelude::*;
 
-use super::user_ekf::{Belief, NoiseKeys};
+use super::user_ekf::Belief;
 
 /// The sequential EKF: its assumed Q and the diagonal of its assumed R.
 #[derive(Clone, Debug, PartialEq)]
@@ -98,61 +96,19 @@ where
     }
 }
 
-#[derive(Debug)]
-struct SequentialEntry {
-    noise: AssumedStd,
-}
-
-impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterEntry<NX, NU, NZ, M>
-    for SequentialEntry
+/// `kind = "user_filter"`.
+pub fn sequential_kind<const NX: usize, const NU: usize, const NZ: usize, M>()
+-> impl FilterKind<NX, NU, NZ, M>
 where
     M: Model<NX, NU, NZ> + 'static,
 {
-    fn info(&self) -> FilterInfo {
-        FilterInfo {
-            kind: "user_filter".into(),
-            has_covariance: true,
-            q_scale: true,
-            r_scale: true,
-        }
-    }
-
-    fn assumed_std(&self) -> (&[f64], &[f64]) {
-        (&self.noise.q_std, &self.noise.r_std)
-    }
-
-    fn prepare(&self, _model: &M, n: &AssumedNoise<NX, NZ>) -> Box<dyn RunFilter<NX, NU, NZ, M>> {
+    FnKind::new(
+        "user_filter",
+        "the example's sequential-update EKF (one scalar update per component, no inverse); q_std, r_std",
         // kfmc builds R as diag(r_std²)·r_scale, so its diagonal is all of it.
-        Box::new(SequentialEkf {
+        |_: &M, n: &AssumedNoise<NX, NZ>| SequentialEkf {
             q: n.q,
             r: n.r.diagonal(),
-        })
-    }
-}
-
-/// `kind = "user_filter"`.
-pub struct SequentialKind;
-
-impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKind<NX, NU, NZ, M>
-    for SequentialKind
-where
-    M: Model<NX, NU, NZ> + 'static,
-{
-    fn tag(&self) -> &str {
-        "user_filter"
-    }
-
-    fn about(&self) -> String {
-        "the example's sequential-update EKF (one scalar update per component, no inverse); q_std, r_std".into()
-    }
-
-    fn configure(
-        &self,
-        cx: &FilterContext<'_, NX, NZ, M>,
-        c: &mut Checker,
-    ) -> Option<Arc<dyn FilterEntry<NX, NU, NZ, M>>> {
-        let keys: NoiseKeys = c.parse(&cx.key, cx.table)?;
-        let noise = AssumedStd::read(cx, keys.q_std.as_ref(), keys.r_std.as_ref(), c);
-        Some(Arc::new(SequentialEntry { noise }))
-    }
+        },
+    )
 }

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use kfmc::prelude::*;
 
 use super::model::{CvRangeBearing, MEASUREMENTS, STATES, UNITS};
-use super::user_ekf::UserEkfKind;
+use super::user_ekf::user_ekf_kind;
 
 /// `model.kind` of this system.
 pub const KIND: &str = "cv_range_bearing";
@@ -51,7 +51,7 @@ impl TargetSystem {
     /// kfmc's common kinds (`ekf`, `information`, `sqrt`, `open_loop`) and `user_ekf`.
     pub fn new() -> Self {
         TargetSystem {
-            kinds: common_kinds().with(UserEkfKind),
+            kinds: common_kinds().with(user_ekf_kind()),
         }
     }
 }

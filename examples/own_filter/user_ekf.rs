@@ -4,8 +4,6 @@
 //! a different code path from kfmc's `ekf`, the same algebra, so on the same runs the two
 //! agree to round-off. That agreement is what `tests/it/systems/own_filter.rs` checks.
 
-use std::sync::Arc;
-
 use kfmc::prelude::*;
 
 /// Mean, covariance and the last step's error transition.
@@ -146,67 +144,16 @@ where
     }
 }
 
-/// The entry keys of a `user_ekf` (every other key is an error at its key path).
-#[derive(Debug, Default, Deserialize)]
-#[serde(crate = "kfmc::serde", deny_unknown_fields)]
-pub struct NoiseKeys {
-    /// Assumed process-noise std per state (refused when the model has its own full Q).
-    pub q_std: Option<OneOrMany>,
-    /// Assumed measurement-noise std per component.
-    pub r_std: Option<OneOrMany>,
-}
-
-/// A validated `user_ekf` entry.
-#[derive(Debug)]
-struct UserEkfEntry {
-    noise: AssumedStd,
-}
-
-impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterEntry<NX, NU, NZ, M>
-    for UserEkfEntry
+/// `kind = "user_ekf"`, on any model: its only keys are the assumed noise (`q_std`,
+/// `r_std`), so kfmc's [`FnKind`] reads them and the kind is this one function.
+pub fn user_ekf_kind<const NX: usize, const NU: usize, const NZ: usize, M>()
+-> impl FilterKind<NX, NU, NZ, M>
 where
     M: Model<NX, NU, NZ> + 'static,
 {
-    fn info(&self) -> FilterInfo {
-        FilterInfo {
-            kind: "user_ekf".into(),
-            has_covariance: true,
-            q_scale: true,
-            r_scale: true,
-        }
-    }
-
-    fn assumed_std(&self) -> (&[f64], &[f64]) {
-        (&self.noise.q_std, &self.noise.r_std)
-    }
-
-    fn prepare(&self, _model: &M, n: &AssumedNoise<NX, NZ>) -> Box<dyn RunFilter<NX, NU, NZ, M>> {
-        Box::new(UserEkf { q: n.q, r: n.r })
-    }
-}
-
-/// `kind = "user_ekf"`, on any model.
-pub struct UserEkfKind;
-
-impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKind<NX, NU, NZ, M> for UserEkfKind
-where
-    M: Model<NX, NU, NZ> + 'static,
-{
-    fn tag(&self) -> &str {
-        "user_ekf"
-    }
-
-    fn about(&self) -> String {
-        "the example's own EKF (Joseph form, Cholesky of S); r_std (q_std unless the model has a full Q)".into()
-    }
-
-    fn configure(
-        &self,
-        cx: &FilterContext<'_, NX, NZ, M>,
-        c: &mut Checker,
-    ) -> Option<Arc<dyn FilterEntry<NX, NU, NZ, M>>> {
-        let keys: NoiseKeys = c.parse(&cx.key, cx.table)?;
-        let noise = AssumedStd::read(cx, keys.q_std.as_ref(), keys.r_std.as_ref(), c);
-        Some(Arc::new(UserEkfEntry { noise }))
-    }
+    FnKind::new(
+        "user_ekf",
+        "the example's own EKF (Joseph form, Cholesky of S); r_std (q_std unless the model has a full Q)",
+        |_: &M, n: &AssumedNoise<NX, NZ>| UserEkf { q: n.q, r: n.r },
+    )
 }

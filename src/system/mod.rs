@@ -20,7 +20,9 @@
 pub mod additive;
 pub mod checker;
 pub mod describe;
+pub mod filter_kind;
 pub mod filter_model;
+pub mod kinds;
 pub mod limits;
 pub mod settings;
 pub mod spec_values;
