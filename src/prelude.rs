@@ -38,6 +38,7 @@ pub use crate::system::checker::{non_negative, positive};
 pub use crate::system::world::{
     ModelFilter, NoiseSettings, Realisation, World, WorldFilter, WorldFilterEntry, WorldPlan,
 };
+pub use crate::system::world_kinds::WorldKinds;
 pub use crate::system::{
     Catalogue, Checker, FilterInfo, FilterTable, InitialMode, InitialSpec, Layout, OneOrMany,
     Quantity, Registry, RunSettings, ScenarioInfo, System, SystemPlan, SystemSpec,

@@ -55,7 +55,6 @@ use crate::error::OutputError;
 use crate::filter::{Filter, FilterError, Innovation};
 use crate::linalg::so3::{self, EulerRotation};
 use crate::linalg::{Matrix, SmallCholesky, Vector};
-use crate::metrics::StepValues;
 use crate::model::{Availability, Measurement, Model};
 use crate::output::schema::{ColumnDef, Dtype, covariance_columns};
 use crate::step_loop::{Evaluate, FilterOutput, Prior, RunContext, Unit, run_filter};
@@ -1407,18 +1406,8 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
     model: &M,
     ctx: &RunContext<'_, NQ, NU, NZ>,
 ) -> FilterOutput {
-    let steps = ctx.truth.len() - 1;
     let rows = estimates.and_then(|set| set.unit_rows(filter, &ctx.unit));
-    let fail = |why: String| FilterOutput {
-        run: StepValues::new(NQ, steps).finish(
-            Some((0, why)),
-            ctx.thresholds,
-            ctx.quantity_names,
-            0,
-        ),
-        trace: None,
-        export: None,
-    };
+    let fail = |why: String| FilterOutput::failed_at_start(ctx, why);
     let Some(rows) = rows else {
         return fail(format!(
             "no estimates were given for the external filter `{label}`"

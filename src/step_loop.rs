@@ -339,6 +339,26 @@ pub struct FilterOutput {
     pub export: Option<ExportTrace>,
 }
 
+impl FilterOutput {
+    /// The record of a run that failed before its first step (no usable prior): every
+    /// per-step value null, `why` in its failure column. The batch goes on.
+    pub fn failed_at_start<const NQ: usize, const NU: usize, const NZ: usize>(
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+        why: String,
+    ) -> Self {
+        FilterOutput {
+            run: StepValues::new(NQ, ctx.truth.len() - 1).finish(
+                Some((0, why)),
+                ctx.thresholds,
+                ctx.quantity_names,
+                0,
+            ),
+            trace: None,
+            export: None,
+        }
+    }
+}
+
 /// The monomorphised step loop: predict, update, and per-step metrics on the quantities that
 /// `eval` maps the filter's belief to.
 ///

@@ -196,20 +196,13 @@ where
     /// The filter's Q and R for a variant at a truth-noise scale.
     fn assumed(&self, variant: usize, filter_scale: f64) -> AssumedNoise<NX, NZ> {
         let f = &self.settings.filters[variant];
-        let (q_std, r_std) = self.sys.entries[f.entry].assumed_std();
-        let q = match &self.model_q {
-            Some(q) => q * (filter_scale * filter_scale * f.q_scale),
-            None if q_std.len() == NX => {
-                diag_from_std(&(Vector::<NX>::from_column_slice(q_std) * filter_scale)) * f.q_scale
-            }
-            None => Matrix::<NX, NX>::zeros(),
-        };
-        let r = if r_std.len() == NZ {
-            diag_from_std(&(Vector::<NZ>::from_column_slice(r_std) * filter_scale)) * f.r_scale
-        } else {
-            Matrix::<NZ, NZ>::zeros()
-        };
-        AssumedNoise { q, r }
+        AssumedNoise::for_cell(
+            self.sys.entries[f.entry].assumed_std(),
+            self.model_q.as_ref(),
+            filter_scale,
+            f.q_scale,
+            f.r_scale,
+        )
     }
 
     /// P_0 for a run of system scenario `si`; with the batch initialiser also x̂_0, set in

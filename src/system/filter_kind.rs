@@ -12,7 +12,7 @@ use super::FilterInfo;
 use super::checker::{Checker, non_negative, positive};
 use super::spec_values::OneOrMany;
 use crate::filter::Filter;
-use crate::linalg::Matrix;
+use crate::linalg::{Matrix, Vector, diag_from_std};
 use crate::model::Model;
 use crate::step_loop::{FilterOutput, Identity, Prior, RunContext, run_filter};
 
@@ -23,6 +23,35 @@ pub struct AssumedNoise<const NX: usize, const NZ: usize> {
     pub q: Matrix<NX, NX>,
     /// Assumed measurement-noise covariance.
     pub r: Matrix<NZ, NZ>,
+}
+
+impl<const NX: usize, const NZ: usize> AssumedNoise<NX, NZ> {
+    /// A cell's Q and R from an entry's [`FilterEntry::assumed_std`] (`q_std`, `r_std`) or the
+    /// model's full Q (`model_q`, which filters assume when the model has one): the standard
+    /// deviations times `filter_scale` (1, or the truth's multiplier in `matched` mode), the
+    /// covariances times the variant's `q_scale` and `r_scale`. A kind without assumed noise
+    /// (empty std) gets zeros, which it does not read.
+    pub fn for_cell(
+        (q_std, r_std): (&[f64], &[f64]),
+        model_q: Option<&Matrix<NX, NX>>,
+        filter_scale: f64,
+        q_scale: f64,
+        r_scale: f64,
+    ) -> Self {
+        let q = match model_q {
+            Some(q) => q * (filter_scale * filter_scale * q_scale),
+            None if q_std.len() == NX => {
+                diag_from_std(&(Vector::<NX>::from_column_slice(q_std) * filter_scale)) * q_scale
+            }
+            None => Matrix::<NX, NX>::zeros(),
+        };
+        let r = if r_std.len() == NZ {
+            diag_from_std(&(Vector::<NZ>::from_column_slice(r_std) * filter_scale)) * r_scale
+        } else {
+            Matrix::<NZ, NZ>::zeros()
+        };
+        AssumedNoise { q, r }
+    }
 }
 
 /// A filter ready to run: one virtual call per run, then the monomorphised step loop. Every

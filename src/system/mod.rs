@@ -28,6 +28,7 @@ pub mod settings;
 pub mod spec_values;
 pub mod trial;
 pub mod world;
+pub mod world_kinds;
 
 use std::any::Any;
 use std::fmt::Debug;

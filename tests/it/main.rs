@@ -77,6 +77,7 @@ mod systems {
     mod linear_studies;
     mod own_filter;
     mod world_bias;
+    mod world_kinds;
 }
 
 /// The estimates exchange and the tables read by other tools.
