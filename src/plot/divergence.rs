@@ -3,10 +3,6 @@
 use super::{Bar, Figure, FigureKind, Mark, Panel, Tables, file_part, short};
 use crate::error::PlotError;
 
-/// Up to this many distinct multipliers the x axis is categorical (one labelled slot per
-/// multiplier); beyond, the bars stand on a numeric axis, centred on their multipliers.
-pub const MAX_CATEGORIES: usize = 20;
-
 /// How many of `values` equal each of `grid`'s points (the multipliers are points of the
 /// study's noise-scale grid, so a count is exact, never a bin's).
 pub fn counts_on(values: &[f64], grid: &[f64]) -> Vec<u64> {
@@ -15,35 +11,12 @@ pub fn counts_on(values: &[f64], grid: &[f64]) -> Vec<u64> {
         .collect()
 }
 
-/// The half-width of a bar centred on `grid[i]` on a numeric axis: 0.4 of the nearer gap to
-/// a neighbouring point of the study's noise-scale grid `all` (so bars never overlap, and a
-/// non-uniform grid gets bars as wide as its spacing there).
-fn half_width(x: f64, all: &[f64]) -> f64 {
-    let prev = all
-        .iter()
-        .copied()
-        .filter(|v| *v < x)
-        .fold(f64::NAN, f64::max);
-    let next = all
-        .iter()
-        .copied()
-        .filter(|v| *v > x)
-        .fold(f64::NAN, f64::min);
-    let gap = match (prev.is_nan(), next.is_nan()) {
-        (false, false) => (x - prev).min(next - x),
-        (false, true) => x - prev,
-        (true, false) => next - x,
-        (true, true) => 1.0,
-    };
-    0.4 * gap
-}
-
 /// `divergence_hist`: per scenario, one panel per state with one bar per filter at each
 /// noise multiplier of the study's grid at which runs first crossed the threshold, its height
-/// the number of runs that crossed there. Up to [`MAX_CATEGORIES`] multipliers the axis is
-/// categorical, labelled with them; beyond, the bars stand centred on their multipliers on a
-/// numeric axis. Runs that never crossed (null `divergence_scale`) cannot be placed; the legend
-/// counts them.
+/// the number of runs that crossed there. The x axis is ordinal: one slot per such multiplier,
+/// in ascending order and labelled with it, so a count sits at its multiplier on any grid
+/// (equal-width bins over a non-uniform grid would not). Runs that never crossed (null
+/// `divergence_scale`) cannot be placed; the legend counts them.
 pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
     let Some(dr) = &t.divergence_runs else {
         return Ok(Vec::new());
@@ -82,12 +55,6 @@ pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                 .collect();
             at.sort_by(f64::total_cmp);
             at.dedup();
-            let categorical = at.len() <= MAX_CATEGORIES;
-            // The grid the bars' widths follow: the study's scales and the crossings.
-            let mut grid = t.noise_scales.clone();
-            grid.extend(&at);
-            grid.sort_by(f64::total_cmp);
-            grid.dedup();
             let nf = per_filter.len().max(1) as f64;
             let marks = per_filter
                 .iter()
@@ -98,15 +65,10 @@ pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                         .iter()
                         .zip(&counts)
                         .enumerate()
-                        .map(|(b, (&x, &c))| {
-                            // Centre and half-width of the slot the filters share.
-                            let (centre, half) = if categorical {
-                                (b as f64, 0.4)
-                            } else {
-                                (x, half_width(x, &grid))
-                            };
-                            let w = 2.0 * half / nf;
-                            let x0 = centre - half + j as f64 * w;
+                        .map(|(b, (_, &c))| {
+                            // The filters share the multiplier's slot, 0.8 wide around b.
+                            let w = 0.8 / nf;
+                            let x0 = b as f64 - 0.4 + j as f64 * w;
                             Bar {
                                 x0,
                                 x1: x0 + w,
@@ -130,7 +92,7 @@ pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                 x_label: "divergence multiplier [–]".into(),
                 y_label: "runs [count]".into(),
                 integer_y: true,
-                x_categories: categorical.then(|| at.iter().map(|v| short(*v)).collect()),
+                x_categories: Some(at.iter().map(|v| short(*v)).collect()),
                 marks,
                 ..Panel::default()
             });
@@ -155,8 +117,5 @@ mod tests {
         let grid = [0.5, 1.0, 2.0, 7.0, 20.0];
         let c = counts_on(&[7.0, 7.0, 2.0, 20.0], &grid);
         assert_eq!(c, vec![0, 0, 1, 2, 1]);
-        // A bar centred on 7 in the grid 2, 7, 20 is at most 0.4 × 5 wide on each side.
-        assert_eq!(half_width(7.0, &grid), 2.0);
-        assert_eq!(half_width(0.5, &grid), 0.2);
     }
 }

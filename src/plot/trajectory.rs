@@ -477,8 +477,8 @@ pub fn state_errors(t: &Tables, tr: &Table) -> Result<Vec<Vec<Option<f64>>>, Plo
     Ok(out)
 }
 
-/// `states`: per quantity, the estimate error e = x − x̂ of every filter over time in the
-/// first traced run (nominal noise scale), with its ±3·sqrt(var) band around 0 where the
+/// `states`: per quantity, the estimate error e = x − x̂ of every filter over time (steps ≥ 1)
+/// in the first traced run (nominal noise scale), with its ±3·sqrt(var) band around 0 where the
 /// filter has a covariance (`var_<s>` null, e.g. the running mean: no band). A consistent
 /// filter's error stays inside its band; a 2 m error is as visible as on a 300 m route.
 pub fn states_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
@@ -486,6 +486,7 @@ pub fn states_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         return Ok(Vec::new());
     };
     let time = tr.f64s("t")?;
+    let step = tr.f64s("step")?;
     let runs = traced_runs(t, tr)?;
     let errors = state_errors(t, tr)?;
     let mut vars = Vec::new();
@@ -493,7 +494,12 @@ pub fn states_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
         vars.push(tr.f64s(&format!("var_{s}"))?);
     }
     let mut figs = Vec::new();
-    for r in runs {
+    for mut r in runs {
+        // From step 1, as the consistency figures: step 0 is the prior x̂0, whose ±3σ (P0)
+        // would set every panel's scale and hide the errors after the first update.
+        for (_, rows) in &mut r.filters {
+            rows.retain(|&i| step[i].is_some_and(|k| k >= 1.0));
+        }
         let mut panels = Vec::new();
         for ((s, err), var) in t.states.iter().zip(&errors).zip(&vars) {
             let mut marks = Vec::new();

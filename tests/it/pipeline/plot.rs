@@ -303,8 +303,12 @@ fn figures_show_the_table_values() {
         f64s(&tr, "est_y"),
         f64s(&tr, "var_y"),
     );
-    let runs = f64s(&tr, "run");
-    let r: Vec<usize> = r.into_iter().filter(|&i| runs[i] == Some(0.0)).collect();
+    let (runs, steps) = (f64s(&tr, "run"), f64s(&tr, "step"));
+    // From step 1: step 0 is the prior.
+    let r: Vec<usize> = r
+        .into_iter()
+        .filter(|&i| runs[i] == Some(0.0) && steps[i] != Some(0.0))
+        .collect();
     let want: Vec<(f64, f64)> = r
         .iter()
         .map(|&i| (tt[i].unwrap(), truth[i].unwrap() - est[i].unwrap()))
