@@ -33,6 +33,32 @@ pub struct QuantityEntry {
     /// ([`crate::linalg::so3::EulerRotation`]); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rotation: Option<String>,
+    /// On a position coordinate, its axis: `x`, `y`, `z` (a Cartesian frame, z up) or
+    /// `north`, `east`, `down` ([`crate::system::PositionAxis`]); absent otherwise, and in
+    /// folders written before roles were recorded (the figures then go by names).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position: Option<String>,
+    /// The measurement components that measure this quantity directly, each with its
+    /// sensor: the fixes the position figures draw.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub fixes: Vec<FixEntry>,
+}
+
+/// A measurement component that measures a quantity directly ([`crate::system::PositionFix`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FixEntry {
+    /// The sensor (the legend's `gps fixes`).
+    pub sensor: String,
+    /// The measurement component (trace column `z_<component>`).
+    pub component: String,
+}
+
+impl Manifest {
+    /// Whether the folder records position roles: a folder written before they were recorded
+    /// has none, and its figures are chosen by quantity names as they were then.
+    pub fn has_position_roles(&self) -> bool {
+        self.quantities.iter().any(|q| q.position.is_some())
+    }
 }
 
 /// Which part of a sharded study a folder holds.

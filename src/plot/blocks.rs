@@ -72,7 +72,7 @@ pub fn blocks(t: &Tables) -> Vec<Block> {
 
 /// The rotations among a folder's quantities (indices into `Tables::states`), from the
 /// manifest: three consecutive quantities marked with the same side.
-fn rotations(t: &Tables) -> Vec<EulerRotation> {
+pub(super) fn rotations(t: &Tables) -> Vec<EulerRotation> {
     let side_of = |q: &str| {
         let e = t
             .manifest
@@ -102,6 +102,20 @@ fn rotations(t: &Tables) -> Vec<EulerRotation> {
         }
     }
     out
+}
+
+/// The period an angle quantity's error wraps with (360° or 2π), from the manifest; `None`
+/// for any other quantity.
+pub(super) fn period(t: &Tables, q: &str) -> Option<f64> {
+    let m = t.manifest.as_ref()?;
+    let e = m.quantities.iter().find(|e| e.name == q)?;
+    e.angle.then(|| {
+        if e.unit == "deg" {
+            360.0
+        } else {
+            std::f64::consts::TAU
+        }
+    })
 }
 
 fn p_name(states: &[String], i: usize, j: usize) -> String {
@@ -169,18 +183,7 @@ pub fn block_cells(t: &Tables, bl: &[Block]) -> Result<Vec<BlockCell>, PlotError
         truth.push(tr.f64s(&format!("truth_{s}"))?);
         est.push(tr.f64s(&format!("est_{s}"))?);
     }
-    let period = |q: &str| -> Option<f64> {
-        let m = t.manifest.as_ref()?;
-        let e = m.quantities.iter().find(|e| e.name == q)?;
-        e.angle.then(|| {
-            if e.unit == "deg" {
-                360.0
-            } else {
-                std::f64::consts::TAU
-            }
-        })
-    };
-    let periods: Vec<Option<f64>> = t.states.iter().map(|s| period(s)).collect();
+    let periods: Vec<Option<f64>> = t.states.iter().map(|s| period(t, s)).collect();
     let rotations = rotations(t);
     let mut pcols = std::collections::BTreeMap::new();
     for b in bl {

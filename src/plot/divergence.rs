@@ -1,29 +1,22 @@
 //! The distribution of per-run divergence multipliers (divergence_runs.parquet).
 
-use super::{Bar, Figure, FigureKind, Mark, Panel, Tables, file_part};
+use super::{Bar, Figure, FigureKind, Mark, Panel, Tables, file_part, short};
 use crate::error::PlotError;
 
-/// At most this many bins; fewer when the runs crossed at fewer distinct multipliers.
-const MAX_BINS: usize = 20;
-
-/// Counts of `values` in `bins` equal bins over [lo, hi] (the last bin includes hi).
-pub fn histogram(values: &[f64], lo: f64, hi: f64, bins: usize) -> Vec<u64> {
-    let mut counts = vec![0u64; bins];
-    let w = (hi - lo) / bins as f64;
-    for &v in values {
-        let b = if w > 0.0 {
-            (((v - lo) / w).floor() as usize).min(bins - 1)
-        } else {
-            0
-        };
-        counts[b] += 1;
-    }
-    counts
+/// How many of `values` equal each of `grid`'s points (the multipliers are points of the
+/// study's noise-scale grid, so a count is exact, never a bin's).
+pub fn counts_on(values: &[f64], grid: &[f64]) -> Vec<u64> {
+    grid.iter()
+        .map(|g| values.iter().filter(|v| *v == g).count() as u64)
+        .collect()
 }
 
-/// `divergence_hist`: per scenario, one panel per state with one histogram per filter of
-/// the multiplier at which each run's RMSE first crossed the threshold. Runs that never
-/// crossed (null `divergence_scale`) cannot be placed; the legend counts them.
+/// `divergence_hist`: per scenario, one panel per state with one bar per filter at each
+/// noise multiplier of the study's grid at which runs first crossed the threshold, its height
+/// the number of runs that crossed there. The x axis is ordinal: one slot per such multiplier,
+/// in ascending order and labelled with it, so a count sits at its multiplier on any grid
+/// (equal-width bins over a non-uniform grid would not). Runs that never crossed (null
+/// `divergence_scale`) cannot be placed; the legend counts them.
 pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
     let Some(dr) = &t.divergence_runs else {
         return Ok(Vec::new());
@@ -55,39 +48,30 @@ pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                     Some((f, crossed, never))
                 })
                 .collect();
-            let all: Vec<f64> = per_filter
+            // The multipliers at which any run crossed, ascending: the bars' positions.
+            let mut at: Vec<f64> = per_filter
                 .iter()
                 .flat_map(|p| p.1.iter().copied())
                 .collect();
-            let lo = all.iter().copied().fold(f64::INFINITY, f64::min);
-            let hi = all.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            let mut distinct = all.clone();
-            distinct.sort_by(f64::total_cmp);
-            distinct.dedup();
-            let bins = distinct.len().clamp(1, MAX_BINS);
-            // One distinct value: a bin of width 1 around it rather than of width 0.
-            let (lo, hi) = if all.is_empty() {
-                (0.0, 1.0)
-            } else if hi > lo {
-                (lo, hi)
-            } else {
-                (lo - 0.5, hi + 0.5)
-            };
-            let w = (hi - lo) / bins as f64;
+            at.sort_by(f64::total_cmp);
+            at.dedup();
             let nf = per_filter.len().max(1) as f64;
             let marks = per_filter
                 .iter()
                 .enumerate()
                 .map(|(j, (f, crossed, never))| {
-                    let counts = histogram(crossed, lo, hi, bins);
-                    let bars = counts
+                    let counts = counts_on(crossed, &at);
+                    let bars = at
                         .iter()
+                        .zip(&counts)
                         .enumerate()
-                        .map(|(b, &c)| {
-                            let x0 = lo + b as f64 * w + j as f64 * w / nf;
+                        .map(|(b, (_, &c))| {
+                            // The filters share the multiplier's slot, 0.8 wide around b.
+                            let w = 0.8 / nf;
+                            let x0 = b as f64 - 0.4 + j as f64 * w;
                             Bar {
                                 x0,
-                                x1: x0 + w / nf,
+                                x1: x0 + w,
                                 y: c as f64,
                                 whisker: None,
                             }
@@ -108,6 +92,7 @@ pub fn divergence_hist_series(t: &Tables) -> Result<Vec<Figure>, PlotError> {
                 x_label: "divergence multiplier [–]".into(),
                 y_label: "runs [count]".into(),
                 integer_y: true,
+                x_categories: Some(at.iter().map(|v| short(*v)).collect()),
                 marks,
                 ..Panel::default()
             });
@@ -128,11 +113,9 @@ mod tests {
     use super::*;
 
     #[test]
-    fn histogram_counts_every_value_once() {
-        let v = [0.2, 0.4, 0.4, 1.0, 2.0];
-        let c = histogram(&v, 0.2, 2.0, 3);
-        assert_eq!(c.iter().sum::<u64>(), 5);
-        assert_eq!(c, vec![3, 1, 1]);
-        assert_eq!(histogram(&[3.0, 3.0], 3.0, 3.0, 1), vec![2]);
+    fn counts_sit_on_their_grid_points() {
+        let grid = [0.5, 1.0, 2.0, 7.0, 20.0];
+        let c = counts_on(&[7.0, 7.0, 2.0, 20.0], &grid);
+        assert_eq!(c, vec![0, 0, 1, 2, 1]);
     }
 }

@@ -28,9 +28,11 @@ use crate::output::manifest::Manifest;
 /// A figure family; each draws the figures the folder's tables support.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash, clap::ValueEnum)]
 pub enum FigureKind {
-    /// x against y of the first traced run (traces.parquet).
+    /// The plane of the position roles (x against y) of the first traced run at the nominal
+    /// noise scale (traces.parquet; systems with a planar position).
     Trajectory,
-    /// Each state over time with the estimate's ±3σ band (traces.parquet).
+    /// Each quantity's estimate error over time with the ±3σ band around 0, in the first
+    /// traced run at the nominal noise scale (traces.parquet).
     States,
     /// |e| over time: median and p5–p95 band across runs (steps.parquet).
     Errors,
@@ -47,8 +49,9 @@ pub enum FigureKind {
     DivergenceHist,
     /// ANEES/ANIS and RMSE against the filter's Q scale (tuning.parquet).
     Tuning,
-    /// The position route as projections: north–east and altitude against time, with the
-    /// truth, every estimate and the GPS fixes (traces.parquet; systems with `px, py, pz`).
+    /// The position route as projections: the plane and the altitude against time, with the
+    /// truth, every estimate and the position fixes (traces.parquet; systems whose position
+    /// roles include a vertical axis, the drone's north–east–down, L1's x, y, z).
     Route,
     /// ANEES per block of quantities sharing a unit (position, velocity, attitude), from the
     /// traced runs' covariances (traces.parquet `P_<qi>_<qj>`).
@@ -552,6 +555,19 @@ pub fn plotted_scales(all: &[f64]) -> Vec<f64> {
     v
 }
 
+/// The nominal noise scale of a study's scales: 1 when the study has it, otherwise the scale
+/// nearest 1 on a log scale (of two as near, the smaller; positive scales before 0). The
+/// figures of single traced runs show this cell, whatever the sweep's first scale is.
+pub fn nominal_scale(all: &[f64]) -> Option<f64> {
+    let distance = |s: f64| {
+        if s > 0.0 { s.ln().abs() } else { f64::INFINITY }
+    };
+    all.iter()
+        .copied()
+        .filter(|s| !s.is_nan())
+        .min_by(|a, b| distance(*a).total_cmp(&distance(*b)).then(a.total_cmp(b)))
+}
+
 /// The tables of one result folder, loaded once for every figure kind.
 #[derive(Clone, Debug)]
 pub struct Tables {
@@ -561,7 +577,7 @@ pub struct Tables {
     pub summary: Table,
     /// `steps.parquet`, restricted to [`plotted_scales`].
     pub steps: Option<Table>,
-    /// `traces.parquet`, restricted to the smallest noise scale.
+    /// `traces.parquet`, restricted to the nominal noise scale ([`nominal_scale`]).
     pub traces: Option<Table>,
     /// `divergence.parquet`.
     pub divergence: Option<Table>,
@@ -615,9 +631,9 @@ impl Tables {
         noise_scales.sort_by(f64::total_cmp);
         noise_scales.dedup();
         let plotted = plotted_scales(&noise_scales);
-        let smallest = noise_scales.first().copied();
+        let nominal = nominal_scale(&noise_scales);
         let steps = Table::read_where(dir.join("steps.parquet"), &|s| plotted.contains(&s))?;
-        let traces = Table::read_where(dir.join("traces.parquet"), &|s| Some(s) == smallest)?;
+        let traces = Table::read_where(dir.join("traces.parquet"), &|s| Some(s) == nominal)?;
         let manifest = Some(verified);
         let n_meas = traces
             .as_ref()
@@ -717,4 +733,20 @@ pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotErro
         written.push(path);
     }
     Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::nominal_scale;
+
+    #[test]
+    fn the_nominal_scale_is_1_or_the_nearest_on_a_log_scale() {
+        assert_eq!(nominal_scale(&[0.5, 1.0, 2.0, 7.0]), Some(1.0));
+        // ln 3 = 1.10 is nearer 0 than ln 0.25 = −1.39; 0 is never nearest.
+        assert_eq!(nominal_scale(&[0.0, 0.25, 3.0, 10.0]), Some(3.0));
+        // Equally near on a log scale: the smaller.
+        assert_eq!(nominal_scale(&[0.5, 2.0]), Some(0.5));
+        assert_eq!(nominal_scale(&[0.0]), Some(0.0));
+        assert_eq!(nominal_scale(&[]), None);
+    }
 }

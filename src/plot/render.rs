@@ -68,6 +68,9 @@ fn grid(n: usize) -> (usize, usize) {
     }
 }
 
+/// The most category labels an x axis writes; beyond, every k-th category is labelled.
+const MAX_CATEGORY_LABELS: usize = 12;
+
 /// Font sizes (px). The legend and tick text stay at 13–14 px so that a figure scaled to 75 %
 /// in the report still reads at about 10 px.
 const TITLE_PX: u32 = 22;
@@ -641,10 +644,19 @@ fn chart<'a, DB: DrawingBackend>(
         .build_cartesian_2d(ticked(xa), ticked(ya))
         .map_err(e)?;
     let cats = &p.x_categories;
+    // More categories than labels fit (a sweep's divergence multipliers): every k-th label,
+    // at most MAX_CATEGORY_LABELS of them.
+    let every = cats
+        .as_ref()
+        .map_or(1, |c| c.len().div_ceil(MAX_CATEGORY_LABELS).max(1));
     let fx = |v: &f64| match cats {
         Some(c) => {
             let i = v.round();
-            if (v - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < c.len() {
+            if (v - i).abs() < 1e-6
+                && i >= 0.0
+                && (i as usize) < c.len()
+                && (i as usize).is_multiple_of(every)
+            {
                 c[i as usize].clone()
             } else {
                 String::new()

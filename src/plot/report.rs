@@ -654,7 +654,7 @@ fn answer(h: &mut String, t: &Tables, blocks: Option<&str>) -> Result<(), PlotEr
     h.push_str("<h2 id=\"rmse\">RMSE over runs</h2>\n<p>Mean over runs, with the 5th–95th percentile over runs below it.</p>\n");
     h.push_str(&rmse_table(t)?);
     if let Some(b) = blocks {
-        h.push_str("<h2 id=\"blocks\">ANEES per block</h2>\n<p>NEES of each block of quantities, averaged over the traced runs (smallest noise scale) and over steps ≥ 1, and the share of steps whose ANEES lies in the per-step χ² band. A block size near the average is consistent; descriptive only (steps are correlated and few runs are traced).</p>\n");
+        h.push_str("<h2 id=\"blocks\">ANEES per block</h2>\n<p>NEES of each block of quantities, averaged over the traced runs (at the nominal noise scale) and over steps ≥ 1, and the share of steps whose ANEES lies in the per-step χ² band. A block size near the average is consistent; descriptive only (steps are correlated and few runs are traced).</p>\n");
         h.push_str(b);
     }
     Ok(())

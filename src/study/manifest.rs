@@ -2,7 +2,7 @@
 
 use super::options::*;
 use crate::experiment::Plan;
-use crate::output::manifest::{Manifest, QuantityEntry, StudyKind};
+use crate::output::manifest::{FixEntry, Manifest, QuantityEntry, StudyKind};
 
 /// The manifest of a study (or a part, or a simulation) of `plan` over `cells`; the commit
 /// fills in its tables.
@@ -33,6 +33,15 @@ pub(crate) fn manifest_for(
                 unit: q.unit.clone(),
                 angle: q.angle,
                 rotation: q.rotation.map(|side| side.name().to_string()),
+                position: q.position.map(|a| a.name().to_string()),
+                fixes: q
+                    .fixes
+                    .iter()
+                    .map(|f| FixEntry {
+                        sensor: f.sensor.clone(),
+                        component: f.component.clone(),
+                    })
+                    .collect(),
             })
             .collect(),
         inputs: plan.layout().inputs.clone(),

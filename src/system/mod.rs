@@ -42,6 +42,79 @@ pub use checker::Checker;
 pub use settings::{InitialMode, RunSettings};
 pub use spec_values::OneOrMany;
 
+/// Which axis of which frame a position quantity is: what the position figures (the
+/// `trajectory` map, the `route` projections) are chosen and drawn by.
+///
+/// Two frames: a Cartesian one, x to the right and y ahead on a map with z up (the planar
+/// quadrotor's x–y plane, L1's x, y, z), and north–east–down (the drone). A system declares
+/// the axes of one frame, each at most once; the horizontal pair (x, y or north, east) gives
+/// the map, and a vertical axis (z, or down, drawn as the altitude −down) makes it a route.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum PositionAxis {
+    /// x of a Cartesian frame: drawn to the right on the map.
+    X,
+    /// y of a Cartesian frame: drawn up on the map.
+    Y,
+    /// z of a Cartesian frame, up: the height.
+    Z,
+    /// North: drawn up on the map.
+    North,
+    /// East: drawn to the right on the map.
+    East,
+    /// Down: the altitude is its negative.
+    Down,
+}
+
+impl PositionAxis {
+    /// Every axis, in declaration order.
+    pub const ALL: [PositionAxis; 6] = [
+        PositionAxis::X,
+        PositionAxis::Y,
+        PositionAxis::Z,
+        PositionAxis::North,
+        PositionAxis::East,
+        PositionAxis::Down,
+    ];
+
+    /// The name recorded in `manifest.toml` and written in specs: `x`, `y`, `z`, `north`,
+    /// `east`, `down`.
+    pub fn name(self) -> &'static str {
+        match self {
+            PositionAxis::X => "x",
+            PositionAxis::Y => "y",
+            PositionAxis::Z => "z",
+            PositionAxis::North => "north",
+            PositionAxis::East => "east",
+            PositionAxis::Down => "down",
+        }
+    }
+
+    /// The axis of a name ([`PositionAxis::name`]).
+    pub fn from_name(name: &str) -> Option<PositionAxis> {
+        PositionAxis::ALL.into_iter().find(|a| a.name() == name)
+    }
+
+    /// Whether the axis belongs to the north–east–down frame.
+    pub fn is_ned(self) -> bool {
+        matches!(
+            self,
+            PositionAxis::North | PositionAxis::East | PositionAxis::Down
+        )
+    }
+}
+
+/// A measurement component that measures a position quantity directly (a fix): the figures
+/// draw it beside the quantity's truth and estimates.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PositionFix {
+    /// The sensor, for the legend (`gps` gives `gps fixes`); the components of one sensor are
+    /// drawn together.
+    pub sensor: String,
+    /// The measurement component (trace column `z_<component>`), one of
+    /// [`Layout::measurements`], equal to the quantity plus noise when it reports.
+    pub component: String,
+}
+
 /// One evaluated quantity: what is scored (RMSE, NEES, divergence, traces).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Quantity {
@@ -55,6 +128,12 @@ pub struct Quantity {
     /// Set on the three quantities of a rotation ([`Quantity::rotation`]): their error is the
     /// rotation error on this side, not three angle differences.
     pub rotation: Option<ErrorSide>,
+    /// Set on a position coordinate ([`Quantity::position`]): which axis of which frame it
+    /// is. The position figures are chosen by these roles, not by names.
+    pub position: Option<PositionAxis>,
+    /// The measurement components that measure this quantity directly
+    /// ([`Quantity::measured_by`]), drawn as fixes in the position figures.
+    pub fixes: Vec<PositionFix>,
 }
 
 impl Quantity {
@@ -65,16 +144,34 @@ impl Quantity {
             unit: unit.into(),
             angle: false,
             rotation: None,
+            position: None,
+            fixes: Vec::new(),
         }
     }
     /// An angle quantity: its error is wrapped.
     pub fn angle(name: impl Into<String>, unit: impl Into<String>) -> Self {
         Quantity {
-            name: name.into(),
-            unit: unit.into(),
             angle: true,
-            rotation: None,
+            ..Quantity::new(name, unit)
         }
+    }
+    /// A position coordinate along `axis` (its error is a plain difference).
+    pub fn position(name: impl Into<String>, unit: impl Into<String>, axis: PositionAxis) -> Self {
+        Quantity::new(name, unit).with_position(axis)
+    }
+    /// This quantity as a position coordinate along `axis`.
+    pub fn with_position(mut self, axis: PositionAxis) -> Self {
+        self.position = Some(axis);
+        self
+    }
+    /// This quantity measured directly by the measurement component `component` of `sensor`
+    /// (the drone's `px` by `gps_px` of `gps`): the position figures draw the fixes.
+    pub fn measured_by(mut self, sensor: impl Into<String>, component: impl Into<String>) -> Self {
+        self.fixes.push(PositionFix {
+            sensor: sensor.into(),
+            component: component.into(),
+        });
+        self
     }
     /// The three quantities of an attitude held as ZYX Euler angles (roll, pitch, yaw, in
     /// that order, in `deg` or `rad`) and scored as a rotation: the error is the rotation
@@ -83,10 +180,8 @@ impl Quantity {
     /// ([`crate::linalg::so3`]).
     pub fn rotation(names: [&str; 3], unit: &str, side: ErrorSide) -> [Quantity; 3] {
         names.map(|n| Quantity {
-            name: n.into(),
-            unit: unit.into(),
-            angle: false,
             rotation: Some(side),
+            ..Quantity::new(n, unit)
         })
     }
 }
@@ -155,6 +250,14 @@ impl Layout {
             }
         }
         out
+    }
+    /// The position quantities: (index, axis), in quantity order.
+    pub fn positions(&self) -> Vec<(usize, PositionAxis)> {
+        self.quantities
+            .iter()
+            .enumerate()
+            .filter_map(|(i, q)| Some((i, q.position?)))
+            .collect()
     }
     /// Indices of the angle quantities.
     pub fn angle_indices(&self) -> Vec<usize> {

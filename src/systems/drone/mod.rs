@@ -29,8 +29,8 @@ use crate::system::settings::InitialMode;
 use crate::system::spec_values::OneOrMany;
 use crate::system::world::{NoiseSettings, Realisation, WorldFilter, WorldFilterEntry, WorldPlan};
 use crate::system::{
-    Catalogue, FilterInfo, FilterTable, Layout, Quantity, ScenarioInfo, System, SystemPlan,
-    SystemSpec,
+    Catalogue, FilterInfo, FilterTable, Layout, PositionAxis, Quantity, ScenarioInfo, System,
+    SystemPlan, SystemSpec,
 };
 use crate::trial::{Prior, RunContext, run_filter};
 use filters::{Augmentation, Degrees, PaperModel, Principled, SeqEkf, clone_prior};
@@ -412,9 +412,10 @@ fn error_state_entry(
 fn layout(params: &DroneParams) -> Layout {
     Layout {
         quantities: vec![
-            Quantity::new("px", "m"),
-            Quantity::new("py", "m"),
-            Quantity::new("pz", "m"),
+            // North–east–down positions, each fixed by its GPS component.
+            Quantity::position("px", "m", PositionAxis::North).measured_by("gps", "gps_px"),
+            Quantity::position("py", "m", PositionAxis::East).measured_by("gps", "gps_py"),
+            Quantity::position("pz", "m", PositionAxis::Down).measured_by("gps", "gps_pz"),
             Quantity::new("vx", "m/s"),
             Quantity::new("vy", "m/s"),
             Quantity::new("vz", "m/s"),

@@ -301,7 +301,13 @@ fn build<const NX: usize, const NZ: usize, const NA: usize, const NV: usize>(
             .states
             .iter()
             .zip(&lin.units)
-            .map(|(n, u)| Quantity::new(n.as_str(), u.as_str()))
+            .zip(lin.positions.iter().zip(lin.position_fixes()))
+            .map(|((n, u), (axis, fixes))| {
+                let mut q = Quantity::new(n.as_str(), u.as_str());
+                q.position = *axis;
+                q.fixes = fixes;
+                q
+            })
             .collect(),
         inputs: lin.inputs.clone(),
         measurements: lin.measurements.clone(),

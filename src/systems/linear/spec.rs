@@ -8,6 +8,7 @@ use crate::model::Availability;
 use crate::system::checker::{Checker, positive};
 
 use super::model::SensorGroup;
+use crate::system::{PositionAxis, PositionFix};
 
 /// The most states, inputs and measurement components a name list may have (the sizes the
 /// step loop is compiled for are a subset, see [`super::SUPPORTED`]).
@@ -33,6 +34,8 @@ pub(super) struct ModelKeys {
     q_tilde: Option<Vec<Vec<f64>>>,
     r: Option<Vec<Vec<f64>>>,
     sensor_groups: Option<Vec<GroupKeys>>,
+    positions: Option<Vec<String>>,
+    position_frame: Option<String>,
 }
 
 /// `[[model.sensor_groups]]`.
@@ -106,6 +109,8 @@ pub struct LinearSpec {
     pub r_diag: Vec<f64>,
     /// The multi-rate groups.
     pub groups: Vec<SensorGroup>,
+    /// The position role of each state (`positions`, `position_frame`).
+    pub positions: Vec<Option<PositionAxis>>,
 }
 
 impl LinearSpec {
@@ -509,6 +514,7 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         }
     };
     let groups = sensor_groups(c, m.sensor_groups.as_deref(), &head.measurements, head.dt_s);
+    let positions = positions(c, &m, &head.states)?;
     Some(LinearSpec {
         states: head.states,
         units: head.units,
@@ -519,7 +525,112 @@ pub(super) fn model(c: &mut Checker, table: &toml::Table) -> Option<LinearSpec> 
         h: hm?,
         r_diag: rm?,
         groups: groups?,
+        positions,
     })
+}
+
+/// `positions` (state names in axis order: x, y[, z] or north, east[, down]) in the frame
+/// `position_frame` (`xyz`, the default, or `ned`): each state's position role; `None` after
+/// reporting a problem.
+fn positions(
+    c: &mut Checker,
+    m: &ModelKeys,
+    states: &[String],
+) -> Option<Vec<Option<PositionAxis>>> {
+    let mut out = vec![None; states.len()];
+    let Some(list) = &m.positions else {
+        if m.position_frame.is_some() {
+            c.err(
+                "model.position_frame",
+                "needs model.positions (the position states in axis order)",
+            );
+            return None;
+        }
+        return Some(out);
+    };
+    let frame = c.choice(
+        "model.position_frame",
+        m.position_frame.as_deref(),
+        "xyz",
+        &["xyz", "ned"],
+    );
+    let (axes, order) = match frame {
+        "ned" => (
+            [PositionAxis::North, PositionAxis::East, PositionAxis::Down],
+            "north, east[, down]",
+        ),
+        _ => (
+            [PositionAxis::X, PositionAxis::Y, PositionAxis::Z],
+            "x, y[, z]",
+        ),
+    };
+    let before = c.error_count();
+    if !(2..=3).contains(&list.len()) {
+        c.err(
+            "model.positions",
+            format!(
+                "expected 2 or 3 state names in axis order ({order}), got {}",
+                list.len()
+            ),
+        );
+        return None;
+    }
+    for (i, name) in list.iter().enumerate() {
+        match states.iter().position(|s| s == name) {
+            None => c.err(
+                format!("model.positions[{i}]"),
+                format!(
+                    "unknown state `{name}`; expected one of: {}",
+                    states.join(", ")
+                ),
+            ),
+            Some(_) if list[..i].contains(name) => c.err(
+                format!("model.positions[{i}]"),
+                format!("`{name}` is listed twice"),
+            ),
+            Some(j) => out[j] = Some(axes[i]),
+        }
+    }
+    (c.error_count() == before).then_some(out)
+}
+
+impl LinearSpec {
+    /// The measurement components that measure a position state directly (their row of H is
+    /// that state's unit row), per state. The components of one sensor group (or those
+    /// reporting every step) form one sensor, named after them (`px/py`).
+    pub fn position_fixes(&self) -> Vec<Vec<PositionFix>> {
+        let nx = self.states.len();
+        // (state, component) of every direct measurement of a position state.
+        let direct: Vec<(usize, usize)> = (0..self.h.nrows())
+            .filter_map(|i| {
+                let row = self.h.row(i);
+                let j = (0..nx).find(|&j| row[j] == 1.0)?;
+                let unit = (0..nx).all(|k| k == j || row[k] == 0.0);
+                (unit && self.positions[j].is_some()).then_some((j, i))
+            })
+            .collect();
+        let group_of = |i: usize| {
+            self.groups
+                .iter()
+                .position(|g| g.components.0 & (1 << i) != 0)
+        };
+        let sensor = |i: usize| {
+            direct
+                .iter()
+                .filter(|(_, k)| group_of(*k) == group_of(i))
+                .map(|(_, k)| self.measurements[*k].as_str())
+                .collect::<Vec<_>>()
+                .join("/")
+        };
+        let mut out = vec![Vec::new(); nx];
+        for &(j, i) in &direct {
+            out[j].push(PositionFix {
+                sensor: sensor(i),
+                component: self.measurements[i].clone(),
+            });
+        }
+        out
+    }
 }
 
 /// `[[model.sensor_groups]]`: each a set of components reporting every `period_steps` (or at

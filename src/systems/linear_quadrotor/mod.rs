@@ -21,7 +21,7 @@ use crate::system::additive::{AdditivePlan, FilterKinds, linear_kinds};
 use crate::system::checker::{Checker, non_negative, positive};
 use crate::system::settings::InitialMode;
 use crate::system::spec_values::OneOrMany;
-use crate::system::{Catalogue, Layout, Quantity, System, SystemPlan, SystemSpec};
+use crate::system::{Catalogue, Layout, PositionAxis, Quantity, System, SystemPlan, SystemSpec};
 use model::{ContinuousLinear, LINEAR_DT_S, LINEAR_R_DIAG, LINEAR_STATES, Linear, LinearSensor};
 
 /// `model.kind` of this system.
@@ -325,7 +325,22 @@ fn layout<const NZ: usize>(model: &Linear<NZ>, dt_s: f64) -> Layout {
         quantities: LINEAR_STATES
             .iter()
             .zip(["m", "m/s", "m", "m/s", "m", "m/s"])
-            .map(|(n, u)| Quantity::new(*n, u))
+            .map(|(n, u)| {
+                let q = Quantity::new(*n, u);
+                // x, y, z are the positions of a Cartesian frame with z up; the sensor's
+                // position components are the positions plus noise.
+                let q = match *n {
+                    "x" => q.with_position(PositionAxis::X),
+                    "y" => q.with_position(PositionAxis::Y),
+                    "z" => q.with_position(PositionAxis::Z),
+                    _ => q,
+                };
+                if q.position.is_some() && model.measurement_names().contains(n) {
+                    q.measured_by(model.sensor().name(), *n)
+                } else {
+                    q
+                }
+            })
             .collect(),
         inputs: ["t1", "t2", "t3", "t4"].map(String::from).to_vec(),
         measurements: model

@@ -122,6 +122,15 @@ pub enum LinearSensor {
 }
 
 impl LinearSensor {
+    /// The name `model.sensor` gives it.
+    pub fn name(self) -> &'static str {
+        match self {
+            LinearSensor::Positions => "positions",
+            LinearSensor::Velocities => "velocities",
+            LinearSensor::Xy => "xy",
+        }
+    }
+
     /// The measured state indices.
     pub fn rows(self) -> &'static [usize] {
         match self {

@@ -24,7 +24,9 @@ use crate::system::additive::{
 use crate::system::checker::{Checker, non_negative, positive};
 use crate::system::settings::InitialMode;
 use crate::system::spec_values::{OneOrMany, TableOf};
-use crate::system::{Catalogue, FilterInfo, Layout, Quantity, System, SystemPlan, SystemSpec};
+use crate::system::{
+    Catalogue, FilterInfo, Layout, PositionAxis, Quantity, System, SystemPlan, SystemSpec,
+};
 use model::PlanarParams;
 use model::{IMU_MEASUREMENTS, P1_MEASUREMENTS, PLANAR_STATES, Planar, PlanarImu, PlanarP1};
 use running_mean::RunningMean;
@@ -234,7 +236,12 @@ impl System for PlanarSystem {
                 .zip(["m", "m/s", "m", "m/s", "rad", "rad/s"])
                 // θ is the seeds' unwrapped attitude (a roll passes ±π continuously), so its
                 // error is a plain difference.
-                .map(|(n, u)| Quantity::new(*n, u))
+                .map(|(n, u)| match *n {
+                    // The vehicle moves in the vertical x–y plane: x to the right, y up.
+                    "x" => Quantity::position(*n, u, PositionAxis::X),
+                    "y" => Quantity::position(*n, u, PositionAxis::Y),
+                    _ => Quantity::new(*n, u),
+                })
                 .collect(),
             inputs: vec!["u1".into(), "u2".into()],
             measurements: if imu {

@@ -286,16 +286,45 @@ fn figures_show_the_table_values() {
             .any(|m| matches!(m, Mark::Line { label: Some(l), .. } if l == "running_mean"))
     );
 
-    // states: the EKF estimate of y is traces.est_y of the first traced run.
+    // states: the EKF's error of y is traces.truth_y − est_y of the first traced run at the
+    // nominal noise scale ×1 (the sweep is 0.5, 1, 2), and its band is ±3·sqrt(var_y)
+    // around 0.
     let tr = df(&res, "traces");
     let sfig = fig(&FigureKind::States.series(&t).unwrap(), "states_basic");
-    let r = rows(&tr, "basic", Some(0.5), "ekf");
-    let (tt, est) = (f64s(&tr, "t"), f64s(&tr, "est_y"));
+    assert!(
+        sfig.title.contains("run 0, noise ×1)") && sfig.title.starts_with("basic: "),
+        "{}",
+        sfig.title
+    );
+    let r = rows(&tr, "basic", Some(1.0), "ekf");
+    let (tt, truth, est, var) = (
+        f64s(&tr, "t"),
+        f64s(&tr, "truth_y"),
+        f64s(&tr, "est_y"),
+        f64s(&tr, "var_y"),
+    );
+    let (runs, steps) = (f64s(&tr, "run"), f64s(&tr, "step"));
+    // From step 1: step 0 is the prior.
+    let r: Vec<usize> = r
+        .into_iter()
+        .filter(|&i| runs[i] == Some(0.0) && steps[i] != Some(0.0))
+        .collect();
     let want: Vec<(f64, f64)> = r
         .iter()
-        .map(|&i| (tt[i].unwrap(), est[i].unwrap()))
+        .map(|&i| (tt[i].unwrap(), truth[i].unwrap() - est[i].unwrap()))
         .collect();
     assert_eq!(line(&sfig, "y", "ekf"), want);
+    let y_panel = sfig.panels.iter().find(|p| p.title == "y").unwrap();
+    let band = y_panel
+        .marks
+        .iter()
+        .find_map(|m| match m {
+            Mark::Band { points, .. } => Some(points.clone()),
+            _ => None,
+        })
+        .unwrap();
+    let sd = var[r[5]].unwrap().sqrt();
+    assert_eq!(band[5], (tt[r[5]].unwrap(), -3.0 * sd, 3.0 * sd));
     // The running mean has no variance, hence one band (the EKF's) per panel.
     let bands = sfig.panels[0]
         .marks
@@ -303,6 +332,20 @@ fn figures_show_the_table_values() {
         .filter(|m| matches!(m, Mark::Band { .. }))
         .count();
     assert_eq!(bands, 1);
+    // The trajectory shows the same cell, and says so.
+    let traj = fig(
+        &FigureKind::Trajectory.series(&t).unwrap(),
+        "trajectory_roll",
+    );
+    assert!(traj.title.ends_with("(run 0, noise ×1)"), "{}", traj.title);
+    let r = rows(&tr, "roll", Some(1.0), "ekf");
+    let (tx, ty) = (f64s(&tr, "truth_x"), f64s(&tr, "truth_y"));
+    let want: Vec<(f64, f64)> = r
+        .iter()
+        .filter(|&&i| runs[i] == Some(0.0))
+        .map(|&i| (tx[i].unwrap(), ty[i].unwrap()))
+        .collect();
+    assert_eq!(line(&traj, "x–y plane", "truth"), want);
 
     // divergence_hist: the bars count every run that crossed; the legend the others.
     let dr = df(&res, "divergence_runs");
@@ -587,8 +630,9 @@ fn filter_variants_sharing_a_label_are_separate_series_in_every_figure() {
             assert_eq!(inks.len(), n, "{}: {}", fig.name, panel.title);
         }
     }
+    // L1's positions x, y, z (z up) make a route, not a plane alone.
     for k in [
-        FigureKind::Trajectory,
+        FigureKind::Route,
         FigureKind::States,
         FigureKind::Errors,
         FigureKind::RmseCases,
@@ -912,4 +956,291 @@ fn rotation_error_deg(est: &[[f64; 3]; 3], truth: &[[f64; 3]; 3]) -> [f64; 3] {
     let angle = s.atan2((d[0][0] + d[1][1] + d[2][2] - 1.0) / 2.0);
     let k = if s < 1e-12 { 0.5 } else { angle / (2.0 * s) };
     w.map(|x| (x * k).to_degrees())
+}
+
+/// The folder's manifest as an older kfmc wrote it: without position roles or fixes.
+fn strip_roles(res: &Path) {
+    let path = res.join("manifest.toml");
+    let mut m: toml::Table = std::fs::read_to_string(&path).unwrap().parse().unwrap();
+    for q in m["quantities"].as_array_mut().unwrap() {
+        let q = q.as_table_mut().unwrap();
+        q.remove("position");
+        q.remove("fixes");
+    }
+    std::fs::write(&path, toml::to_string(&m).unwrap()).unwrap();
+}
+
+/// The quantities of a folder's manifest: (name, position role, `sensor:component` fixes).
+fn roles(res: &Path) -> Vec<(String, Option<String>, Vec<String>)> {
+    let text = std::fs::read_to_string(res.join("manifest.toml")).unwrap();
+    let m: toml::Table = text.parse().unwrap();
+    m["quantities"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|q| {
+            let s = |v: &toml::Value, k: &str| v.get(k).and_then(|x| x.as_str()).map(String::from);
+            let fixes = q
+                .get("fixes")
+                .and_then(|f| f.as_array())
+                .map(|f| {
+                    f.iter()
+                        .map(|e| {
+                            format!("{}:{}", s(e, "sensor").unwrap(), s(e, "component").unwrap())
+                        })
+                        .collect()
+                })
+                .unwrap_or_default();
+            (s(q, "name").unwrap(), s(q, "position"), fixes)
+        })
+        .collect()
+}
+
+/// The scatter marks (label, points) of a panel.
+fn scatters(panel: &kfmc::plot::Panel) -> Vec<(String, Vec<(f64, f64)>)> {
+    panel
+        .marks
+        .iter()
+        .filter_map(|m| match m {
+            Mark::Scatter {
+                label: Some(l),
+                points,
+                ..
+            } => Some((l.clone(), points.clone())),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_linear_system_with_declared_positions_gets_a_trajectory_with_its_fixes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let res = tmp.path().join("cv");
+    let spec = tmp.path().join("cv.toml");
+    // linear_cv_target: states px, vx, py, vy with `positions = ["px", "py"]`, px and py
+    // measured directly at 1 Hz (a sensor group), vx and vy at every step.
+    let base = std::fs::read_to_string(repo().join("experiments/linear_cv_target.toml")).unwrap();
+    assert!(base.contains("positions = [\"px\", \"py\"]"));
+    let base: String = base
+        .lines()
+        .filter(|l| !l.starts_with("output") && !l.starts_with("runs"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    std::fs::write(
+        &spec,
+        format!(
+            "output = \"{}\"\nruns = 2\ntrace_runs = 1\n{base}\n",
+            res.display()
+        ),
+    )
+    .unwrap();
+    let o = kfmc()
+        .args(["run", spec.to_str().unwrap(), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // The manifest records the roles and the fixes found in H.
+    let m = roles(&res);
+    let role = |q: &str| {
+        let e = m.iter().find(|e| e.0 == q).unwrap();
+        (e.1.clone(), e.2.clone())
+    };
+    assert_eq!(role("px"), (Some("x".into()), vec!["px/py:px".to_string()]));
+    assert_eq!(role("py"), (Some("y".into()), vec!["px/py:py".to_string()]));
+    assert_eq!(role("vx"), (None, vec![]));
+
+    let t = Tables::load(&res).unwrap();
+    let figs = kfmc::plot::all_figures(&t, &[FigureKind::Trajectory, FigureKind::Route]).unwrap();
+    assert_eq!(
+        figs.iter().map(|f| f.name.as_str()).collect::<Vec<_>>(),
+        ["trajectory_turn"],
+        "a plane without a vertical axis: a trajectory, no route"
+    );
+    let traj = &figs[0];
+    let p = &traj.panels[0];
+    assert_eq!(
+        (p.title.as_str(), p.x_label.as_str(), p.y_label.as_str()),
+        ("px–py plane", "px [m]", "py [m]")
+    );
+    let tr = df(&res, "traces");
+    let r = rows(&tr, "turn", Some(1.0), "kf");
+    let (tx, ty, zx, zy) = (
+        f64s(&tr, "truth_px"),
+        f64s(&tr, "truth_py"),
+        f64s(&tr, "z_px"),
+        f64s(&tr, "z_py"),
+    );
+    let want: Vec<(f64, f64)> = r
+        .iter()
+        .map(|&i| (tx[i].unwrap(), ty[i].unwrap()))
+        .collect();
+    assert_eq!(line(traj, "px–py plane", "truth"), want);
+    let fixes: Vec<(f64, f64)> = r.iter().filter_map(|&i| Some((zx[i]?, zy[i]?))).collect();
+    assert_eq!(fixes.len(), 61, "1 Hz over 60 s, from t = 0");
+    assert_eq!(scatters(p), vec![("px/py fixes".to_string(), fixes)]);
+
+    // Without roles (a folder of an older kfmc) the names px, py make no trajectory, as then.
+    strip_roles(&res);
+    let t = Tables::load(&res).unwrap();
+    assert!(
+        kfmc::plot::all_figures(&t, &[FigureKind::Trajectory, FigureKind::Route])
+            .unwrap()
+            .is_empty()
+    );
+}
+
+#[test]
+fn the_drone_route_finds_its_fixes_by_role_and_an_old_manifest_by_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    let res = tmp.path().join("d");
+    let spec = tmp.path().join("d.toml");
+    std::fs::write(
+        &spec,
+        format!(
+            "name = \"d\"\nmaster_seed = 3\nruns = 2\ntrace_runs = 1\noutput = \"{}\"\n[model]\nkind = \"drone\"\nimu_output = \"specific_force\"\n[[scenarios]]\nname = \"maneuver\"\nduration_s = 3.0\n[[filters]]\nlabel = \"ekf9\"\nkind = \"ekf9\"\n[initial_estimate]\nmode = \"sampled\"\n",
+            res.display()
+        ),
+    )
+    .unwrap();
+    let o = kfmc()
+        .args(["run", spec.to_str().unwrap(), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let route = |res: &Path| {
+        let t = Tables::load(res).unwrap();
+        let figs =
+            kfmc::plot::all_figures(&t, &[FigureKind::Trajectory, FigureKind::Route]).unwrap();
+        assert_eq!(figs.len(), 1, "the route only: a vertical axis");
+        assert_eq!(figs[0].kind, FigureKind::Route);
+        figs[0].clone()
+    };
+    let by_role = route(&res);
+    let tr = df(&res, "traces");
+    let (gn, ge) = (f64s(&tr, "z_gps_px"), f64s(&tr, "z_gps_py"));
+    let want: Vec<(f64, f64)> = (0..tr.height())
+        .filter_map(|i| Some((ge[i]?, gn[i]?)))
+        .collect();
+    assert_eq!(want.len(), 31, "10 Hz over 3 s, from t = 0");
+    assert_eq!(
+        scatters(&by_role.panels[0]),
+        vec![("gps fixes".to_string(), want.clone())]
+    );
+    // The fixes come from the roles the manifest records: renaming the sensor there renames
+    // the legend, whatever the columns are called.
+    let text = std::fs::read_to_string(res.join("manifest.toml")).unwrap();
+    assert!(text.contains("position = \"north\""), "{text}");
+    assert_eq!(text.matches("sensor = \"gps\"").count(), 3);
+    std::fs::write(
+        res.join("manifest.toml"),
+        text.replace("sensor = \"gps\"", "sensor = \"receiver\""),
+    )
+    .unwrap();
+    assert_eq!(
+        scatters(&route(&res).panels[0]),
+        vec![("receiver fixes".to_string(), want)]
+    );
+    // A manifest without roles (an older kfmc's) draws the route as then, by the names px,
+    // py, pz and the sensor named gps: the same figure as by roles.
+    strip_roles(&res);
+    assert_eq!(route(&res), by_role);
+}
+
+#[test]
+fn an_old_manifest_without_roles_plots_as_before() {
+    let (_tmp, res) = study();
+    let declared: Vec<(String, Option<String>)> =
+        roles(&res).into_iter().map(|(n, p, _)| (n, p)).collect();
+    assert_eq!(
+        declared[..3],
+        [
+            ("x".to_string(), Some("x".to_string())),
+            ("xdot".to_string(), None),
+            ("y".to_string(), Some("y".to_string())),
+        ],
+        "the planar x, y are declared positions"
+    );
+    let t = Tables::load(&res).unwrap();
+    let new = kfmc::plot::all_figures(&t, &[]).unwrap();
+    strip_roles(&res);
+    assert!(roles(&res).iter().all(|r| r.1.is_none()));
+    let t = Tables::load(&res).unwrap();
+    let old = kfmc::plot::all_figures(&t, &[]).unwrap();
+    // The planar roles give exactly the figures the names x, y gave.
+    assert_eq!(old, new);
+    assert!(old.iter().any(|f| f.name == "trajectory_roll"));
+}
+
+#[test]
+fn the_divergence_histogram_puts_each_run_at_its_grid_multiplier() {
+    let (dir, _) = spec_in_tempdir("");
+    let out = dir.path().join("res");
+    let spec = dir.path().join("s.toml");
+    // A non-uniform grid: equal-width bins over [min, max] would not sit on its points.
+    let grid = [0.5, 1.0, 2.0, 3.0, 7.0, 20.0];
+    let text = small_spec(&out, 20, "[0.5, 1.0, 2.0, 3.0, 7.0, 20.0]", EKF_AND_MEAN).replace(
+        "rmse_thresholds = [0.05, 0.05, 0.01, 0.05, 0.01, 0.01]",
+        "rmse_thresholds = [0.05, 0.05, 0.05, 0.05, 0.05, 0.05]",
+    );
+    std::fs::write(&spec, text).unwrap();
+    let o = kfmc()
+        .args(["run", spec.to_str().unwrap(), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let t = Tables::load(&out).unwrap();
+    let dr = df(&out, "divergence_runs");
+    let (sc, fl, st, ds) = (
+        strs(&dr, "scenario"),
+        strs(&dr, "filter"),
+        strs(&dr, "state"),
+        f64s(&dr, "divergence_scale"),
+    );
+    let figs = FigureKind::DivergenceHist.series(&t).unwrap();
+    let mut seen_at_7 = 0;
+    for f in &figs {
+        for (pi, state) in t.states.iter().enumerate() {
+            let p = &f.panels[pi];
+            let cats = p.x_categories.clone().expect("a categorical axis");
+            // One slot per multiplier at which a run crossed, labelled with it, in order.
+            let mut at: Vec<f64> = (0..dr.height())
+                .filter(|&i| sc[i] == f.scenario && st[i] == *state)
+                .filter_map(|i| ds[i])
+                .collect();
+            at.sort_by(f64::total_cmp);
+            at.dedup();
+            assert!(at.iter().all(|v| grid.contains(v)));
+            let labels: Vec<String> = at.iter().map(|v| format!("{v}")).collect();
+            assert_eq!(cats, labels, "{}/{state}", f.name);
+            for (j, filter) in ["ekf", "running_mean"].iter().enumerate() {
+                let bars = p
+                    .marks
+                    .iter()
+                    .filter_map(|m| match m {
+                        Mark::Bars { bars, .. } => Some(bars.clone()),
+                        _ => None,
+                    })
+                    .nth(j)
+                    .unwrap();
+                for (b, v) in at.iter().enumerate() {
+                    let n = (0..dr.height())
+                        .filter(|&i| {
+                            sc[i] == f.scenario
+                                && st[i] == *state
+                                && fl[i] == *filter
+                                && ds[i] == Some(*v)
+                        })
+                        .count();
+                    if *v == 7.0 {
+                        seen_at_7 += n;
+                    }
+                    // The bar inside the slot of its multiplier counts exactly those runs.
+                    let bar = &bars[b];
+                    assert!(bar.x0 >= b as f64 - 0.5 && bar.x1 <= b as f64 + 0.5);
+                    assert_eq!(bar.y, n as f64, "{}/{state}/{filter} at ×{v}", f.name);
+                }
+            }
+        }
+    }
+    assert!(seen_at_7 > 0, "some run crossed at ×7");
 }

@@ -552,6 +552,25 @@ fn linear_spec_errors_name_their_key() {
         "model.state_units"
     );
 
+    // Position roles: state names in axis order, 2 or 3 of them, in a known frame.
+    let pos = |keys: &str| first_error(&DISCRETE.replace("MODEL", keys));
+    assert!(errors(&DISCRETE.replace("MODEL", "positions = [\"p\", \"v\"]")).is_empty());
+    let (k, m) = pos("positions = [\"p\", \"w\"]");
+    assert_eq!(k, "model.positions[1]");
+    assert!(m.contains("unknown state `w`") && m.contains("p, v"), "{m}");
+    assert_eq!(pos("positions = [\"p\", \"p\"]").0, "model.positions[1]");
+    let (k, m) = pos("positions = [\"p\"]");
+    assert_eq!(k, "model.positions");
+    assert!(m.contains("2 or 3"), "{m}");
+    let (k, m) = pos("positions = [\"p\", \"v\"]\nposition_frame = \"enu\"");
+    assert_eq!(k, "model.position_frame");
+    assert!(m.contains("xyz, ned"), "{m}");
+    assert_eq!(
+        pos("position_frame = \"ned\"").0,
+        "model.position_frame",
+        "a frame without positions"
+    );
+
     // Sizes that are not compiled, named by the key that sets them.
     let five = base.replace(
         "states = [\"p\", \"v\"]",
