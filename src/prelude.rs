@@ -30,6 +30,7 @@ pub use crate::linalg::{Matrix, Vector};
 pub use crate::model::{Availability, Measurement, Model};
 pub use crate::scenario::Scenario;
 pub use crate::sim::TruthNoise;
+pub use crate::sim::seed::world_normals;
 pub use crate::system::additive::{
     AdditivePlan, AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds,
     FnKind, RunFilter, common_kinds, linear_kinds,

@@ -4,6 +4,9 @@
 //! * `model.kind = "cv_range_bearing"` — the user's own system ([`system::TargetSystem`]):
 //!   a constant-velocity target and a range-bearing sensor ([`model`]), with kfmc's common
 //!   filter kinds and the user's EKF, `kind = "user_ekf"` ([`user_ekf`]);
+//! * `model.kind = "turning_target"` — a world that is not the filters' model
+//!   ([`turning::TurningSystem`]): the same target in a coordinated turn, with kfmc's filter
+//!   kinds and `user_ekf` selected by name;
 //! * `model.kind = "planar_quadrotor"` — kfmc's built-in system, registered again with the
 //!   user's sequential-update EKF for sensor P1, `kind = "user_filter"` ([`sequential`]).
 //!
@@ -20,6 +23,7 @@
 mod model;
 mod sequential;
 mod system;
+mod turning;
 mod user_ekf;
 
 use std::process::ExitCode;
@@ -38,6 +42,7 @@ fn main() -> ExitCode {
         program,
         kfmc::systems::builtin()
             .with(system::TargetSystem::new())
+            .with(turning::TurningSystem)
             // Same kind as the built-in planar system, so this one replaces it.
             .with(PlanarSystem::new().with_p1_filter(sequential::sequential_kind())),
     )

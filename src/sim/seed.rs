@@ -52,6 +52,15 @@ pub fn world_stream(run_seed: u64, index: u64) -> Pcg64 {
     stream_id(run_seed, 1 << 32 | index)
 }
 
+/// Standard normals from [`world_stream`] `index`: an endless, reproducible sequence, what a
+/// [`crate::system::world::World`] plugin draws its noise from.
+pub fn world_normals(run_seed: u64, index: u64) -> impl Iterator<Item = f64> {
+    let mut rng = world_stream(run_seed, index);
+    std::iter::repeat_with(move || {
+        rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng)
+    })
+}
+
 fn stream_id(run_seed: u64, k: u64) -> Pcg64 {
     let a = mix64(run_seed ^ mix64(k));
     let b = mix64(a ^ 0x9e37_79b9_7f4a_7c15);

@@ -74,8 +74,8 @@ fn the_users_binary_has_its_own_name_and_version() {
 }
 
 #[test]
-fn both_specs_validate_run_and_pass_their_checks() {
-    for name in ["cv_range_bearing", "planar_user_filter"] {
+fn every_example_spec_validates_runs_and_passes_its_checks() {
+    for name in ["cv_range_bearing", "planar_user_filter", "turning_target"] {
         let s = spec(name);
         let (code, out, err) = own_filter(&["validate", path_str(&s)]);
         assert_eq!(code, 0, "validate {name}: {err}");
