@@ -902,7 +902,7 @@ fn schema<'py>(
             l.world_state_names(),
         );
         let cols = match kind {
-            "estimates" => kfmc::score::estimate_columns_with(&q, &z, &l.rotations()),
+            "estimates" => plan.estimate_schema(),
             "truth" => s::truth(&q, &w),
             "measurements" => s::measurements(&z, &u),
             "initial" => s::initial(&q),
@@ -1158,7 +1158,8 @@ fn simulation_model(folder: PathBuf) -> PyResult<FilterModel> {
 /// What an estimates table of a study holds and is checked against (the study's
 /// [`kfmc::experiment::Plan::study_keys`]): quantities, measurements, rotations (the index of
 /// the first of three and the four quaternion columns that may replace them), scenarios with
-/// their transitions K, noise scales, runs per cell, filters (label, external) and the stamp.
+/// their transitions K, noise scales, runs per cell, filters (label, external), the external
+/// filters with their declared variants and the stamp.
 fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>> {
     let keys = plan.study_keys();
     let d = PyDict::new(py);
@@ -1177,7 +1178,9 @@ fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>
     d.set_item("scenarios", keys.scenarios.clone())?;
     d.set_item("noise_scales", keys.noise_scales.to_vec())?;
     d.set_item("runs", keys.runs)?;
-    d.set_item("filters", keys.filters.clone())?;
+    let filters: Vec<(&str, bool)> = keys.filters.iter().map(|f| (f.label, f.external)).collect();
+    d.set_item("filters", filters)?;
+    d.set_item("external_filters", external_filters_list(py, plan)?)?;
     d.set_item("world_stamp", &keys.world_stamp)?;
     d.set_item("master_seed", keys.master_seed)?;
     let meta = PyDict::new(py);
@@ -1186,6 +1189,24 @@ fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>
     }
     d.set_item("metadata", meta)?;
     Ok(d)
+}
+
+/// The spec's external filters as the simulation manifest lists them: dicts with `label` and,
+/// for a label that declares variants, `q_scale` and/or `r_scale` (the values its rows take).
+fn external_filters_list<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyList>> {
+    let out = PyList::empty(py);
+    for e in kfmc::simulate::external_filters(plan) {
+        let d = PyDict::new(py);
+        d.set_item("label", &e.label)?;
+        if let Some(q) = &e.q_scale {
+            d.set_item("q_scale", q.clone())?;
+        }
+        if let Some(r) = &e.r_scale {
+            d.set_item("r_scale", r.clone())?;
+        }
+        out.append(d)?;
+    }
+    Ok(out)
 }
 
 /// [`layout_dict`] of a `kfmc simulate` folder (`simulation = true`, the spec its manifest

@@ -440,6 +440,14 @@ class Simulation:
         return _kfmc.load_toml(self.folder / "manifest.toml")
 
     @property
+    def external_filters(self) -> List[Dict[str, Any]]:
+        """The spec's external filters: the estimates to write for these runs (the manifest's
+        ``[[exchange.external_filters]]``), dicts with ``label`` and, for a label that
+        declares variants, ``q_scale`` and/or ``r_scale``: every pair of their values is a
+        variant, whose rows name it in those columns (``Estimates.add_run(..., q_scale=…)``)."""
+        return [dict(e) for e in self.manifest.get("exchange", {}).get("external_filters", [])]
+
+    @property
     def stamp(self) -> Dict[str, str]:
         """The file metadata an estimates file made on these runs carries:
         ``{"kfmc.world_stamp": …, "kfmc.master_seed": …}`` (:class:`Estimates` writes it)."""

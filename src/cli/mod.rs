@@ -459,7 +459,7 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
         l.world_state_names(),
     );
     let cols = match table {
-        SchemaTable::Estimates => crate::score::estimate_columns_with(&q, &z, &l.rotations()),
+        SchemaTable::Estimates => plan.estimate_schema(),
         SchemaTable::Truth => schema::truth(&q, &w),
         SchemaTable::Measurements => schema::measurements(&z, &u),
         SchemaTable::Initial => schema::initial(&q),
@@ -480,7 +480,16 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
         };
         let group = c.name.split('_').next().unwrap_or("");
         let first = noted.insert(group.to_string());
+        let variants;
         let note = match (table, group) {
+            (SchemaTable::Estimates, "q" | "r") => {
+                variants = format!(
+                    "  the variant of {}; null for a filter without {} variants",
+                    plan.external_variants_text(&c.name).join(", "),
+                    c.name
+                );
+                variants.as_str()
+            }
             _ if !first => "",
             (SchemaTable::Estimates, "nu" | "S") => {
                 "  optional: the NIS and whiteness tests; nu null where z did not report (NaN is an error)"
