@@ -651,7 +651,7 @@ fn score<'py>(
 
 /// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
 #[pyfunction]
-#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false))]
+#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
 #[allow(clippy::too_many_arguments)]
 fn check<'py>(
     py: Python<'py>,
@@ -667,9 +667,21 @@ fn check<'py>(
     allow_unstamped: bool,
     force: bool,
     allow_large: bool,
+    sequential: bool,
+    looks: Option<&Bound<'py, PyAny>>,
+    spending: Option<&str>,
+    futility: Option<f64>,
+    futility_rho: Option<f64>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
+        let overrides = gate_overrides(sequential, looks, spending, futility, futility_rho)?;
         let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        // As `kfmc check --sequential …`: the keywords over the spec's `[check]` keys; whether
+        // they make a gate for the study's runs is judged with the spec (a SpecError naming
+        // the `check.*` key).
+        plan.check_sequential = overrides
+            .apply(plan.check_sequential.as_ref())
+            .map_err(gate_override_error)?;
         if !(paths.is_empty() && streams.is_empty()) {
             let unstamped = if allow_unstamped {
                 kfmc::check::Unstamped::Warn
@@ -735,7 +747,7 @@ impl RunObserver for SharedObserver<'_> {
 
 /// `kfmc power`: returns the folder holding power.parquet.
 #[pyfunction]
-#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending="obrien-fleming", futility=None))]
+#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
 #[allow(clippy::too_many_arguments)]
 fn power(
     py: Python<'_>,
@@ -750,28 +762,26 @@ fn power(
     allow_large: bool,
     sequential: bool,
     looks: Option<&Bound<'_, PyAny>>,
-    spending: &str,
+    spending: Option<&str>,
     futility: Option<f64>,
+    futility_rho: Option<f64>,
 ) -> PyResult<PathBuf> {
     guarded(|| {
         if replications == 0 {
             return Err(SpecError::new_err("replications: must be at least 1"));
         }
-        if !sequential && (looks.is_some() || futility.is_some()) {
-            return Err(PyValueError::new_err(
-                "looks and futility are settings of the sequential gate: pass sequential=True",
-            ));
-        }
+        // As `kfmc power --sequential …`: the keywords alone (the spec's `[check]` gate is
+        // kfmc check's).
+        let settings = gate_overrides(sequential, looks, spending, futility, futility_rho)?
+            .apply(None)
+            .map_err(gate_override_error)?;
         let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
         kfmc::study::check_replications(&plan, replications, allow_large)
             .map_err(|e| Failure::from(e).into_py())?;
-        let gate = if sequential {
-            Some(sequential_gate(
-                plan.runs, plan.alpha, looks, spending, futility,
-            )?)
-        } else {
-            None
-        };
+        let gate = settings
+            .map(|s| s.gate(plan.runs, plan.alpha))
+            .transpose()
+            .map_err(|e| SpecError::new_err(format!("sequential gate: {e}")))?;
         let out = out.unwrap_or_else(|| plan.output.join("power"));
         plan.output = out.clone();
         let exec = kfmc::study::ExecOptions {
@@ -800,36 +810,65 @@ fn power(
     })
 }
 
-/// The sequential gate of `power(sequential=True, looks=…, spending=…, futility=…)`: `looks`
-/// is a count of even looks (default 10) or the looks' run counts.
-fn sequential_gate(
-    runs: usize,
-    alpha: f64,
+/// The gate keywords of `check` and `power` (`sequential=…, looks=…, spending=…,
+/// futility=…, futility_rho=…`) as the library's [`kfmc::sequential::GateOverrides`], the
+/// flags of `kfmc check` and `kfmc power` in Python's spelling: `looks` is a count of even
+/// looks (≥ 1) or the looks' run counts, `spending` `"obrien-fleming"` or `"pocock"`.
+fn gate_overrides(
+    sequential: bool,
     looks: Option<&Bound<'_, PyAny>>,
-    spending: &str,
+    spending: Option<&str>,
     futility: Option<f64>,
-) -> PyResult<kfmc::sequential::Gate> {
-    use kfmc::sequential::{Gate, Looks, Spending};
+    futility_rho: Option<f64>,
+) -> PyResult<kfmc::sequential::GateOverrides> {
+    use kfmc::sequential::{GateOverrides, Looks, Spending};
     let looks = match looks {
-        None => Looks::Count(10),
-        Some(v) => match v.extract::<usize>() {
+        None => None,
+        Some(v) => Some(match v.extract::<usize>() {
+            Ok(0) => return Err(SpecError::new_err("looks: `0` is not an integer ≥ 1")),
             Ok(count) => Looks::Count(count),
             Err(_) => Looks::RunCounts(v.extract::<Vec<usize>>().map_err(|_| {
-                PyValueError::new_err("looks: a count of looks or a list of run counts")
+                SpecError::new_err("looks: a count of looks or a list of run counts")
             })?),
-        },
+        }),
     };
     let spending = match spending {
-        "obrien-fleming" => Spending::OBrienFleming,
-        "pocock" => Spending::Pocock,
-        other => {
-            return Err(PyValueError::new_err(format!(
+        None => None,
+        Some("obrien-fleming") => Some(Spending::OBrienFleming),
+        Some("pocock") => Some(Spending::Pocock),
+        Some(other) => {
+            return Err(SpecError::new_err(format!(
                 "spending: `{other}` is not one of obrien-fleming, pocock"
             )));
         }
     };
-    Gate::for_study(runs, alpha, &looks, &spending, futility)
-        .map_err(|e| PyValueError::new_err(format!("sequential gate: {e}")))
+    Ok(GateOverrides {
+        sequential,
+        looks,
+        spending,
+        futility_beta: futility,
+        futility_rho,
+    })
+}
+
+/// A gate keyword given without the gate (or `futility_rho` without `futility`), named as
+/// Python spells it: `kfmc.SpecError`, as the command's usage error exits 2.
+fn gate_override_error(e: kfmc::sequential::GateOverrideError) -> PyErr {
+    use kfmc::sequential::{GateOverrideError, GateSetting};
+    match e {
+        GateOverrideError::NotSequential(setting) => SpecError::new_err(format!(
+            "{} is a setting of the sequential gate: pass sequential=True",
+            match setting {
+                GateSetting::Looks => "looks",
+                GateSetting::Spending => "spending",
+                GateSetting::Futility => "futility",
+                GateSetting::FutilityRho => "futility_rho",
+            }
+        )),
+        GateOverrideError::RhoWithoutFutility => SpecError::new_err(
+            "futility_rho is the exponent of the futility bounds' β-spending: pass futility=β",
+        ),
+    }
 }
 
 /// TOML text as Python values (tables as dicts).
