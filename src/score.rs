@@ -327,12 +327,35 @@ pub fn estimate_columns(quantities: &[&str], measurements: &[&str]) -> Vec<Colum
     estimate_columns_with(quantities, measurements, &[])
 }
 
+/// The precision of the value columns kfmc exports (`kfmc run --export-estimates-precision`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum EstimatePrecision {
+    /// Every value column float64 (the default).
+    #[default]
+    F64,
+    /// The covariance, innovation, S and A columns float32, rounded to nearest; the
+    /// estimates (`est_`, `quat_`) stay float64, since the error truth − estimate needs
+    /// every digit of the estimate. About half the bytes; read back as f64, exactly.
+    F32,
+}
+
 /// [`estimate_columns`] for a study whose layout has `rotations`: kfmc writes each as a
 /// quaternion with the rotation error's covariance.
 pub fn estimate_columns_with(
     quantities: &[&str],
     measurements: &[&str],
     rotations: &[EulerRotation],
+) -> Vec<ColumnDef> {
+    estimate_columns_in(quantities, measurements, rotations, EstimatePrecision::F64)
+}
+
+/// [`estimate_columns_with`] in a precision: with [`EstimatePrecision::F32`] every value
+/// column but the estimates is float32.
+pub fn estimate_columns_in(
+    quantities: &[&str],
+    measurements: &[&str],
+    rotations: &[EulerRotation],
+    precision: EstimatePrecision,
 ) -> Vec<ColumnDef> {
     let cols = EstimateColumns {
         quantities: quantities.iter().map(|s| s.to_string()).collect(),
@@ -343,9 +366,13 @@ pub fn estimate_columns_with(
         quaternions: rotations.to_vec(),
     };
     let mut c = key_columns();
-    c.extend(cols.file_columns().into_iter().map(|name| ColumnDef {
-        name,
-        dtype: Dtype::F64,
+    c.extend(cols.file_columns().into_iter().map(|name| {
+        let estimate = name.starts_with("est_") || name.starts_with("quat_");
+        let dtype = match precision {
+            EstimatePrecision::F32 if !estimate => Dtype::F32,
+            _ => Dtype::F64,
+        };
+        ColumnDef { name, dtype }
     }));
     c
 }

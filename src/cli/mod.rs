@@ -466,6 +466,7 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             Dtype::Str => "string",
             Dtype::F64 if key => "float64",
             Dtype::F64 => "float64 (nullable)",
+            Dtype::F32 => "float32 (nullable)",
             Dtype::I64 => "int64",
             Dtype::U64 => "uint64",
             Dtype::Bool => "bool",

@@ -737,6 +737,7 @@ pub(crate) fn validate_into(
             rmse_thresholds,
             consistency: consistency.plan,
             export_estimates: false,
+            export_precision: crate::score::EstimatePrecision::F64,
             estimates: None,
         },
         system,

@@ -146,6 +146,9 @@ pub struct RunSettings {
     /// Whether to write every run's estimates in the exchange format (`estimates.parquet`,
     /// `kfmc run --export-estimates`).
     pub export_estimates: bool,
+    /// The precision of the exported covariance, innovation, S and A columns
+    /// (`--export-estimates-precision`; the estimates themselves stay float64).
+    pub export_precision: crate::score::EstimatePrecision,
     /// The estimates of the external filters, once read (`kfmc score`, `kfmc check
     /// --estimates`).
     pub estimates: Option<Arc<EstimateSet>>,

@@ -610,6 +610,7 @@ fn tables_reference() -> String {
             let ty = match c.dtype {
                 Dtype::Str => "string",
                 Dtype::F64 => "float64",
+                Dtype::F32 => "float32",
                 Dtype::I64 => "int64",
                 Dtype::U64 => "uint64",
                 Dtype::Bool => "boolean",
