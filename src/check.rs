@@ -144,8 +144,8 @@ impl Table {
     }
 }
 
-/// A cell's display name: an external filter has no multipliers (null `q_scale`/`r_scale`),
-/// so it is named by its label alone.
+/// A cell's display name: an external filter without declared variants has no multipliers
+/// (null `q_scale`/`r_scale`), so it is named by its label alone.
 fn cell_name(scenario: &str, noise: Option<f64>, filter: &str, qr: Option<(f64, f64)>) -> String {
     match qr {
         Some((q, r)) => format!("{scenario} noise={} {filter} q={q} r={r}", fmt_g(noise)),
@@ -177,7 +177,7 @@ fn planned_cells(plan: &Plan) -> Vec<PlannedCell<'_>> {
     for s in &plan.scenarios {
         for &noise in &plan.noise_scales {
             for f in &plan.filters {
-                let qr = (!f.external).then_some((f.q_scale, f.r_scale));
+                let qr = f.multipliers();
                 out.push(PlannedCell {
                     key: CellKey {
                         scenario: s.name.clone(),

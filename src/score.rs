@@ -107,9 +107,50 @@ pub struct StudyKeys<'a> {
     pub noise_scales: &'a [f64],
     /// Runs per cell.
     pub runs: usize,
-    /// (label, whether outside kfmc) of each filter variant, in study order.
-    pub filters: Vec<(&'a str, bool)>,
+    /// Each filter variant, in study order.
+    pub filters: Vec<StudyFilter<'a>>,
 }
+
+/// A filter variant of the study, as reading estimates sees it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StudyFilter<'a> {
+    /// Its label (the `filter` column).
+    pub label: &'a str,
+    /// Whether it is outside kfmc (`kind = "external"`): only those are read from files.
+    pub external: bool,
+    /// Its (q_scale, r_scale) as the tables key it; `None` for an external filter that
+    /// declares no variants.
+    pub multipliers: Option<(f64, f64)>,
+    /// Whether an external filter's entry lists `q_scale`: its estimates then carry a
+    /// `q_scale` column naming each row's variant.
+    pub q_column: bool,
+    /// Whether it lists `r_scale`, and its estimates carry an `r_scale` column.
+    pub r_column: bool,
+}
+
+impl StudyFilter<'_> {
+    /// The variant as messages name it: `` `mine` `` or `` `mine` (q_scale = 2) ``, with the
+    /// multipliers its estimates name.
+    pub fn name(&self) -> String {
+        let (q, r) = self.multipliers.unzip();
+        let mut parts = Vec::new();
+        if let (true, Some(q)) = (self.q_column, q) {
+            parts.push(format!("q_scale = {q}"));
+        }
+        if let (true, Some(r)) = (self.r_column, r) {
+            parts.push(format!("r_scale = {r}"));
+        }
+        if parts.is_empty() {
+            format!("`{}`", self.label)
+        } else {
+            format!("`{}` ({})", self.label, parts.join(", "))
+        }
+    }
+}
+
+/// The optional key columns of an estimates file: the multipliers naming the variant of a
+/// filter that declares `q_scale` or `r_scale` variants in the spec.
+pub const VARIANT_COLUMNS: [&str; 2] = ["q_scale", "r_scale"];
 
 /// How an estimates file gives the covariance. Each form has n(n + 1)/2 columns. A Cholesky
 /// factor however rounded (to float32, say) still gives a positive semi-definite P = L Lᵀ,
@@ -285,12 +326,35 @@ pub fn estimate_columns(quantities: &[&str], measurements: &[&str]) -> Vec<Colum
     estimate_columns_with(quantities, measurements, &[])
 }
 
+/// The precision of the value columns kfmc exports (`kfmc run --export-estimates-precision`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum EstimatePrecision {
+    /// Every value column float64 (the default).
+    #[default]
+    F64,
+    /// The covariance, innovation, S and A columns float32, rounded to nearest; the
+    /// estimates (`est_`, `quat_`) stay float64, since the error truth − estimate needs
+    /// every digit of the estimate. About half the bytes; read back as f64, exactly.
+    F32,
+}
+
 /// [`estimate_columns`] for a study whose layout has `rotations`: kfmc writes each as a
 /// quaternion with the rotation error's covariance.
 pub fn estimate_columns_with(
     quantities: &[&str],
     measurements: &[&str],
     rotations: &[EulerRotation],
+) -> Vec<ColumnDef> {
+    estimate_columns_in(quantities, measurements, rotations, EstimatePrecision::F64)
+}
+
+/// [`estimate_columns_with`] in a precision: with [`EstimatePrecision::F32`] every value
+/// column but the estimates is float32.
+pub fn estimate_columns_in(
+    quantities: &[&str],
+    measurements: &[&str],
+    rotations: &[EulerRotation],
+    precision: EstimatePrecision,
 ) -> Vec<ColumnDef> {
     let cols = EstimateColumns {
         quantities: quantities.iter().map(|s| s.to_string()).collect(),
@@ -301,9 +365,13 @@ pub fn estimate_columns_with(
         quaternions: rotations.to_vec(),
     };
     let mut c = key_columns();
-    c.extend(cols.file_columns().into_iter().map(|name| ColumnDef {
-        name,
-        dtype: Dtype::F64,
+    c.extend(cols.file_columns().into_iter().map(|name| {
+        let estimate = name.starts_with("est_") || name.starts_with("quat_");
+        let dtype = match precision {
+            EstimatePrecision::F32 if !estimate => Dtype::F32,
+            _ => Dtype::F64,
+        };
+        ColumnDef { name, dtype }
     }));
     c
 }
@@ -325,9 +393,11 @@ pub fn key_columns() -> Vec<ColumnDef> {
     .collect()
 }
 
-/// One external filter's estimates, spilled to a fixed-width file indexed by its keys.
+/// One external filter variant's estimates, spilled to a fixed-width file indexed by its
+/// keys.
 #[derive(Debug)]
 struct External {
+    /// The variant as messages name it ([`StudyFilter::name`]).
     label: String,
     files: Vec<PathBuf>,
     columns: EstimateColumns,
@@ -461,13 +531,18 @@ fn detect_columns(
                 path,
                 format!(
                     "missing column `{e}` (the file has {} value columns, this study's format {}; `kfmc schema estimates SPEC` lists them)",
-                    names.len().saturating_sub(5),
+                    names
+                        .iter()
+                        .filter(|n| !key_columns().iter().any(|k| k.name == **n)
+                            && !VARIANT_COLUMNS.contains(&n.as_str()))
+                        .count(),
                     expected.len()
                 ),
             ));
         }
     }
-    let keys: Vec<String> = key_columns().into_iter().map(|c| c.name).collect();
+    let mut keys: Vec<String> = key_columns().into_iter().map(|c| c.name).collect();
+    keys.extend(VARIANT_COLUMNS.map(String::from));
     if let Some(extra) = names
         .iter()
         .find(|n| !keys.contains(n) && !expected.contains(n))
@@ -513,7 +588,8 @@ impl EstimateSet {
         &self.unstamped
     }
 
-    /// The labels read and the files each came from.
+    /// The filter variants read (as messages name them, [`StudyFilter::name`]) and the files
+    /// each came from.
     pub fn sources(&self) -> Vec<(String, Vec<PathBuf>)> {
         self.externals
             .iter()
@@ -586,8 +662,8 @@ pub struct InMemoryTable {
 /// A study's keys as indexes: what every row of an estimates file is checked against.
 struct KeyIndex<'a> {
     study: &'a StudyKeys<'a>,
-    /// External filter label → the study's filter index.
-    label_of: HashMap<&'a str, usize>,
+    /// External filter label → the study's filter indexes of its variants.
+    label_of: HashMap<&'a str, Vec<usize>>,
     scenario_of: HashMap<&'a str, usize>,
     /// A noise multiplier's bits → its index (the values must be the simulation's exactly).
     scale_of: HashMap<u64, usize>,
@@ -613,9 +689,14 @@ impl<'a> KeyIndex<'a> {
                 .filters
                 .iter()
                 .enumerate()
-                .filter(|(_, (_, external))| *external)
-                .map(|(i, (label, _))| (*label, i))
-                .collect(),
+                .filter(|(_, f)| f.external)
+                .fold(
+                    HashMap::new(),
+                    |mut m: HashMap<&str, Vec<usize>>, (i, f)| {
+                        m.entry(f.label).or_default().push(i);
+                        m
+                    },
+                ),
             scenario_of: study
                 .scenarios
                 .iter()
@@ -634,7 +715,8 @@ impl<'a> KeyIndex<'a> {
         }
     }
 
-    /// The study filter index of row `i`'s label, which must be an external filter's.
+    /// The study filter index of row `i`'s label, which must be an external filter's, and of
+    /// its variant: the `q_scale`/`r_scale` columns name it when the label declares variants.
     fn filter(&self, path: &Path, rows: &RowGroup, i: usize) -> Result<usize, OutputError> {
         let label = rows.filter.get(i).ok_or_else(|| {
             format_err(
@@ -642,8 +724,8 @@ impl<'a> KeyIndex<'a> {
                 format!("column `filter`: null at row {}", rows.first_row + i),
             )
         })?;
-        self.label_of.get(label).copied().ok_or_else(|| {
-            let declared = self.study.filters.iter().any(|(l, _)| *l == label);
+        let variants = self.label_of.get(label).ok_or_else(|| {
+            let declared = self.study.filters.iter().any(|f| f.label == label);
             format_err(
                 path,
                 if declared {
@@ -658,7 +740,100 @@ impl<'a> KeyIndex<'a> {
                     )
                 },
             )
-        })
+        })?;
+        self.variant(path, rows, i, label, variants)
+    }
+
+    /// Which of `label`'s variants (study filter indexes) row `i` names. A label without
+    /// declared variants takes rows whose `q_scale` and `r_scale` are null (or absent); one
+    /// with them needs a column for each axis it declares, with one of the declared values
+    /// (exactly), and 1 or null on an axis it does not declare.
+    fn variant(
+        &self,
+        path: &Path,
+        rows: &RowGroup,
+        i: usize,
+        label: &str,
+        variants: &[usize],
+    ) -> Result<usize, OutputError> {
+        let first = &self.study.filters[variants[0]];
+        let keyed = first.multipliers.is_some();
+        let mut want = [1.0f64; 2];
+        for (axis, (name, declared, column)) in [
+            ("q_scale", first.q_column, rows.q_scale.as_ref()),
+            ("r_scale", first.r_column, rows.r_scale.as_ref()),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let of = |f: &StudyFilter| f.multipliers.map_or(1.0, |m| [m.0, m.1][axis]);
+            let mut declared_values: Vec<f64> = variants
+                .iter()
+                .map(|&v| of(&self.study.filters[v]))
+                .collect();
+            declared_values.sort_by(f64::total_cmp);
+            declared_values.dedup();
+            let list = declared_values
+                .iter()
+                .map(|v| v.to_string())
+                .collect::<Vec<_>>()
+                .join(", ");
+            let value = column.and_then(|c| c.get(i));
+            match (declared, column, value) {
+                (true, None, _) => {
+                    return Err(format_err(
+                        path,
+                        format!(
+                            "missing column `{name}`: filter `{label}` declares {name} variants ({name} = {list}) in the spec, so its rows name their variant in a `{name}` column (first row of `{label}`: {})",
+                            rows.key(i)
+                        ),
+                    ));
+                }
+                (true, Some(_), None) => {
+                    return Err(format_err(
+                        path,
+                        format!(
+                            "column `{name}`: null at {}; filter `{label}` declares {name} = {list}, and each of its rows names its variant",
+                            rows.key(i)
+                        ),
+                    ));
+                }
+                (true, Some(_), Some(v)) => {
+                    if !declared_values.iter().any(|d| d.to_bits() == v.to_bits()) {
+                        return Err(format_err(
+                            path,
+                            format!(
+                                "column `{name}`: {v} is not a variant of filter `{label}`, which declares {name} = {list} (the values exactly; add {v} to the spec's list to score it) at {}",
+                                rows.key(i)
+                            ),
+                        ));
+                    }
+                    want[axis] = v;
+                }
+                (false, _, Some(v)) if !keyed || v != 1.0 => {
+                    return Err(format_err(
+                        path,
+                        format!(
+                            "column `{name}`: {v} at {}, but filter `{label}` declares no {name} variants (list {name} = [...] in its [[filters]] entry to score variants; else leave `{name}` null for its rows)",
+                            rows.key(i)
+                        ),
+                    ));
+                }
+                (false, _, _) => {}
+            }
+        }
+        if !keyed {
+            return Ok(variants[0]);
+        }
+        Ok(variants
+            .iter()
+            .copied()
+            .find(|&v| {
+                self.study.filters[v].multipliers.is_some_and(|(q, r)| {
+                    q.to_bits() == want[0].to_bits() && r.to_bits() == want[1].to_bits()
+                })
+            })
+            .expect("the variants are every declared (q_scale, r_scale) pair"))
     }
 
     /// The row index of row `i`'s (scenario, noise scale, run, step) among every cell's rows.
@@ -805,6 +980,9 @@ struct RowGroup {
     noise: Float64Chunked,
     run: Int64Chunked,
     step: Int64Chunked,
+    /// The variant columns, when the file has them.
+    q_scale: Option<Float64Chunked>,
+    r_scale: Option<Float64Chunked>,
     values: Vec<Float64Chunked>,
 }
 
@@ -839,6 +1017,13 @@ impl RowGroup {
             let c = c.cast(&DataType::Int64).map_err(|e| col_err(name, e))?;
             Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
         };
+        let optional = |name: &str| -> Result<Option<Float64Chunked>, OutputError> {
+            if df.schema().contains(name) {
+                floats(name).map(Some)
+            } else {
+                Ok(None)
+            }
+        };
         // A rotation given as a quaternion is read as the Euler angles its `est_` columns
         // would hold.
         let cols = &columns.columns;
@@ -859,6 +1044,8 @@ impl RowGroup {
             noise: floats("noise_scale")?,
             run: ints("run")?,
             step: ints("step")?,
+            q_scale: optional("q_scale")?,
+            r_scale: optional("r_scale")?,
             values: columns
                 .names
                 .iter()
@@ -870,14 +1057,23 @@ impl RowGroup {
     /// Row `i`'s key, for messages.
     fn key(&self, i: usize) -> String {
         let o = |v: Option<String>| v.unwrap_or_else(|| "null".into());
-        format!(
+        let mut key = format!(
             "scenario = {}, noise_scale = {}, run = {}, step = {}, filter = {}",
             o(self.scenario.get(i).map(|s| format!("{s:?}"))),
             o(self.noise.get(i).map(|v| v.to_string())),
             o(self.run.get(i).map(|v| v.to_string())),
             o(self.step.get(i).map(|v| v.to_string())),
             o(self.filter.get(i).map(|s| format!("{s:?}"))),
-        )
+        );
+        for (name, c) in [("q_scale", &self.q_scale), ("r_scale", &self.r_scale)] {
+            if let Some(c) = c {
+                key.push_str(&format!(
+                    ", {name} = {}",
+                    o(c.get(i).map(|v| v.to_string()))
+                ));
+            }
+        }
+        key
     }
 }
 
@@ -995,7 +1191,7 @@ impl<'a> Reading<'a> {
         let mut buf = Vec::with_capacity(width);
         for i in 0..rows.filter.len() {
             let fi = self.keys.filter(path, rows, i)?;
-            let ext = self.external(fi, path, &columns.columns, rows, i)?;
+            let ext = self.external(fi, path, &columns.columns)?;
             let row = self.keys.row(path, rows, i)?;
             let e = &mut self.externals[ext];
             let (word, bit) = ((row / 64) as usize, row % 64);
@@ -1041,14 +1237,12 @@ impl<'a> Reading<'a> {
         fi: usize,
         path: &PathBuf,
         columns: &EstimateColumns,
-        rows: &RowGroup,
-        i: usize,
     ) -> Result<usize, OutputError> {
         let ext = match self.by_filter[fi] {
             Some(e) => e,
             None => {
                 self.externals.push(External {
-                    label: rows.filter.get(i).unwrap_or_default().to_string(),
+                    label: self.keys.study.filters[fi].name(),
                     files: Vec::new(),
                     columns: columns.clone(),
                     spill: scratch_file()?,
@@ -1063,7 +1257,7 @@ impl<'a> Reading<'a> {
             return Err(format_err(
                 path,
                 format!(
-                    "filter `{}` has other columns here than in {}; give every file of one filter the same columns",
+                    "filter {} has other columns here than in {}; give every file of one filter the same columns",
                     e.label,
                     e.files
                         .first()
@@ -1084,17 +1278,20 @@ impl<'a> Reading<'a> {
         for e in &self.externals {
             check_steps(e, study, &self.keys.cells)?;
         }
-        if let Some((_, (label, _))) = study
+        if let Some((_, f)) = study
             .filters
             .iter()
             .enumerate()
-            .find(|(i, (_, external))| *external && self.by_filter[*i].is_none())
+            .find(|(i, f)| f.external && self.by_filter[*i].is_none())
         {
             return Err(format_err(
                 files
                     .first()
                     .map_or(Path::new("--estimates"), |p| p.as_path()),
-                format!("no rows for the external filter `{label}` in any of the estimate files",),
+                format!(
+                    "no rows for the external filter {} in any of the estimate files",
+                    f.name()
+                ),
             ));
         }
         Ok(EstimateSet {
@@ -1146,13 +1343,13 @@ fn check_steps(
             return Err(format_err(
                 path,
                 format!(
-                    "filter `{}`, scenario = {:?}, noise_scale = {}, run = {r}: no row for step {k} ({given} of its {samples} steps 0..={} are given); a run's rows cover every step from 0, the prior, or the run is left out whole{}",
+                    "filter {}, scenario = {:?}, noise_scale = {}, run = {r}: no row for step {k} ({given} of its {samples} steps 0..={} are given); a run's rows cover every step from 0, the prior, or the run is left out whole{}",
                     e.label,
                     study.scenarios[ci / n_scales].0,
                     study.noise_scales[ci % n_scales],
                     samples - 1,
                     if e.files.len() > 1 {
-                        format!(" (rows of `{}` read from {} files)", e.label, e.files.len())
+                        format!(" (rows of {} read from {} files)", e.label, e.files.len())
                     } else {
                         String::new()
                     }

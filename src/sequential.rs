@@ -604,10 +604,98 @@ impl GateSettings {
     }
 }
 
+/// What a front end asks of the gate on top of a spec's `[check]` settings: the flags
+/// `--sequential`, `--looks`, `--spending`, `--futility` and `--futility-rho` of `kfmc check`
+/// and `kfmc power`, and the same keywords of the Python `check` and `power`. Each given
+/// setting wins over the spec's; [`GateOverrides::apply`] is the one place they meet.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GateOverrides {
+    /// Ask for the gate (the spec may already have it: `[check] sequential = true`).
+    pub sequential: bool,
+    /// The looks, when given.
+    pub looks: Option<Looks>,
+    /// The α-spending, when given.
+    pub spending: Option<Spending>,
+    /// The futility β, when given.
+    pub futility_beta: Option<f64>,
+    /// The futility bounds' β-spending exponent ρ, when given (only with a futility β).
+    pub futility_rho: Option<f64>,
+}
+
+/// A gate setting given where there is no gate to set, or given without the setting it
+/// modifies; each front end names the setting in its own spelling.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GateOverrideError {
+    /// The setting (`looks`, `spending`, `futility_beta`, `futility_rho`) was given, but
+    /// neither the caller nor the spec asks for the gate.
+    NotSequential(GateSetting),
+    /// `futility_rho` was given without a futility β of its own.
+    RhoWithoutFutility,
+}
+
+/// One of a gate's settings, as [`GateOverrideError`] names it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GateSetting {
+    /// The looks.
+    Looks,
+    /// The α-spending.
+    Spending,
+    /// The futility β.
+    Futility,
+    /// The futility β-spending exponent.
+    FutilityRho,
+}
+
+impl GateOverrides {
+    /// The gate's settings: `None` when neither `sequential` nor `spec` asks for a gate (and
+    /// then no other setting may be given), else the given settings over `spec`'s (the
+    /// spec's `[check]` keys) over the defaults ([`GateSettings::default`]). Whether they
+    /// make a gate for the study's runs is [`GateSettings::gate`]'s to say.
+    pub fn apply(
+        &self,
+        spec: Option<&GateSettings>,
+    ) -> Result<Option<GateSettings>, GateOverrideError> {
+        if self.futility_rho.is_some() && self.futility_beta.is_none() {
+            return Err(GateOverrideError::RhoWithoutFutility);
+        }
+        let base = match (self.sequential, spec) {
+            (true, s) => Some(s.cloned().unwrap_or_default()),
+            (false, s) => s.cloned(),
+        };
+        let Some(mut settings) = base else {
+            let given = [
+                (GateSetting::Looks, self.looks.is_some()),
+                (GateSetting::Spending, self.spending.is_some()),
+                (GateSetting::Futility, self.futility_beta.is_some()),
+                (GateSetting::FutilityRho, self.futility_rho.is_some()),
+            ]
+            .into_iter()
+            .find(|(_, given)| *given);
+            return match given {
+                Some((setting, _)) => Err(GateOverrideError::NotSequential(setting)),
+                None => Ok(None),
+            };
+        };
+        if let Some(looks) = &self.looks {
+            settings.looks = looks.clone();
+        }
+        if let Some(spending) = &self.spending {
+            settings.spending = spending.clone();
+        }
+        if self.futility_beta.is_some() {
+            settings.futility_beta = self.futility_beta;
+        }
+        if let Some(rho) = self.futility_rho {
+            settings.futility_rho = rho;
+        }
+        Ok(Some(settings))
+    }
+}
+
 impl Gate {
-    /// The gate of `kfmc power --sequential` (and of the Python `power(sequential=True)`) for
-    /// a study of `runs` runs per cell at level `alpha`: `looks`, `spending` for α and, with
-    /// `futility_beta`, non-binding futility bounds spending β quadratically (t²).
+    /// The gate of a study of `runs` runs per cell at level `alpha`: `looks`, `spending` for
+    /// α and, with `futility_beta`, non-binding futility bounds spending β quadratically (t²)
+    /// (the default of [`GateSettings`]).
     pub fn for_study(
         runs: usize,
         alpha: f64,
@@ -1044,5 +1132,61 @@ mod tests {
             ),
             Err(GateError::FutilityRho(_))
         ));
+    }
+
+    #[test]
+    fn gate_overrides_win_over_the_spec_and_need_the_gate() {
+        let spec = GateSettings {
+            looks: Looks::RunCounts(vec![25, 50]),
+            spending: Spending::Pocock,
+            futility_beta: Some(0.1),
+            futility_rho: 1.0,
+        };
+        // Nothing given: the spec's settings, or no gate without them.
+        let none = GateOverrides::default();
+        assert_eq!(none.apply(Some(&spec)), Ok(Some(spec.clone())));
+        assert_eq!(none.apply(None), Ok(None));
+        // `sequential` alone: the defaults.
+        let on = GateOverrides {
+            sequential: true,
+            ..Default::default()
+        };
+        assert_eq!(on.apply(None), Ok(Some(GateSettings::default())));
+        // Each given setting wins over the spec's key; the others stay the spec's.
+        let looks = GateOverrides {
+            looks: Some(Looks::Count(4)),
+            futility_beta: Some(0.2),
+            ..Default::default()
+        };
+        assert_eq!(
+            looks.apply(Some(&spec)),
+            Ok(Some(GateSettings {
+                looks: Looks::Count(4),
+                futility_beta: Some(0.2),
+                ..spec.clone()
+            }))
+        );
+        // A setting without a gate, and ρ without β, are refused naming the setting.
+        assert_eq!(
+            looks.apply(None),
+            Err(GateOverrideError::NotSequential(GateSetting::Looks))
+        );
+        let spending = GateOverrides {
+            spending: Some(Spending::Pocock),
+            ..Default::default()
+        };
+        assert_eq!(
+            spending.apply(None),
+            Err(GateOverrideError::NotSequential(GateSetting::Spending))
+        );
+        let rho = GateOverrides {
+            sequential: true,
+            futility_rho: Some(1.0),
+            ..Default::default()
+        };
+        assert_eq!(
+            rho.apply(Some(&spec)),
+            Err(GateOverrideError::RhoWithoutFutility)
+        );
     }
 }

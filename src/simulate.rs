@@ -14,7 +14,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 use crate::error::{KfmcError, OutputError};
 use crate::experiment::Plan;
 use crate::output::folder::StudyFolder;
-use crate::output::manifest::{ExchangeEntry, StudyKind};
+use crate::output::manifest::{ExchangeEntry, ExternalFilterEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
 use crate::runner::{RunObserver, execute_windowed, window_for};
 use crate::study::{ExecOptions, StudyReport};
@@ -147,6 +147,7 @@ pub fn simulate(
         step_convention: Some(crate::system::filter_model::convention_of(
             plan.system.as_ref(),
         )),
+        external_filters: external_filters(plan),
     });
     let tables = folder.commit(finished, manifest)?;
     Ok(StudyReport {
@@ -156,4 +157,32 @@ pub fn simulate(
         runs: ((cells.end - cells.start) * n_runs) as u64,
         cells_resumed: 0,
     })
+}
+
+/// The plan's external filters as the manifest lists them: each label once, with the
+/// multipliers of the axes it declares (its variants are every pair of them).
+pub fn external_filters(plan: &Plan) -> Vec<ExternalFilterEntry> {
+    let mut out: Vec<ExternalFilterEntry> = Vec::new();
+    for f in plan.filters.iter().filter(|f| f.external) {
+        let i = match out.iter().position(|e| e.label == f.label) {
+            Some(i) => i,
+            None => {
+                out.push(ExternalFilterEntry {
+                    label: f.label.clone(),
+                    q_scale: f.declared.q_scale.then(Vec::new),
+                    r_scale: f.declared.r_scale.then(Vec::new),
+                });
+                out.len() - 1
+            }
+        };
+        let e = &mut out[i];
+        for (list, v) in [(&mut e.q_scale, f.q_scale), (&mut e.r_scale, f.r_scale)] {
+            if let Some(list) = list
+                && !list.contains(&v)
+            {
+                list.push(v);
+            }
+        }
+    }
+    out
 }

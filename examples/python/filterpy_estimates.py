@@ -6,6 +6,10 @@
     kfmc score SIM --estimates kf.parquet q4.parquet
     kfmc check experiments/external_filterpy_l1.toml --estimates kf.parquet q4.parquet
 
+    kfmc simulate experiments/external_filterpy_l1_variants.toml --out SIMV
+    python3 examples/python/filterpy_estimates.py l1 SIMV tunings.parquet --label filterpy_kf
+    kfmc score SIMV --estimates tunings.parquet
+
     kfmc simulate experiments/external_filterpy_p1.toml --out SIM1
     python3 examples/python/filterpy_estimates.py p1 SIM1 ekf.parquet --label filterpy_ekf
     kfmc score SIM1 --estimates ekf.parquet
@@ -17,6 +21,11 @@ innovation nu_* with S_*, and the error transition A = (I − K H) F, which give
 calibrated NEES verdict. The file's metadata carries the simulation's stamp (its world stamp
 and master seed, from manifest.toml), so `kfmc score` and `kfmc check` refuse estimates of
 another simulation.
+
+A label whose spec entry declares `q_scale` variants (the manifest's
+`[[exchange.external_filters]]`) gets one filter per declared value on every run (or per
+`--q-scale` value given), and a `q_scale` column naming each row's variant: kfmc scores
+each as its own series, as it does its own filters' variants.
 
 Models:
 * `l1` — FilterPy's KalmanFilter on the linear quadrotor L1 (position sensor, Δt = 0.1 s).
@@ -134,7 +143,7 @@ class PlanarEkf(ExtendedKalmanFilter):
 class Runner:
     """One filter per run: step(k, z, u) returns (x, P, nu, S, A) after step k."""
 
-    def __init__(self, model, args, x0, p0, nq, nz):
+    def __init__(self, model, args, q_scale, x0, p0, nq, nz):
         self.model, self.nq, self.nz = model, nq, nz
         if model == "l1":
             m = read_model(args.l1_model)
@@ -142,12 +151,12 @@ class Runner:
                 raise SystemExit(f"{args.l1_model}: the model is not {nq} states and {nz} measurements")
             kf = KalmanFilter(dim_x=nq, dim_z=nz)
             kf.F, kf.H, kf.R = m["F"], m["H"], m["R"]
-            kf.Q = m["Q"] * args.q_scale
+            kf.Q = m["Q"] * q_scale
         else:
             if (nq, nz) != (6, 3):
                 raise SystemExit("model p1 needs the planar quadrotor with sensor p1")
             kf = PlanarEkf(dim_x=6, dim_z=3)
-            kf.Q = np.eye(6) * 0.003**2 * args.q_scale
+            kf.Q = np.eye(6) * 0.003**2 * q_scale
             kf.R = np.eye(3) * 0.01**2
         kf.x = x0.reshape(nq, 1)
         kf.P = p0
@@ -183,7 +192,11 @@ def main():
     ap.add_argument("sim", help="a folder written by kfmc simulate")
     ap.add_argument("out", help="the estimates file to write (Parquet)")
     ap.add_argument("--label", default="filterpy_kf", help="the external filter's label")
-    ap.add_argument("--q-scale", type=float, default=1.0, help="multiply the assumed Q (a mistuning)")
+    ap.add_argument(
+        "--q-scale", type=float, nargs="+", default=None,
+        help="multiply the assumed Q (a mistuning); several values, or none for a label that "
+        "declares q_scale variants (then every declared value), write one variant each",
+    )
     ap.add_argument("--l1-model", default=DEFAULT_MODEL, help="CSV with L1's F, H, Q, R")
     args = ap.parse_args()
 
@@ -191,6 +204,15 @@ def main():
     q_names = [q["name"] for q in manifest["quantities"]]
     z_names = manifest["measurements"]
     nq, nz = len(q_names), len(z_names)
+    # The variants the spec declares for this label, if any: each row names its own.
+    entry = next(
+        (e for e in manifest.get("exchange", {}).get("external_filters", []) if e["label"] == args.label),
+        {},
+    )
+    declared = entry.get("q_scale")
+    q_scales = args.q_scale or declared or [1.0]
+    if len(q_scales) > 1 and declared is None:
+        raise SystemExit(f"several --q-scale values, but `{args.label}` declares no q_scale variants in the spec")
 
     meas = pq.read_table(os.path.join(args.sim, "measurements.parquet"))
     init = pq.read_table(os.path.join(args.sim, "initial.parquet"))
@@ -202,6 +224,7 @@ def main():
     u_all = np.column_stack([meas[u].to_numpy(zero_copy_only=False) for u in u_names])
 
     cols = {n: [] for n in ["scenario", "noise_scale", "run", "step", "filter"]}
+    variant = []
     values = []
     tri = [(i, j) for i in range(nq) for j in range(i + 1)]
     ztri = [(i, j) for i in range(nz) for j in range(i + 1)]
@@ -223,32 +246,34 @@ def main():
         p0 = np.zeros((nq, nq))
         for i, j in tri:
             p0[i, j] = p0[j, i] = row[f"P_{q_names[i]}_{q_names[j]}"]
-        filt = Runner(args.model, args, x0, p0, nq, nz)
-        k = 0
-        while first + k < meas.num_rows and (
-            meas_keys[0][first + k],
-            meas_keys[1][first + k],
-            meas_keys[2][first + k],
-        ) == key:
-            assert steps[first + k] == k
-            nu = np.full(nz, np.nan)
-            s = np.full((nz, nz), np.nan)
-            a = np.full((nq, nq), np.nan)
-            if k > 0:
-                nu, s, a = filt.step(z_all[first + k], u_all[first + k])
-            cols["scenario"].append(key[0])
-            cols["noise_scale"].append(key[1])
-            cols["run"].append(key[2])
-            cols["step"].append(k)
-            cols["filter"].append(args.label)
-            values.append(
-                list(filt.kf.x.ravel())
-                + [filt.kf.P[i, j] for i, j in tri]
-                + list(nu)
-                + [s[i, j] for i, j in ztri]
-                + list(a.ravel())
-            )
-            k += 1
+        for q_scale in q_scales:
+            filt = Runner(args.model, args, q_scale, x0, p0, nq, nz)
+            k = 0
+            while first + k < meas.num_rows and (
+                meas_keys[0][first + k],
+                meas_keys[1][first + k],
+                meas_keys[2][first + k],
+            ) == key:
+                assert steps[first + k] == k
+                nu = np.full(nz, np.nan)
+                s = np.full((nz, nz), np.nan)
+                a = np.full((nq, nq), np.nan)
+                if k > 0:
+                    nu, s, a = filt.step(z_all[first + k], u_all[first + k])
+                cols["scenario"].append(key[0])
+                cols["noise_scale"].append(key[1])
+                cols["run"].append(key[2])
+                cols["step"].append(k)
+                cols["filter"].append(args.label)
+                variant.append(q_scale)
+                values.append(
+                    list(filt.kf.x.ravel())
+                    + [filt.kf.P[i, j] for i, j in tri]
+                    + list(nu)
+                    + [s[i, j] for i, j in ztri]
+                    + list(a.ravel())
+                )
+                k += 1
 
     names = (
         [f"est_{n}" for n in q_names]
@@ -264,8 +289,13 @@ def main():
         pa.array(cols["run"], pa.int64()),
         pa.array(cols["step"], pa.int64()),
         pa.array(cols["filter"], pa.string()),
-    ] + [pa.array(v[:, c], pa.float64(), mask=~np.isfinite(v[:, c])) for c in range(len(names))]
-    table = pa.table(arrays, names=list(cols) + names)
+    ]
+    keys = list(cols)
+    if declared is not None:
+        arrays.append(pa.array(variant, pa.float64()))
+        keys.append("q_scale")
+    arrays += [pa.array(v[:, c], pa.float64(), mask=~np.isfinite(v[:, c])) for c in range(len(names))]
+    table = pa.table(arrays, names=keys + names)
     table = table.replace_schema_metadata(
         {
             "kfmc.world_stamp": manifest["world_stamp"],

@@ -651,7 +651,7 @@ fn score<'py>(
 
 /// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
 #[pyfunction]
-#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false))]
+#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
 #[allow(clippy::too_many_arguments)]
 fn check<'py>(
     py: Python<'py>,
@@ -667,9 +667,21 @@ fn check<'py>(
     allow_unstamped: bool,
     force: bool,
     allow_large: bool,
+    sequential: bool,
+    looks: Option<&Bound<'py, PyAny>>,
+    spending: Option<&str>,
+    futility: Option<f64>,
+    futility_rho: Option<f64>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
+        let overrides = gate_overrides(sequential, looks, spending, futility, futility_rho)?;
         let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        // As `kfmc check --sequential …`: the keywords over the spec's `[check]` keys; whether
+        // they make a gate for the study's runs is judged with the spec (a SpecError naming
+        // the `check.*` key).
+        plan.check_sequential = overrides
+            .apply(plan.check_sequential.as_ref())
+            .map_err(gate_override_error)?;
         if !(paths.is_empty() && streams.is_empty()) {
             let unstamped = if allow_unstamped {
                 kfmc::check::Unstamped::Warn
@@ -735,7 +747,7 @@ impl RunObserver for SharedObserver<'_> {
 
 /// `kfmc power`: returns the folder holding power.parquet.
 #[pyfunction]
-#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending="obrien-fleming", futility=None))]
+#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
 #[allow(clippy::too_many_arguments)]
 fn power(
     py: Python<'_>,
@@ -750,28 +762,26 @@ fn power(
     allow_large: bool,
     sequential: bool,
     looks: Option<&Bound<'_, PyAny>>,
-    spending: &str,
+    spending: Option<&str>,
     futility: Option<f64>,
+    futility_rho: Option<f64>,
 ) -> PyResult<PathBuf> {
     guarded(|| {
         if replications == 0 {
             return Err(SpecError::new_err("replications: must be at least 1"));
         }
-        if !sequential && (looks.is_some() || futility.is_some()) {
-            return Err(PyValueError::new_err(
-                "looks and futility are settings of the sequential gate: pass sequential=True",
-            ));
-        }
+        // As `kfmc power --sequential …`: the keywords alone (the spec's `[check]` gate is
+        // kfmc check's).
+        let settings = gate_overrides(sequential, looks, spending, futility, futility_rho)?
+            .apply(None)
+            .map_err(gate_override_error)?;
         let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
         kfmc::study::check_replications(&plan, replications, allow_large)
             .map_err(|e| Failure::from(e).into_py())?;
-        let gate = if sequential {
-            Some(sequential_gate(
-                plan.runs, plan.alpha, looks, spending, futility,
-            )?)
-        } else {
-            None
-        };
+        let gate = settings
+            .map(|s| s.gate(plan.runs, plan.alpha))
+            .transpose()
+            .map_err(|e| SpecError::new_err(format!("sequential gate: {e}")))?;
         let out = out.unwrap_or_else(|| plan.output.join("power"));
         plan.output = out.clone();
         let exec = kfmc::study::ExecOptions {
@@ -800,36 +810,65 @@ fn power(
     })
 }
 
-/// The sequential gate of `power(sequential=True, looks=…, spending=…, futility=…)`: `looks`
-/// is a count of even looks (default 10) or the looks' run counts.
-fn sequential_gate(
-    runs: usize,
-    alpha: f64,
+/// The gate keywords of `check` and `power` (`sequential=…, looks=…, spending=…,
+/// futility=…, futility_rho=…`) as the library's [`kfmc::sequential::GateOverrides`], the
+/// flags of `kfmc check` and `kfmc power` in Python's spelling: `looks` is a count of even
+/// looks (≥ 1) or the looks' run counts, `spending` `"obrien-fleming"` or `"pocock"`.
+fn gate_overrides(
+    sequential: bool,
     looks: Option<&Bound<'_, PyAny>>,
-    spending: &str,
+    spending: Option<&str>,
     futility: Option<f64>,
-) -> PyResult<kfmc::sequential::Gate> {
-    use kfmc::sequential::{Gate, Looks, Spending};
+    futility_rho: Option<f64>,
+) -> PyResult<kfmc::sequential::GateOverrides> {
+    use kfmc::sequential::{GateOverrides, Looks, Spending};
     let looks = match looks {
-        None => Looks::Count(10),
-        Some(v) => match v.extract::<usize>() {
+        None => None,
+        Some(v) => Some(match v.extract::<usize>() {
+            Ok(0) => return Err(SpecError::new_err("looks: `0` is not an integer ≥ 1")),
             Ok(count) => Looks::Count(count),
             Err(_) => Looks::RunCounts(v.extract::<Vec<usize>>().map_err(|_| {
-                PyValueError::new_err("looks: a count of looks or a list of run counts")
+                SpecError::new_err("looks: a count of looks or a list of run counts")
             })?),
-        },
+        }),
     };
     let spending = match spending {
-        "obrien-fleming" => Spending::OBrienFleming,
-        "pocock" => Spending::Pocock,
-        other => {
-            return Err(PyValueError::new_err(format!(
+        None => None,
+        Some("obrien-fleming") => Some(Spending::OBrienFleming),
+        Some("pocock") => Some(Spending::Pocock),
+        Some(other) => {
+            return Err(SpecError::new_err(format!(
                 "spending: `{other}` is not one of obrien-fleming, pocock"
             )));
         }
     };
-    Gate::for_study(runs, alpha, &looks, &spending, futility)
-        .map_err(|e| PyValueError::new_err(format!("sequential gate: {e}")))
+    Ok(GateOverrides {
+        sequential,
+        looks,
+        spending,
+        futility_beta: futility,
+        futility_rho,
+    })
+}
+
+/// A gate keyword given without the gate (or `futility_rho` without `futility`), named as
+/// Python spells it: `kfmc.SpecError`, as the command's usage error exits 2.
+fn gate_override_error(e: kfmc::sequential::GateOverrideError) -> PyErr {
+    use kfmc::sequential::{GateOverrideError, GateSetting};
+    match e {
+        GateOverrideError::NotSequential(setting) => SpecError::new_err(format!(
+            "{} is a setting of the sequential gate: pass sequential=True",
+            match setting {
+                GateSetting::Looks => "looks",
+                GateSetting::Spending => "spending",
+                GateSetting::Futility => "futility",
+                GateSetting::FutilityRho => "futility_rho",
+            }
+        )),
+        GateOverrideError::RhoWithoutFutility => SpecError::new_err(
+            "futility_rho is the exponent of the futility bounds' β-spending: pass futility=β",
+        ),
+    }
 }
 
 /// TOML text as Python values (tables as dicts).
@@ -902,7 +941,7 @@ fn schema<'py>(
             l.world_state_names(),
         );
         let cols = match kind {
-            "estimates" => kfmc::score::estimate_columns_with(&q, &z, &l.rotations()),
+            "estimates" => plan.estimate_schema(),
             "truth" => s::truth(&q, &w),
             "measurements" => s::measurements(&z, &u),
             "initial" => s::initial(&q),
@@ -917,6 +956,7 @@ fn schema<'py>(
             let ty = match c.dtype {
                 Dtype::Str => "string",
                 Dtype::F64 => "float64",
+                Dtype::F32 => "float32",
                 Dtype::I64 => "int64",
                 Dtype::U64 => "uint64",
                 Dtype::Bool => "bool",
@@ -1158,7 +1198,8 @@ fn simulation_model(folder: PathBuf) -> PyResult<FilterModel> {
 /// What an estimates table of a study holds and is checked against (the study's
 /// [`kfmc::experiment::Plan::study_keys`]): quantities, measurements, rotations (the index of
 /// the first of three and the four quaternion columns that may replace them), scenarios with
-/// their transitions K, noise scales, runs per cell, filters (label, external) and the stamp.
+/// their transitions K, noise scales, runs per cell, filters (label, external), the external
+/// filters with their declared variants and the stamp.
 fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>> {
     let keys = plan.study_keys();
     let d = PyDict::new(py);
@@ -1177,7 +1218,9 @@ fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>
     d.set_item("scenarios", keys.scenarios.clone())?;
     d.set_item("noise_scales", keys.noise_scales.to_vec())?;
     d.set_item("runs", keys.runs)?;
-    d.set_item("filters", keys.filters.clone())?;
+    let filters: Vec<(&str, bool)> = keys.filters.iter().map(|f| (f.label, f.external)).collect();
+    d.set_item("filters", filters)?;
+    d.set_item("external_filters", external_filters_list(py, plan)?)?;
     d.set_item("world_stamp", &keys.world_stamp)?;
     d.set_item("master_seed", keys.master_seed)?;
     let meta = PyDict::new(py);
@@ -1186,6 +1229,24 @@ fn layout_dict<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyDict>
     }
     d.set_item("metadata", meta)?;
     Ok(d)
+}
+
+/// The spec's external filters as the simulation manifest lists them: dicts with `label` and,
+/// for a label that declares variants, `q_scale` and/or `r_scale` (the values its rows take).
+fn external_filters_list<'py>(py: Python<'py>, plan: &Plan) -> PyResult<Bound<'py, PyList>> {
+    let out = PyList::empty(py);
+    for e in kfmc::simulate::external_filters(plan) {
+        let d = PyDict::new(py);
+        d.set_item("label", &e.label)?;
+        if let Some(q) = &e.q_scale {
+            d.set_item("q_scale", q.clone())?;
+        }
+        if let Some(r) = &e.r_scale {
+            d.set_item("r_scale", r.clone())?;
+        }
+        out.append(d)?;
+    }
+    Ok(out)
 }
 
 /// [`layout_dict`] of a `kfmc simulate` folder (`simulation = true`, the spec its manifest

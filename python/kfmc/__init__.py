@@ -440,6 +440,14 @@ class Simulation:
         return _kfmc.load_toml(self.folder / "manifest.toml")
 
     @property
+    def external_filters(self) -> List[Dict[str, Any]]:
+        """The spec's external filters: the estimates to write for these runs (the manifest's
+        ``[[exchange.external_filters]]``), dicts with ``label`` and, for a label that
+        declares variants, ``q_scale`` and/or ``r_scale``: every pair of their values is a
+        variant, whose rows name it in those columns (``Estimates.add_run(..., q_scale=…)``)."""
+        return [dict(e) for e in self.manifest.get("exchange", {}).get("external_filters", [])]
+
+    @property
     def stamp(self) -> Dict[str, str]:
         """The file metadata an estimates file made on these runs carries:
         ``{"kfmc.world_stamp": …, "kfmc.master_seed": …}`` (:class:`Estimates` writes it)."""
@@ -659,12 +667,28 @@ def check(
     replications: Optional[int] = None,
     allow_unstamped: bool = False,
     force: bool = False,
+    sequential: bool = False,
+    looks: Union[int, Sequence[int], None] = None,
+    spending: Optional[str] = None,
+    futility: Optional[float] = None,
+    futility_rho: Optional[float] = None,
 ) -> CheckResult:
     """Runs the study and evaluates its ``[check]`` assertions (``kfmc check``). A failing
     or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
     :meth:`CheckResult.raise_for_status` raises it. Estimates files must carry the world
     stamp unless ``allow_unstamped``; in-memory tables are taken as made from the spec's
-    runs; a :class:`Estimates` must be made on the spec's world (and seed)."""
+    runs; a :class:`Estimates` must be made on the spec's world (and seed).
+
+    ``sequential=True`` judges the consistency verdicts with the group-sequential gate
+    (``kfmc check --sequential``; the spec's ``[check] sequential = true`` does the same):
+    each cell stops at the first look that settles its verdicts, and ``sequential.parquet``
+    records every look. ``looks`` (a count of even looks, default 10, or the looks' run
+    counts ending at the runs per cell), ``spending`` (``"obrien-fleming"``, the default, or
+    ``"pocock"``), ``futility`` (a β in (0, 1): non-binding futility bounds) and
+    ``futility_rho`` (their β-spending exponent, default 2) are ``--looks``, ``--spending``,
+    ``--futility`` and ``--futility-rho``: each given one wins over the spec's key. A setting
+    without the gate, or settings that make no gate for the study's runs, raise
+    :class:`SpecError` (the command's exit 2)."""
 
     def stamp() -> Dict[str, str]:
         s = dict(_kfmc.schema("estimates", _spec(spec))["metadata"])
@@ -685,6 +709,11 @@ def check(
         replications=replications,
         allow_unstamped=allow_unstamped,
         force=force,
+        sequential=sequential,
+        looks=looks,
+        spending=spending,
+        futility=futility,
+        futility_rho=futility_rho,
     )
     return CheckResult(r)
 
@@ -701,8 +730,9 @@ def power(
     force: bool = False,
     sequential: bool = False,
     looks: Union[int, Sequence[int], None] = None,
-    spending: str = "obrien-fleming",
+    spending: Optional[str] = None,
     futility: Optional[float] = None,
+    futility_rho: Optional[float] = None,
 ) -> pl.DataFrame:
     """Runs the study ``replications`` times with independent seeds (``kfmc power``) and
     returns power.parquet: per (cell, filter variant, test) the rejection rate with its 95 %
@@ -712,8 +742,9 @@ def power(
     --sequential``): rows with ``sequential`` true hold its rejection rate and the runs it used
     (``runs_used_mean``, ``runs_used_p05``, ``runs_used_p95``). ``looks`` is a count of even
     looks (default 10) or the looks' run counts ending at the study's runs per cell;
-    ``spending`` is ``"obrien-fleming"`` or ``"pocock"``; ``futility`` a β in (0, 1) for
-    non-binding futility stopping. Invalid settings raise ``ValueError``."""
+    ``spending`` is ``"obrien-fleming"`` (the default) or ``"pocock"``; ``futility`` a β in
+    (0, 1) for non-binding futility stopping, ``futility_rho`` its β-spending exponent
+    (default 2). Invalid settings raise :class:`SpecError` (a ``ValueError``)."""
     folder = _kfmc.power(
         _spec(spec),
         replications,
@@ -727,6 +758,7 @@ def power(
         looks=looks,
         spending=spending,
         futility=futility,
+        futility_rho=futility_rho,
     )
     return pl.read_parquet(Path(folder) / "power.parquet")
 

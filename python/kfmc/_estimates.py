@@ -20,6 +20,9 @@ COVARIANCE_FORMS = ("lower", "cholesky", "correlation")
 
 _KEYS = ("scenario", "noise_scale", "run", "step", "filter")
 
+#: The key columns naming the variant of a filter that declares ``q_scale``/``r_scale``.
+_VARIANT_KEYS = ("q_scale", "r_scale")
+
 #: A file or folder path.
 _PathLike = Union[str, "os.PathLike[str]"]
 
@@ -70,6 +73,11 @@ class Estimates:
     stored as float32 — about half the bytes — while the estimates stay float64: the error
     truth − estimate needs every digit of the estimate. kfmc reads float32 as float64.
 
+    A label whose spec entry lists ``q_scale`` and/or ``r_scale`` has variants: each run
+    names its variant with ``add_run(..., q_scale=…, r_scale=…)`` (the multipliers the
+    filter applied to its assumed Q and R, one of the listed values), and the table carries a
+    ``q_scale``/``r_scale`` column for each listed axis. :attr:`variants` lists them.
+
     Add each run with :meth:`add_run` (or a batch of one cell's runs with
     :meth:`add_runs`), then pass the object to :func:`kfmc.score` or :func:`kfmc.check`
     (the stamp is checked against what it is scored on), or :meth:`write` a Parquet file,
@@ -103,6 +111,14 @@ class Estimates:
             )
         #: The filter label every row carries.
         self.label: str = label
+        entry = next(
+            (e for e in layout.get("external_filters", []) if e["label"] == label), {"label": label}
+        )
+        #: The multipliers the label's variants take, per declared axis:
+        #: ``{"q_scale": [0.5, 1.0, 2.0]}``; empty for a filter without variants.
+        self.variants: Dict[str, List[float]] = {
+            axis: [float(v) for v in entry[axis]] for axis in _VARIANT_KEYS if axis in entry
+        }
         #: The covariance form: ``"lower"``, ``"cholesky"`` or ``"correlation"``.
         self.covariance: str = covariance
         #: Whether the covariance, innovations, S and A are stored as float32.
@@ -118,7 +134,7 @@ class Estimates:
         # Fixed by the first run: whether innovations, A and quaternions are given.
         self._parts: Optional[Tuple[bool, bool, bool]] = None
         self._first: Optional[str] = None
-        self._runs: Dict[Tuple[str, float, int], Dict[str, np.ndarray]] = {}
+        self._runs: Dict[Tuple[str, float, int, Optional[float], Optional[float]], Dict[str, np.ndarray]] = {}
 
     def __repr__(self) -> str:
         return (
@@ -156,7 +172,8 @@ class Estimates:
         if quaternions:
             for r in reversed(self._rotations):
                 est[r["first"] : r["first"] + 3] = list(r["quaternion"])
-        cols = list(_KEYS) + est + self._covariance_columns()
+        cols = list(_KEYS) + [a for a in _VARIANT_KEYS if a in self.variants]
+        cols += est + self._covariance_columns()
         if innovations:
             cols += [f"nu_{n}" for n in z]
             cols += [f"S_{z[i]}_{z[j]}" for i in range(len(z)) for j in range(i + 1)]
@@ -186,6 +203,8 @@ class Estimates:
         *,
         quat: Any = None,
         failed_at: Optional[int] = None,
+        q_scale: Optional[float] = None,
+        r_scale: Optional[float] = None,
     ) -> None:
         """Adds one run: its rows for steps 0..=K of the scenario (row 0 the prior).
 
@@ -201,9 +220,18 @@ class Estimates:
 
         A filter that failed at step k: ``failed_at=k`` writes its rows from k on without
         an estimate, and kfmc counts the run a numerical failure at k, as its own filters'.
+
+        ``q_scale`` and ``r_scale`` name the run's variant when the label declares variants
+        (:attr:`variants`): the multipliers the filter applied to its assumed Q and R, each
+        one of the spec's values; leave out an axis the label does not declare.
         """
-        key = (str(scenario), float(noise_scale), int(run))
-        name = f"run (scenario={key[0]!r}, noise_scale={key[1]!r}, run={key[2]})"
+        variant = self._variant(q_scale, r_scale)
+        key = (str(scenario), float(noise_scale), int(run)) + variant
+        name = f"run (scenario={key[0]!r}, noise_scale={key[1]!r}, run={key[2]}"
+        for axis, v in zip(_VARIANT_KEYS, variant):
+            if v is not None:
+                name += f", {axis}={v!r}"
+        name += ")"
         if key[0] not in self._steps:
             raise EstimatesError(
                 f"scenario {key[0]!r} is not one of the simulation's: {', '.join(self._steps)}"
@@ -292,6 +320,37 @@ class Estimates:
         if self._parts is None:
             self._parts, self._first = parts, name
         self._runs[key] = cols
+
+    def _variant(
+        self, q_scale: Optional[float], r_scale: Optional[float]
+    ) -> Tuple[Optional[float], Optional[float]]:
+        """The run's (q_scale, r_scale) key: a declared value on each declared axis, None on
+        the others."""
+        out: List[Optional[float]] = []
+        for axis, value in zip(_VARIANT_KEYS, (q_scale, r_scale)):
+            declared = self.variants.get(axis)
+            if declared is None:
+                if value is not None:
+                    raise EstimatesError(
+                        f"{axis}={value!r}: filter {self.label!r} declares no {axis} variants in "
+                        f"the spec (list {axis} = [...] in its [[filters]] entry to score variants)"
+                    )
+                out.append(None)
+                continue
+            values = ", ".join(f"{v:g}" for v in declared)
+            if value is None:
+                raise EstimatesError(
+                    f"{axis}: filter {self.label!r} declares {axis} = {values}; "
+                    f"add_run(..., {axis}=…) names the run's variant"
+                )
+            v = float(value)
+            if v not in declared:
+                raise EstimatesError(
+                    f"{axis}={value!r} is not a variant of filter {self.label!r}, which declares "
+                    f"{axis} = {values} (the values exactly)"
+                )
+            out.append(v)
+        return out[0], out[1]
 
     @staticmethod
     def _failed_hint(step: int) -> str:
@@ -392,10 +451,13 @@ class Estimates:
         A: Any = None,
         *,
         quat: Any = None,
+        q_scale: Optional[float] = None,
+        r_scale: Optional[float] = None,
     ) -> None:
         """Adds several runs of one cell at once: the arrays of :meth:`add_run` with a first
         axis for the runs (``x`` (R, K+1, n), ``P`` (R, K+1, n, n), …), e.g. from a filter
-        vectorised over runs."""
+        vectorised over runs; ``q_scale``/``r_scale`` name the runs' variant, as for
+        :meth:`add_run`."""
         runs = list(runs)
         arrays = {"x": x, "P": P, "nu": nu, "S": S, "A": A, "quat": quat}
         for arg, a in arrays.items():
@@ -414,6 +476,8 @@ class Estimates:
                 None if S is None else S[i],
                 None if A is None else A[i],
                 quat=None if quat is None else quat[i],
+                q_scale=q_scale,
+                r_scale=r_scale,
             )
 
     def to_polars(self) -> pl.DataFrame:
@@ -421,14 +485,17 @@ class Estimates:
         columns of :attr:`columns` (null where a value is not given)."""
         if not self._runs:
             raise EstimatesError("no runs added: an estimates table needs at least one run")
-        values = [c for c in self.columns if c not in _KEYS]
+        variant_keys = [a for a in _VARIANT_KEYS if a in self.variants]
+        values = [c for c in self.columns if c not in _KEYS and c not in variant_keys]
         f32 = pl.Float32 if self.float32 else pl.Float64
         keep64 = {c for c in values if c.startswith("est_") or c.startswith("quat_")}
-        keys: Dict[str, List[Any]] = {"scenario": [], "noise_scale": [], "run": []}
+        keys: Dict[str, List[Any]] = {"scenario": [], "noise_scale": [], "run": [], "q_scale": [], "r_scale": []}
         steps: List[np.ndarray] = []
         data: Dict[str, List[np.ndarray]] = {c: [] for c in values}
-        for (scenario, scale, run), cols in self._runs.items():
+        for (scenario, scale, run, q, r), cols in self._runs.items():
             k1 = len(cols["step"])
+            keys["q_scale"].append(np.full(k1, np.nan if q is None else q))
+            keys["r_scale"].append(np.full(k1, np.nan if r is None else r))
             keys["scenario"].append(pl.repeat(scenario, k1, eager=True, dtype=pl.String))
             keys["noise_scale"].append(np.full(k1, scale))
             keys["run"].append(np.full(k1, run, dtype=np.int64))
@@ -442,6 +509,8 @@ class Estimates:
             pl.Series("step", np.concatenate(steps), dtype=pl.Int64),
             pl.repeat(self.label, len(self), eager=True, dtype=pl.String).alias("filter"),
         ]
+        for axis in variant_keys:
+            series.append(pl.Series(axis, np.concatenate(keys[axis]), dtype=pl.Float64))
         for c in values:
             dtype = pl.Float64 if c in keep64 else f32
             a = np.concatenate(data[c]).astype(np.float64 if dtype == pl.Float64 else np.float32)
@@ -466,7 +535,7 @@ class Estimates:
         if pq is not None:
             table = df.to_arrow()
             table = table.replace_schema_metadata({**(table.schema.metadata or {}), **self.metadata})
-            floats = [c for c in df.columns if c not in _KEYS]
+            floats = [c for c in df.columns if c not in _KEYS and c not in _VARIANT_KEYS]
             pq.write_table(
                 table,
                 path,

@@ -88,6 +88,11 @@ def check(
     allow_unstamped: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    sequential: bool = False,
+    looks: Union[int, Sequence[int], None] = None,
+    spending: Optional[str] = None,
+    futility: Optional[float] = None,
+    futility_rho: Optional[float] = None,
 ) -> Dict[str, Any]: ...
 def power(
     spec: _Spec,
@@ -102,8 +107,9 @@ def power(
     allow_large: bool = False,
     sequential: bool = False,
     looks: Union[int, Sequence[int], None] = None,
-    spending: str = "obrien-fleming",
+    spending: Optional[str] = None,
     futility: Optional[float] = None,
+    futility_rho: Optional[float] = None,
 ) -> "os.PathLike[str]": ...
 def describe(spec: _Spec) -> Dict[str, Any]: ...
 def schema(kind: str, spec: _Spec) -> Dict[str, Any]: ...

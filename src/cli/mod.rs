@@ -293,55 +293,47 @@ impl SequentialArgs {
         &self,
         spec: Option<&crate::sequential::GateSettings>,
     ) -> Result<Option<crate::sequential::GateSettings>, UsageError> {
-        use crate::sequential::{Looks, Spending};
-        let Some(mut settings) = (match (self.sequential, spec) {
-            (true, s) => Some(s.cloned().unwrap_or_default()),
-            (false, s) => s.cloned(),
-        }) else {
-            let flag = [
-                ("--looks", self.looks.is_some()),
-                ("--spending", self.spending.is_some()),
-                ("--futility", self.futility.is_some()),
-            ]
-            .into_iter()
-            .find(|(_, given)| *given);
-            return match flag {
-                Some((flag, _)) => Err(usage(
-                    flag,
-                    "is a setting of the sequential gate: add --sequential".to_string(),
-                )),
-                None => Ok(None),
-            };
+        use crate::sequential::{GateOverrideError, GateOverrides, GateSetting, Looks, Spending};
+        let looks = match self.looks.as_deref().map(str::trim) {
+            None => None,
+            Some(text) if !text.contains(',') => Some(Looks::Count(
+                at_least_one(text).map_err(|e| usage("--looks", e))?,
+            )),
+            Some(text) => Some(Looks::RunCounts(
+                text.split(',')
+                    .map(|v| {
+                        v.trim()
+                            .parse::<usize>()
+                            .map_err(|_| usage("--looks", format!("`{v}` is not a run count ≥ 2")))
+                    })
+                    .collect::<Result<Vec<_>, _>>()?,
+            )),
         };
-        match self.looks.as_deref().map(str::trim) {
-            None => {}
-            Some(text) if !text.contains(',') => {
-                settings.looks = Looks::Count(at_least_one(text).map_err(|e| usage("--looks", e))?)
-            }
-            Some(text) => {
-                settings.looks = Looks::RunCounts(
-                    text.split(',')
-                        .map(|v| {
-                            v.trim().parse::<usize>().map_err(|_| {
-                                usage("--looks", format!("`{v}` is not a run count ≥ 2"))
-                            })
-                        })
-                        .collect::<Result<Vec<_>, _>>()?,
-                )
-            }
-        }
-        match self.spending {
-            None => {}
-            Some(SpendingArg::ObrienFleming) => settings.spending = Spending::OBrienFleming,
-            Some(SpendingArg::Pocock) => settings.spending = Spending::Pocock,
-        }
-        if self.futility.is_some() {
-            settings.futility_beta = self.futility;
-        }
-        if let Some(rho) = self.futility_rho {
-            settings.futility_rho = rho;
-        }
-        Ok(Some(settings))
+        let overrides = GateOverrides {
+            sequential: self.sequential,
+            looks,
+            spending: self.spending.map(|s| match s {
+                SpendingArg::ObrienFleming => Spending::OBrienFleming,
+                SpendingArg::Pocock => Spending::Pocock,
+            }),
+            futility_beta: self.futility,
+            futility_rho: self.futility_rho,
+        };
+        overrides.apply(spec).map_err(|e| match e {
+            GateOverrideError::NotSequential(setting) => usage(
+                match setting {
+                    GateSetting::Looks => "--looks",
+                    GateSetting::Spending => "--spending",
+                    GateSetting::Futility => "--futility",
+                    GateSetting::FutilityRho => "--futility-rho",
+                },
+                "is a setting of the sequential gate: add --sequential",
+            ),
+            GateOverrideError::RhoWithoutFutility => usage(
+                "--futility-rho",
+                "is the exponent of the futility bounds' β-spending: add --futility",
+            ),
+        })
     }
 
     /// The gate for a study of `runs` runs per cell at level `alpha`, or `None` without
@@ -459,7 +451,7 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
         l.world_state_names(),
     );
     let cols = match table {
-        SchemaTable::Estimates => crate::score::estimate_columns_with(&q, &z, &l.rotations()),
+        SchemaTable::Estimates => plan.estimate_schema(),
         SchemaTable::Truth => schema::truth(&q, &w),
         SchemaTable::Measurements => schema::measurements(&z, &u),
         SchemaTable::Initial => schema::initial(&q),
@@ -474,13 +466,23 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             Dtype::Str => "string",
             Dtype::F64 if key => "float64",
             Dtype::F64 => "float64 (nullable)",
+            Dtype::F32 => "float32 (nullable)",
             Dtype::I64 => "int64",
             Dtype::U64 => "uint64",
             Dtype::Bool => "bool",
         };
         let group = c.name.split('_').next().unwrap_or("");
         let first = noted.insert(group.to_string());
+        let variants;
         let note = match (table, group) {
+            (SchemaTable::Estimates, "q" | "r") => {
+                variants = format!(
+                    "  the variant of {}; null for a filter without {} variants",
+                    plan.external_variants_text(&c.name).join(", "),
+                    c.name
+                );
+                variants.as_str()
+            }
             _ if !first => "",
             (SchemaTable::Estimates, "nu" | "S") => {
                 "  optional: the NIS and whiteness tests; nu null where z did not report (NaN is an error)"

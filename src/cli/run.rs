@@ -43,6 +43,25 @@ pub struct Run {
     /// (`estimates.parquet`: est_*, P_*, nu_*, S_*, A_*), as `kfmc score` reads it.
     #[arg(long)]
     pub export_estimates: bool,
+    /// The precision of the exported covariance, innovation, S and A columns: f64 (default)
+    /// or f32 (about half the file; the estimates est_*/quat_* stay float64).
+    #[arg(
+        long,
+        value_enum,
+        value_name = "PRECISION",
+        default_value = "f64",
+        requires = "export_estimates"
+    )]
+    pub export_estimates_precision: PrecisionArg,
+}
+
+/// `--export-estimates-precision`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum PrecisionArg {
+    /// float64 values.
+    F64,
+    /// float32 covariance, innovation, S and A.
+    F32,
 }
 
 impl Run {
@@ -59,6 +78,7 @@ impl Run {
             checkpoint_every,
             no_checkpoint,
             export_estimates,
+            export_estimates_precision,
         } = self;
         let checkpoints = (!no_checkpoint).then(|| crate::study::Checkpoints {
             every: std::time::Duration::from_secs_f64(checkpoint_every),
@@ -73,6 +93,10 @@ impl Run {
         let shard = shard_arg(&study.spec, shard.as_deref(), shards)?;
         let mut plan = study.plan(registry, trace_runs)?;
         plan.export_estimates = export_estimates;
+        plan.export_precision = match export_estimates_precision {
+            PrecisionArg::F64 => crate::score::EstimatePrecision::F64,
+            PrecisionArg::F32 => crate::score::EstimatePrecision::F32,
+        };
         let threads = study.threads(study.quiet);
         let StudyArgs {
             spec, quiet, force, ..

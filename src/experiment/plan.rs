@@ -14,7 +14,8 @@ use crate::error::{SpecError, SpecErrors};
 use crate::sim::seed::hash_str;
 use crate::system::checker::{Checker, non_negative, positive};
 pub use crate::system::settings::{
-    ConsistencyPlan, Draws, FilterNoiseMode, FilterPlan, InitialMode, RunSettings, ScenarioPlan,
+    ConsistencyPlan, DeclaredScales, Draws, FilterNoiseMode, FilterPlan, InitialMode, RunSettings,
+    ScenarioPlan,
 };
 use crate::system::{FilterTable, InitialSpec, Layout, Registry, System, SystemPlan, SystemSpec};
 
@@ -267,9 +268,76 @@ impl Plan {
             filters: self
                 .filters
                 .iter()
-                .map(|f| (f.label.as_str(), f.external))
+                .map(|f| crate::score::StudyFilter {
+                    label: f.label.as_str(),
+                    external: f.external,
+                    multipliers: f.multipliers(),
+                    q_column: f.external && f.declared.q_scale,
+                    r_column: f.external && f.declared.r_scale,
+                })
                 .collect(),
         }
+    }
+
+    /// The columns of an estimates file for this plan (`kfmc schema estimates`): those of
+    /// [`crate::score::estimate_columns_with`], with `q_scale` and `r_scale` after `filter`
+    /// when an external filter declares variants on that axis.
+    pub fn estimate_schema(&self) -> Vec<crate::output::schema::ColumnDef> {
+        let l = self.layout();
+        let mut cols = crate::score::estimate_columns_with(
+            &l.quantity_names(),
+            &l.measurement_names(),
+            &l.rotations(),
+        );
+        let at = cols
+            .iter()
+            .position(|c| c.name == "filter")
+            .map_or(0, |i| i + 1);
+        let axes = [
+            self.filters
+                .iter()
+                .any(|f| f.external && f.declared.q_scale),
+            self.filters
+                .iter()
+                .any(|f| f.external && f.declared.r_scale),
+        ];
+        let variant: Vec<crate::output::schema::ColumnDef> = crate::score::VARIANT_COLUMNS
+            .iter()
+            .zip(axes)
+            .filter(|(_, declared)| *declared)
+            .map(|(name, _)| crate::output::schema::ColumnDef {
+                name: name.to_string(),
+                dtype: crate::output::schema::Dtype::F64,
+            })
+            .collect();
+        cols.splice(at..at, variant);
+        cols
+    }
+
+    /// The variants of the external filters that declare them, as `kfmc schema estimates`
+    /// notes them: per axis, `` `mine` q_scale = 0.5, 1, 2 `` for each such label.
+    pub fn external_variants_text(&self, axis: &str) -> Vec<String> {
+        let mut out: Vec<(String, Vec<f64>)> = Vec::new();
+        for f in self.filters.iter().filter(|f| f.external) {
+            let (declared, v) = match axis {
+                "q_scale" => (f.declared.q_scale, f.q_scale),
+                _ => (f.declared.r_scale, f.r_scale),
+            };
+            if !declared {
+                continue;
+            }
+            match out.iter_mut().find(|(l, _)| *l == f.label) {
+                Some((_, vs)) if !vs.contains(&v) => vs.push(v),
+                Some(_) => {}
+                None => out.push((f.label.clone(), vec![v])),
+            }
+        }
+        out.into_iter()
+            .map(|(l, vs)| {
+                let vs: Vec<String> = vs.iter().map(|v| v.to_string()).collect();
+                format!("`{l}` {axis} = {}", vs.join(", "))
+            })
+            .collect()
     }
 
     /// The stamp an estimates file made from this plan's runs carries
@@ -669,6 +737,7 @@ pub(crate) fn validate_into(
             rmse_thresholds,
             consistency: consistency.plan,
             export_estimates: false,
+            export_precision: crate::score::EstimatePrecision::F64,
             estimates: None,
         },
         system,
@@ -791,7 +860,7 @@ fn filter_tables(c: &mut Checker, spec: &Spec) -> (Vec<Option<usize>>, Vec<Filte
             for k in f.keys.keys() {
                 c.err(
                     format!("filters[{i}].{}", super::checker::path_key(k)),
-                    "an external filter has no keys besides label and kind (its settings are its own)",
+                    "an external filter has no keys besides label, kind and its variants q_scale, r_scale (its settings are its own)",
                 );
             }
         } else {
@@ -838,23 +907,30 @@ fn filter_variants(
     let mut filters = Vec::new();
     for (i, f) in spec.filters.iter().enumerate() {
         let key = format!("filters[{i}]");
+        let declared = DeclaredScales {
+            q_scale: f.q_scale.is_some(),
+            r_scale: f.r_scale.is_some(),
+        };
+        let q_key = format!("{key}.q_scale");
+        let r_key = format!("{key}.r_scale");
         let Some(entry) = system_index[i] else {
-            c.reject_present(
-                &key,
-                &[
-                    ("q_scale", f.q_scale.is_some()),
-                    ("r_scale", f.r_scale.is_some()),
-                ],
-                "not used by an external filter (its tuning is its own; give each variant its own label)",
-            );
-            filters.push(FilterPlan {
-                label: f.label.clone(),
-                kind: f.kind.clone(),
-                entry: usize::MAX,
-                external: true,
-                q_scale: 1.0,
-                r_scale: 1.0,
-            });
+            // An external filter's variants: the multipliers it applied to its own assumed
+            // Q and R, named by its estimates' `q_scale`/`r_scale` columns.
+            let q_scales = scale_list(c, &q_key, f.q_scale.as_ref(), 1.0, positive, POSITIVE);
+            let r_scales = scale_list(c, &r_key, f.r_scale.as_ref(), 1.0, positive, POSITIVE);
+            for &q_scale in &q_scales {
+                for &r_scale in &r_scales {
+                    filters.push(FilterPlan {
+                        label: f.label.clone(),
+                        kind: f.kind.clone(),
+                        entry: usize::MAX,
+                        external: true,
+                        q_scale,
+                        r_scale,
+                        declared,
+                    });
+                }
+            }
             continue;
         };
         if let Some(info) = system.and_then(|s| s.filters().get(entry)) {
@@ -868,9 +944,7 @@ fn filter_variants(
                 &msg,
             );
         }
-        let q_key = format!("{key}.q_scale");
         let q_scales = scale_list(c, &q_key, f.q_scale.as_ref(), 1.0, positive, POSITIVE);
-        let r_key = format!("{key}.r_scale");
         let r_scales = scale_list(c, &r_key, f.r_scale.as_ref(), 1.0, positive, POSITIVE);
         for &q_scale in &q_scales {
             for &r_scale in &r_scales {
@@ -881,6 +955,7 @@ fn filter_variants(
                     external: false,
                     q_scale,
                     r_scale,
+                    declared,
                 });
             }
         }
@@ -1151,27 +1226,26 @@ fn variant_selection(c: &mut Checker, t: &Targets, key: &str, a: &AssertSpec) {
         ("r_scale", a.r_scale, |f: &FilterPlan| f.r_scale),
     ] {
         let Some(v) = want else { continue };
-        if of_filter.is_empty() || of_filter.iter().any(|f| !f.external && get(f) == v) {
+        let keyed = |f: &&&FilterPlan| f.multipliers().is_some();
+        if of_filter.is_empty() || of_filter.iter().filter(keyed).any(|f| get(f) == v) {
             continue;
         }
-        let mut have: Vec<f64> = of_filter
-            .iter()
-            .filter(|f| !f.external)
-            .map(|f| get(f))
-            .collect();
+        let mut have: Vec<f64> = of_filter.iter().filter(keyed).map(|f| get(f)).collect();
         have.sort_by(f64::total_cmp);
         have.dedup();
         let have: Vec<String> = have.iter().map(|x| format!("{x}")).collect();
         let message = match (&a.filter, have.is_empty()) {
             (Some(l), true) => format!(
-                "filter `{l}` is external and carries no multipliers, so no variant of it has {name} = {v}"
+                "filter `{l}` is external and declares no variants (no q_scale or r_scale), so no variant of it has {name} = {v}"
             ),
             (Some(l), false) => format!(
                 "filter `{l}` has no variant with {name} = {v}; its variants have {name} = {}",
                 have.join(", ")
             ),
             (None, true) => {
-                format!("no filter variant has {name} = {v} (every filter is external)")
+                format!(
+                    "no filter variant has {name} = {v} (every filter is external without declared variants)"
+                )
             }
             (None, false) => format!(
                 "no filter variant has {name} = {v}; the variants have {name} = {}",

@@ -103,6 +103,10 @@ pub struct Index {
     pub trace_runs: u64,
     /// Whether estimates.parquet is written.
     pub export_estimates: bool,
+    /// Whether its covariance, innovation, S and A columns are float32
+    /// (`--export-estimates-precision f32`; absent: float64).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub export_f32: bool,
     /// [`JOURNAL_FORMAT`] of the journals (0: an index from before the field existed).
     #[serde(default)]
     pub journal_format: u32,
@@ -237,6 +241,14 @@ impl Index {
                 format!(
                     "--export-estimates changed ({} → {})",
                     self.export_estimates, other.export_estimates
+                )
+            }),
+            (self.export_f32 != other.export_f32).then(|| {
+                let p = |f32: bool| if f32 { "f32" } else { "f64" };
+                format!(
+                    "--export-estimates-precision changed ({} → {})",
+                    p(self.export_f32),
+                    p(other.export_f32)
                 )
             }),
         ]
@@ -562,7 +574,8 @@ impl<R: Read> Records<'_, R> {
                 row.text.push_str(s);
                 Value::Str("")
             }
-            Dtype::F64 => {
+            // A float32 column is journaled as the f64 it was given, and rounded when written.
+            Dtype::F64 | Dtype::F32 => {
                 let at = self.read_exact(8)?;
                 let x = f64::from_bits(self.u64_at(at));
                 Value::F64((!x.is_nan()).then_some(x))
@@ -921,6 +934,7 @@ mod tests {
             end_cell: 4,
             trace_runs: 0,
             export_estimates: false,
+            export_f32: false,
             journal_format: JOURNAL_FORMAT,
             cells_done: 2,
             tables: Vec::new(),

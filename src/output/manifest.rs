@@ -106,6 +106,26 @@ pub struct ExchangeEntry {
     /// folders written before it was recorded).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub step_convention: Option<StepConvention>,
+    /// The spec's external filters: the estimates an outside program writes for these
+    /// runs, one label each, with the variants a label declares (absent in folders written
+    /// before it was recorded).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub external_filters: Vec<ExternalFilterEntry>,
+}
+
+/// An external filter of a simulated spec (`[[exchange.external_filters]]`): its label and,
+/// when it declares variants, the multipliers its estimates name in their `q_scale` and
+/// `r_scale` columns (every pair of them is a variant to write).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ExternalFilterEntry {
+    /// The `filter` value of its rows.
+    pub label: String,
+    /// The `q_scale` values its rows take (the entry's list), when it declares them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub q_scale: Option<Vec<f64>>,
+    /// The `r_scale` values its rows take, when it declares them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub r_scale: Option<Vec<f64>>,
 }
 
 /// How the rows of the exchange tables line up with the model's steps, and what wraps: what

@@ -8,6 +8,9 @@ pub enum Dtype {
     Str,
     /// 64-bit float, nullable.
     F64,
+    /// 32-bit float, nullable: given as [`Value::F64`] and rounded to the nearest f32 when
+    /// written (`kfmc run --export-estimates-precision f32`); read back as f64, exactly.
+    F32,
     /// 64-bit signed integer, nullable.
     I64,
     /// 64-bit unsigned integer.

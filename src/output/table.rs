@@ -25,6 +25,7 @@ pub struct FinishedTable {
 enum Buffer {
     Str(Vec<String>),
     F64(Vec<Option<f64>>),
+    F32(Vec<Option<f32>>),
     I64(Vec<Option<i64>>),
     U64(Vec<u64>),
     Bool(Vec<Option<bool>>),
@@ -100,6 +101,7 @@ impl TableWriter {
             let dt = match c.dtype {
                 Dtype::Str => DataType::String,
                 Dtype::F64 => DataType::Float64,
+                Dtype::F32 => DataType::Float32,
                 Dtype::I64 => DataType::Int64,
                 Dtype::U64 => DataType::UInt64,
                 Dtype::Bool => DataType::Boolean,
@@ -126,6 +128,7 @@ impl TableWriter {
             .map(|c| match c.dtype {
                 Dtype::Str => Buffer::Str(Vec::new()),
                 Dtype::F64 => Buffer::F64(Vec::new()),
+                Dtype::F32 => Buffer::F32(Vec::new()),
                 Dtype::I64 => Buffer::I64(Vec::new()),
                 Dtype::U64 => Buffer::U64(Vec::new()),
                 Dtype::Bool => Buffer::Bool(Vec::new()),
@@ -215,6 +218,9 @@ impl TableWriter {
             match (b, v) {
                 (Buffer::Str(b), Value::Str(s)) => b.push((*s).to_string()),
                 (Buffer::F64(b), Value::F64(x)) => b.push(x.filter(|x| !x.is_nan())),
+                (Buffer::F32(b), Value::F64(x)) => {
+                    b.push(x.filter(|x| !x.is_nan()).map(|x| x as f32))
+                }
                 (Buffer::I64(b), Value::I64(x)) => b.push(*x),
                 (Buffer::U64(b), Value::U64(x)) => b.push(*x),
                 (Buffer::Bool(b), Value::Bool(x)) => b.push(*x),
@@ -247,6 +253,7 @@ impl TableWriter {
                 match b {
                     Buffer::Str(v) => Column::new(name, std::mem::take(v)),
                     Buffer::F64(v) => Column::new(name, std::mem::take(v)),
+                    Buffer::F32(v) => Column::new(name, std::mem::take(v)),
                     Buffer::I64(v) => Column::new(name, std::mem::take(v)),
                     Buffer::U64(v) => Column::new(name, std::mem::take(v)),
                     Buffer::Bool(v) => Column::new(name, std::mem::take(v)),
@@ -379,6 +386,7 @@ pub fn columns_of(df: &DataFrame, origin: &Path) -> Result<Vec<ColumnDef>, Outpu
             let dtype = match c.dtype() {
                 DataType::String => Dtype::Str,
                 DataType::Float64 => Dtype::F64,
+                DataType::Float32 => Dtype::F32,
                 DataType::Int64 => Dtype::I64,
                 DataType::UInt64 => Dtype::U64,
                 DataType::Boolean => Dtype::Bool,
@@ -418,6 +426,7 @@ pub fn for_each_row(
     enum Col<'a> {
         Str(&'a StringChunked),
         F64(&'a Float64Chunked),
+        F32(&'a Float32Chunked),
         I64(&'a Int64Chunked),
         U64(&'a UInt64Chunked),
         Bool(&'a BooleanChunked),
@@ -428,6 +437,7 @@ pub fn for_each_row(
         cols.push(match c.dtype {
             Dtype::Str => Col::Str(col.str().map_err(bad)?),
             Dtype::F64 => Col::F64(col.f64().map_err(bad)?),
+            Dtype::F32 => Col::F32(col.f32().map_err(bad)?),
             Dtype::I64 => Col::I64(col.i64().map_err(bad)?),
             Dtype::U64 => Col::U64(col.u64().map_err(bad)?),
             Dtype::Bool => Col::Bool(col.bool().map_err(bad)?),
@@ -440,6 +450,7 @@ pub fn for_each_row(
             row.push(match c {
                 Col::Str(a) => Value::Str(a.get(i).unwrap_or("")),
                 Col::F64(a) => Value::F64(a.get(i)),
+                Col::F32(a) => Value::F64(a.get(i).map(f64::from)),
                 Col::I64(a) => Value::I64(a.get(i)),
                 Col::U64(a) => Value::U64(a.get(i).unwrap_or(0)),
                 Col::Bool(a) => Value::Bool(a.get(i)),

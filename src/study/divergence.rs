@@ -135,10 +135,10 @@ impl<'a> DivergenceFeed<'a> {
         };
         let si = p.scenarios.iter().position(|x| x.name == *s)?;
         let scale = p.noise_scales.iter().position(|x| x == noise)?;
-        // An external filter's multipliers are null, a kfmc filter's are numbers.
+        // An external filter's multipliers are null unless it declares variants.
         let fi = p.filters.iter().position(|f| {
-            let own = |v: f64| (!f.external).then_some(v);
-            f.label == *label && own(f.q_scale) == *q && own(f.r_scale) == *r
+            let (fq, fr) = f.multipliers().unzip();
+            f.label == *label && fq == *q && fr == *r
         })?;
         Some((si, scale, fi))
     }

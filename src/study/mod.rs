@@ -291,10 +291,11 @@ fn open_aggregator<'a>(
         estimates: optional(
             plan.export_estimates,
             "estimates",
-            crate::score::estimate_columns_with(
+            crate::score::estimate_columns_in(
                 &states,
                 &layout.measurement_names(),
                 &layout.rotations(),
+                plan.export_precision,
             ),
         )?,
         bands: BandCache::new(plan.alpha),

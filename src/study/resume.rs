@@ -37,6 +37,7 @@ pub(super) fn checkpoint_identity(
         end_cell: cells.end as u64,
         trace_runs: plan.trace_runs as u64,
         export_estimates: plan.export_estimates,
+        export_f32: plan.export_precision == crate::score::EstimatePrecision::F32,
         journal_format: crate::output::checkpoint::JOURNAL_FORMAT,
         cells_done: 0,
         tables: Vec::new(),

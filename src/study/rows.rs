@@ -16,11 +16,11 @@ pub(super) fn cell_key<'a>(scenario: &'a str, noise: f64, f: &'a FilterPlan) -> 
     ]
 }
 
-/// The `q_scale` and `r_scale` key values of a filter variant: null for an external filter,
-/// whose tuning is its own and which kfmc never scales.
+/// The `q_scale` and `r_scale` key values of a filter variant: null for an external filter
+/// without declared variants, whose tuning is its own.
 pub(super) fn scale_keys(f: &FilterPlan) -> [Value<'static>; 2] {
-    let own = |v: f64| Value::F64((!f.external).then_some(v));
-    [own(f.q_scale), own(f.r_scale)]
+    let (q, r) = f.multipliers().unzip();
+    [Value::F64(q), Value::F64(r)]
 }
 
 /// The across-run quantile levels of the summary and sensors tables.

@@ -40,13 +40,34 @@ pub struct FilterPlan {
     pub q_scale: f64,
     /// Multiplier of the assumed R (the `r_scale` column).
     pub r_scale: f64,
+    /// Which multipliers the spec entry lists (`q_scale`, `r_scale`). An external filter
+    /// that lists either has variants: the tables key them by their multipliers as kfmc's
+    /// own (1 on an axis it does not list), and its estimates carry a column for each axis
+    /// it lists, naming each row's variant.
+    pub declared: DeclaredScales,
+}
+
+/// Which of `q_scale` and `r_scale` a `[[filters]]` entry lists.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DeclaredScales {
+    /// The entry lists `q_scale`.
+    pub q_scale: bool,
+    /// The entry lists `r_scale`.
+    pub r_scale: bool,
+}
+
+impl DeclaredScales {
+    /// Whether the entry lists either.
+    pub fn any(self) -> bool {
+        self.q_scale || self.r_scale
+    }
 }
 
 impl FilterPlan {
-    /// The variant's (q_scale, r_scale) as the tables key it: `None` for an external filter,
-    /// whose tuning is its own.
+    /// The variant's (q_scale, r_scale) as the tables key it: `None` for an external filter
+    /// that declares no variants (its tuning is its own, and the tables' scales are null).
     pub fn multipliers(&self) -> Option<(f64, f64)> {
-        (!self.external).then_some((self.q_scale, self.r_scale))
+        (!self.external || self.declared.any()).then_some((self.q_scale, self.r_scale))
     }
 }
 
@@ -125,6 +146,9 @@ pub struct RunSettings {
     /// Whether to write every run's estimates in the exchange format (`estimates.parquet`,
     /// `kfmc run --export-estimates`).
     pub export_estimates: bool,
+    /// The precision of the exported covariance, innovation, S and A columns
+    /// (`--export-estimates-precision`; the estimates themselves stay float64).
+    pub export_precision: crate::score::EstimatePrecision,
     /// The estimates of the external filters, once read (`kfmc score`, `kfmc check
     /// --estimates`).
     pub estimates: Option<Arc<EstimateSet>>,

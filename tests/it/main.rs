@@ -88,6 +88,7 @@ mod exchange {
     mod exchange;
     mod filter_model;
     mod interop;
+    mod variants;
 }
 
 /// The book and README: runnable blocks, specs, links, the tables reference.

@@ -339,6 +339,62 @@ def test_check_returns_the_gates_result(root, kfmc_bin, tmp_path):
         bad.raise_for_status()
 
 
+def test_check_with_a_sequential_gate_equals_the_command(root, kfmc_bin, tmp_path):
+    """kfmc.check(..., sequential=True, looks=…, spending=…, futility=…, futility_rho=…)
+    runs the gate `kfmc check --sequential --looks … --futility …` runs: the same exit code,
+    report and sequential.parquet bytes, for a tuned filter and a mistuned one that the gate
+    stops at its first look; a gate setting without the gate, or one that makes no gate for
+    the study's runs, is the command's exit 2 as kfmc.SpecError."""
+    tuned = (root / "experiments" / "ci_consistency.toml").read_text()
+    mistuned = tuned.replace("q_scale = 1.0", "q_scale = 8.0")
+    for name, text, flags, kwargs in [
+        ("tuned", tuned,
+         ["--looks", "10,20,40", "--futility", "0.2", "--futility-rho", "1"],
+         dict(looks=[10, 20, 40], futility=0.2, futility_rho=1.0)),
+        ("mistuned", mistuned, ["--looks", "4", "--spending", "pocock"],
+         dict(looks=4, spending="pocock")),
+    ]:
+        spec = tmp_path / f"{name}.toml"
+        spec.write_text(text)
+        cli = subprocess.run(
+            [kfmc_bin, "check", str(spec), "--runs", "40", "--seed", "3", "--out",
+             str(tmp_path / f"{name}_cli"), "-q", "--sequential", *flags],
+            capture_output=True, text=True,
+        )
+        r = kfmc.check(text, runs=40, seed=3, out=tmp_path / f"{name}_api", sequential=True, **kwargs)
+        assert r.exit_code == cli.returncode, cli.stderr
+        assert r.report == cli.stdout
+        assert filecmp.cmp(tmp_path / f"{name}_cli" / "sequential.parquet",
+                           tmp_path / f"{name}_api" / "sequential.parquet", shallow=False)
+        looks = r.study.table("sequential")
+        if name == "tuned":
+            assert r.exit_code == 0 and looks["runs"].to_list() == [10, 20, 40] * 2
+        else:
+            assert r.exit_code == 3 and looks["runs"].to_list() == [10, 10]
+            assert looks["decision"].to_list() == ["reject", "reject"]
+    # Without the gate, none of its settings; settings the study cannot take name their key.
+    spec = root / "experiments" / "ci_consistency.toml"
+    for kwargs, flags, message in [
+        (dict(looks=3), ["--looks", "3"], "looks is a setting of the sequential gate: pass sequential=True"),
+        (dict(futility=0.2), ["--futility", "0.2"], "futility is a setting of the sequential gate"),
+        (dict(sequential=True, futility=2.0), ["--sequential", "--futility", "2"],
+         r"check.futility_beta: β must lie in \(0, 1\); got 2"),
+        (dict(sequential=True, looks=[5, 30]), ["--sequential", "--looks", "5,30"],
+         "check.looks: the run counts must be ≥ 2, increase and end at the study's 20 runs"),
+    ]:
+        cli = subprocess.run(
+            [kfmc_bin, "check", str(spec), "--runs", "20", "--out", str(tmp_path / "bad_cli"), "-q", *flags],
+            capture_output=True, text=True,
+        )
+        assert cli.returncode == 2, cli.stderr
+        with pytest.raises(kfmc.SpecError, match=message):
+            kfmc.check(spec, runs=20, out=tmp_path / "bad_api", **kwargs)
+    with pytest.raises(kfmc.SpecError, match="futility_rho .* pass futility"):
+        kfmc.check(spec, runs=20, out=tmp_path / "bad_api", sequential=True, futility_rho=1.0)
+    with pytest.raises(kfmc.SpecError, match="spending: `haybittle`"):
+        kfmc.check(spec, runs=20, out=tmp_path / "bad_api", sequential=True, spending="haybittle")
+
+
 SIGINT_SCRIPT = textwrap.dedent(
     """
     import sys, kfmc

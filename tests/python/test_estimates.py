@@ -532,3 +532,64 @@ def test_the_ukf_example_gives_kfmcs_dof_with_the_kept_points_and_fewer_with_sig
     assert abs(dof["kept"]["filterpy_kf"] - dof["kept"]["kf"]) < 1e-9 * dof["kept"]["kf"]
     # … the redrawn ukf.sigmas_f far fewer: the band is wider than the test's.
     assert dof["sigmas_f"]["filterpy_kf"] < 0.5 * dof["kept"]["kf"]
+
+
+def test_estimates_of_declared_variants_score_like_the_file_route(tmp_path, script_kfmc):
+    """An external filter declaring q_scale = [0.5, 1, 2]: `Estimates.add_run(...,
+    q_scale=…)` writes each run's variant, and scoring it in memory gives the tables of the
+    same rows written as a file with a `q_scale` column and scored by the CLI."""
+    tunings = {"kf_a": 0.5, "kf_b": 1.0, "kf_c": 2.0}
+    own_spec = dict(L1, filters=[{"label": l, "kind": "ekf", "q_scale": q} for l, q in tunings.items()])
+    own = export(own_spec, tmp_path, script_kfmc)
+    spec = dict(L1, filters=[{"label": "kf", "kind": "ekf"},
+                             {"label": "mine", "kind": "external", "q_scale": [0.5, 1, 2]}])
+    sim = kfmc.simulate(spec, out=tmp_path / "sim", quiet=True)
+    assert sim.external_filters == [{"label": "mine", "q_scale": [0.5, 1.0, 2.0]}]
+    q, z = sim.model.states, sim.model.measurements
+    est = kfmc.Estimates(sim, "mine")
+    assert est.variants == {"q_scale": [0.5, 1.0, 2.0]}
+    for (label, *key), g in own.group_by(["filter"] + KEYS, maintain_order=True):
+        x, P, nu, S, A = arrays(g.sort("step"), q, z)
+        est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A, q_scale=tunings[label])
+    # The file route: the exported rows relabelled, each naming its variant.
+    rows = own.with_columns(
+        pl.col("filter").replace_strict(tunings, return_dtype=pl.Float64).alias("q_scale"),
+        pl.lit("mine").alias("filter"),
+    ).select(est.columns)
+    assert est.columns[:6] == ["scenario", "noise_scale", "run", "step", "filter", "q_scale"]
+    assert est.to_polars().equals(rows)
+    import pyarrow.parquet as pq
+
+    table = rows.to_arrow()
+    path = tmp_path / "variants.parquet"
+    pq.write_table(table.replace_schema_metadata(sim.stamp), path)
+    o = subprocess.run(
+        [script_kfmc, "score", str(sim.folder), "--estimates", str(path), "--out", str(tmp_path / "cli"), "-q"],
+        capture_output=True, text=True,
+    )
+    assert o.returncode == 0 and "warning" not in o.stderr, o.stderr
+    study = kfmc.score(sim, est, out=tmp_path / "mem", quiet=True)
+    same_tables(study, kfmc.Study(tmp_path / "cli"))
+    summary = study.table("summary").filter(pl.col("filter") == "mine")
+    assert sorted(summary["q_scale"].unique().to_list()) == [0.5, 1.0, 2.0]
+    assert summary["r_scale"].unique().to_list() == [1.0]
+    # A written file is the same table, stamped.
+    written = est.write(tmp_path / "written.parquet")
+    assert pl.read_parquet(written).equals(rows)
+    # A run must name a declared variant, and only on a declared axis.
+    key = ("hover", 1.0, 0)
+    x, P, nu, S, A = arrays(own.filter(pl.col("filter") == "kf_a").head(51), q, z)
+    fresh = kfmc.Estimates(sim, "mine")
+    with pytest.raises(kfmc.EstimatesError, match=r"q_scale: filter 'mine' declares q_scale = 0.5, 1, 2"):
+        fresh.add_run(*key, x=x, P=P)
+    with pytest.raises(kfmc.EstimatesError, match=r"q_scale=3 is not a variant of filter 'mine'"):
+        fresh.add_run(*key, x=x, P=P, q_scale=3)
+    with pytest.raises(kfmc.EstimatesError, match=r"r_scale=1.0: filter 'mine' declares no r_scale variants"):
+        fresh.add_run(*key, x=x, P=P, q_scale=2, r_scale=1.0)
+    fresh.add_run(*key, x=x, P=P, q_scale=2)
+    fresh.add_run(*key, x=x, P=P, q_scale=0.5)
+    with pytest.raises(kfmc.EstimatesError, match="was added already"):
+        fresh.add_run(*key, x=x, P=P, q_scale=2)
+    # Two of the three variants: the third is reported missing, as a missing filter is.
+    with pytest.raises(kfmc.Error, match=r"no rows for the external filter `mine` \(q_scale = 1\)"):
+        kfmc.score(sim, fresh, out=tmp_path / "partial", quiet=True)

@@ -12,9 +12,9 @@
 //!   `<!-- test -->` (or `<!-- test: ARGS -->`) has each of its `kfmc …` and
 //!   `cargo run --release -- …` lines (in a console block, the lines after `$ `) run in a
 //!   scratch folder that sees the repository's `experiments/` and `examples/`, in order, and
-//!   each must exit 0; in a `yaml` block (a CI job) the commands are the `- run:` lines,
-//!   whose `python3 …` lines run too (they need the interop packages: skipped without them
-//!   unless KFMC_REQUIRE_INTEROP is set). ARGS (e.g. `--runs 5`) are added to the commands that run a study
+//!   each must exit 0; in a `yaml` block (a CI job) the commands are the `- run:` lines; the
+//!   `python3 …` lines of a yaml, sh or bash block run too (they need the interop packages:
+//!   the block stops there without them unless KFMC_REQUIRE_INTEROP is set). ARGS (e.g. `--runs 5`) are added to the commands that run a study
 //!   (`run`, `check`, `simulate`, `power`, `tune`), replacing the command's own value of the
 //!   same flag, so the test stays small. The comment is
 //!   invisible in the rendered book.
@@ -442,7 +442,7 @@ fn command_lines(lang: &str, block: &str) -> Vec<Vec<String>> {
             a
         } else if let Some(a) = line.strip_prefix("cargo run --release -- ") {
             a
-        } else if lang == "yaml" && line.starts_with("python3 ") {
+        } else if lang != "console" && line.starts_with("python3 ") {
             out.push(line.split_whitespace().map(str::to_string).collect());
             continue;
         } else {
@@ -610,6 +610,7 @@ fn tables_reference() -> String {
             let ty = match c.dtype {
                 Dtype::Str => "string",
                 Dtype::F64 => "float64",
+                Dtype::F32 => "float32",
                 Dtype::I64 => "int64",
                 Dtype::U64 => "uint64",
                 Dtype::Bool => "boolean",

@@ -405,3 +405,89 @@ fn schema_lists_the_covariance_forms_before_the_stamp() {
     // The stamp stays after them: a writer reads it off the end.
     assert!(text.find("file metadata (the stamp").unwrap() > cholesky);
 }
+
+#[test]
+fn a_float32_export_is_the_f64_export_rounded_and_scores_to_the_same_verdicts() {
+    let s = study();
+    let run_spec = s.dir.join("run.toml");
+    let export = |out: &str, precision: Option<&str>| {
+        let mut c = crate::common::kfmc();
+        c.args(["run", "-q", "--export-estimates", "--out"])
+            .arg(s.dir.join(out))
+            .arg(&run_spec);
+        if let Some(p) = precision {
+            c.args(["--export-estimates-precision", p]);
+        }
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        s.dir.join(out).join("estimates.parquet")
+    };
+    // f64 is the default, byte for byte.
+    let f64_path = export("run64", Some("f64"));
+    assert!(
+        std::fs::read(&f64_path).unwrap()
+            == std::fs::read(s.dir.join("run/estimates.parquet")).unwrap(),
+        "--export-estimates-precision f64 changed the export"
+    );
+    let f32_path = export("run32", Some("f32"));
+    let (all64, all32) = (read(&f64_path), read(&f32_path));
+    // The estimates stay float64; the covariance, innovation, S and A are float32, and are
+    // the f64 export's values rounded to nearest.
+    for c in all32.columns() {
+        let name = c.name().as_str();
+        let want = if KEYS.contains(&name) {
+            all64.column(name).unwrap().dtype().clone()
+        } else if name.starts_with("est_") || name.starts_with("quat_") {
+            DataType::Float64
+        } else {
+            DataType::Float32
+        };
+        assert_eq!(c.dtype(), &want, "{name}");
+    }
+    assert!(
+        to_f32(&all64, |c| !c.starts_with("est_")).equals_missing(&all32),
+        "the f32 export is not the f64 export rounded"
+    );
+    // Scored as the external `kf`: the same verdicts, statuses and RMSE, the statistics
+    // within the book's float32 tolerance.
+    let keep = |df: &DataFrame| {
+        let kf = df.column("filter").unwrap().str().unwrap().equal("kf");
+        df.filter(&kf).unwrap()
+    };
+    let full = scored(&s, &keep(&all64), "export64");
+    let rounded = scored(&s, &keep(&all32), "export32");
+    let (rel, p) = largest_difference(&full, &rounded);
+    eprintln!("float32 export: {rel:e} relative, p-values {p:e}");
+    assert!(rel > 0.0, "rounding to float32 changed no statistic");
+    assert!(rel < 1e-6 && p < 1e-5, "{rel:e} relative, p-values {p:e}");
+    let (a, b) = (
+        read(&full.join("consistency.parquet")),
+        read(&rounded.join("consistency.parquet")),
+    );
+    for c in ["test", "pass", "direction"] {
+        assert!(
+            a.column(c).unwrap().equals_missing(b.column(c).unwrap()),
+            "{c}"
+        );
+    }
+    let (a, b) = (
+        read(&full.join("runs.parquet")),
+        read(&rounded.join("runs.parquet")),
+    );
+    for c in a.get_column_names() {
+        if c.starts_with("rmse_") || *c == "status" {
+            assert!(
+                a.column(c).unwrap().equals_missing(b.column(c).unwrap()),
+                "{c}"
+            );
+        }
+    }
+    // Without --export-estimates the precision is refused (it would set nothing).
+    let o = crate::common::kfmc()
+        .args(["run", "-q", "--export-estimates-precision", "f32", "--out"])
+        .arg(s.dir.join("none"))
+        .arg(&run_spec)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+}
