@@ -111,7 +111,8 @@ impl System for TurningSystem {
             let Some(s) = c.parse::<ScenarioKeys>(&format!("scenarios[{i}]"), t) else {
                 continue;
             };
-            if !(s.duration_s >= DT_S) {
+            // A NaN duration is refused too.
+            if s.duration_s.is_nan() || s.duration_s < DT_S {
                 let msg = format!("{} is shorter than one sample ({DT_S} s)", s.duration_s);
                 c.err(format!("scenarios[{i}].duration_s"), msg);
             }
