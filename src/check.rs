@@ -1501,7 +1501,29 @@ pub fn attach_estimates_with_tables(
     tables: &[crate::score::InMemoryTable],
     unstamped: Unstamped,
 ) -> Result<(), KfmcError> {
-    let set = crate::score::EstimateSet::load_with_tables(&plan.study_keys(), files, tables)?;
+    let sources = (files
+        .iter()
+        .cloned()
+        .map(crate::score::EstimatesSource::File))
+    .chain(
+        tables
+            .iter()
+            .cloned()
+            .map(crate::score::EstimatesSource::Table),
+    )
+    .map(Ok);
+    attach_estimates_from(plan, sources, unstamped)
+}
+
+/// [`attach_estimates_with_tables`] from sources taken one at a time
+/// ([`crate::score::EstimateSet::load_from`]): a producer's tables are read and dropped as
+/// they come.
+pub fn attach_estimates_from(
+    plan: &mut Plan,
+    sources: impl IntoIterator<Item = Result<crate::score::EstimatesSource, crate::error::OutputError>>,
+    unstamped: Unstamped,
+) -> Result<(), KfmcError> {
+    let set = crate::score::EstimateSet::load_from(&plan.study_keys(), sources)?;
     let stamp = format!(
         "{} = {}, {} = {}",
         crate::score::STAMP_KEY,

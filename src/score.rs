@@ -573,14 +573,32 @@ impl EstimateSet {
         files: &[PathBuf],
         tables: &[InMemoryTable],
     ) -> Result<Self, OutputError> {
+        let sources = (files.iter().cloned().map(EstimatesSource::File))
+            .chain(tables.iter().cloned().map(EstimatesSource::Table))
+            .map(Ok);
+        Self::load_from(study, sources)
+    }
+
+    /// [`EstimateSet::load`] from sources taken one at a time: each is read into the
+    /// filters' spills and dropped before the next is asked for, so a producer that makes
+    /// its tables as it goes (a filter loop yielding each run's estimates) is never held
+    /// whole. An `Err` from the sources ends the reading with that error.
+    pub fn load_from(
+        study: &StudyKeys<'_>,
+        sources: impl IntoIterator<Item = Result<EstimatesSource, OutputError>>,
+    ) -> Result<Self, OutputError> {
         let mut reading = Reading::new(study);
-        for path in files {
-            reading.file(path)?;
+        let mut files = Vec::new();
+        for source in sources {
+            match source? {
+                EstimatesSource::File(path) => {
+                    reading.file(&path)?;
+                    files.push(path);
+                }
+                EstimatesSource::Table(table) => reading.table(&table)?,
+            }
         }
-        for table in tables {
-            reading.table(table)?;
-        }
-        reading.finish(files)
+        reading.finish(&files)
     }
 
     /// The files read that carry no world stamp: nothing ties them to this study's runs.
@@ -657,6 +675,15 @@ pub struct InMemoryTable {
     pub name: String,
     /// The batches, each with the same columns.
     pub batches: Vec<DataFrame>,
+}
+
+/// One source of estimates: a Parquet file or a table in memory.
+#[derive(Clone, Debug)]
+pub enum EstimatesSource {
+    /// A file (its world stamp is checked).
+    File(PathBuf),
+    /// A table in memory.
+    Table(InMemoryTable),
 }
 
 /// A study's keys as indexes: what every row of an estimates file is checked against.

@@ -535,79 +535,107 @@ fn simulate<'py>(
     })
 }
 
-/// Reads objects with `__arrow_c_stream__` (polars and pandas DataFrames, pyarrow Tables) into
-/// tables in memory, batch by batch, through the Arrow C stream interface: no copy of the
-/// values and no file. The estimates reader checks them as it checks a file's row groups.
-fn import_streams(objects: &[Bound<'_, PyAny>]) -> PyResult<Vec<kfmc::score::InMemoryTable>> {
-    let mut tables = Vec::with_capacity(objects.len());
-    for (i, obj) in objects.iter().enumerate() {
-        let name = format!("<estimates {i}>");
-        let bad = |what: String| EstimatesError::new_err(format!("{name}: {what}"));
-        let capsule = obj
-            .call_method0("__arrow_c_stream__")?
-            .cast_into::<PyCapsule>()
-            .map_err(|_| bad("__arrow_c_stream__ did not return a capsule".into()))?;
-        let ptr = capsule
-            .pointer_checked(Some(c"arrow_array_stream"))
-            .map_err(|_| {
-                bad("__arrow_c_stream__ did not return an `arrow_array_stream` capsule".into())
-            })?;
-        // SAFETY: the capsule holds an ArrowArrayStream (its name says so, as the Arrow
-        // PyCapsule interface specifies); moving it out and leaving a released (empty) one
-        // behind is how a consumer takes ownership of the stream under that interface.
-        let stream = unsafe {
-            std::ptr::replace(
-                ptr.as_ptr().cast::<polars_arrow::ffi::ArrowArrayStream>(),
-                polars_arrow::ffi::ArrowArrayStream::empty(),
-            )
+/// Reads one object with `__arrow_c_stream__` (a polars or pandas DataFrame, a pyarrow Table)
+/// into a table in memory, batch by batch, through the Arrow C stream interface: no copy of
+/// the values and no file. The estimates reader checks it as it checks a file's row groups.
+fn import_stream(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::InMemoryTable> {
+    let bad = |what: String| EstimatesError::new_err(format!("{name}: {what}"));
+    let capsule = obj
+        .call_method0("__arrow_c_stream__")?
+        .cast_into::<PyCapsule>()
+        .map_err(|_| bad("__arrow_c_stream__ did not return a capsule".into()))?;
+    let ptr = capsule
+        .pointer_checked(Some(c"arrow_array_stream"))
+        .map_err(|_| {
+            bad("__arrow_c_stream__ did not return an `arrow_array_stream` capsule".into())
+        })?;
+    // SAFETY: the capsule holds an ArrowArrayStream (its name says so, as the Arrow
+    // PyCapsule interface specifies); moving it out and leaving a released (empty) one
+    // behind is how a consumer takes ownership of the stream under that interface.
+    let stream = unsafe {
+        std::ptr::replace(
+            ptr.as_ptr().cast::<polars_arrow::ffi::ArrowArrayStream>(),
+            polars_arrow::ffi::ArrowArrayStream::empty(),
+        )
+    };
+    // SAFETY: a stream from the Arrow PyCapsule interface fulfils the C stream interface.
+    let mut reader =
+        unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
+            .map_err(|e| bad(format!("not an Arrow stream: {e}")))?;
+    let mut batches = Vec::new();
+    loop {
+        // SAFETY: as above, the producer fulfils the C data interface.
+        let Some(chunk) = (unsafe { reader.next() }) else {
+            break;
         };
-        // SAFETY: a stream from the Arrow PyCapsule interface fulfils the C stream interface.
-        let mut reader =
-            unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
-                .map_err(|e| bad(format!("not an Arrow stream: {e}")))?;
-        let mut batches = Vec::new();
-        loop {
-            // SAFETY: as above, the producer fulfils the C data interface.
-            let Some(chunk) = (unsafe { reader.next() }) else {
-                break;
-            };
-            let chunk = chunk.map_err(|e| bad(format!("cannot read a batch: {e}")))?;
-            let Some(batch) = chunk
-                .as_any()
-                .downcast_ref::<polars_arrow::array::StructArray>()
-            else {
-                return Err(bad(format!(
-                    "a stream of {:?}, not of table rows (a struct per row)",
-                    chunk.dtype()
-                )));
-            };
-            let mut columns = Vec::with_capacity(batch.fields().len());
-            for (field, values) in batch.fields().iter().zip(batch.values()) {
-                let s = Series::from_arrow(field.name.clone(), values.clone())
-                    .map_err(|e| bad(format!("column `{}`: {e}", field.name)))?;
-                columns.push(s.into_column());
-            }
-            let df = DataFrame::new(batch.len(), columns)
-                .map_err(|e| bad(format!("cannot form a table: {e}")))?;
-            batches.push(df);
+        let chunk = chunk.map_err(|e| bad(format!("cannot read a batch: {e}")))?;
+        let Some(batch) = chunk
+            .as_any()
+            .downcast_ref::<polars_arrow::array::StructArray>()
+        else {
+            return Err(bad(format!(
+                "a stream of {:?}, not of table rows (a struct per row)",
+                chunk.dtype()
+            )));
+        };
+        let mut columns = Vec::with_capacity(batch.fields().len());
+        for (field, values) in batch.fields().iter().zip(batch.values()) {
+            let s = Series::from_arrow(field.name.clone(), values.clone())
+                .map_err(|e| bad(format!("column `{}`: {e}", field.name)))?;
+            columns.push(s.into_column());
         }
-        if batches.is_empty() {
-            return Err(bad("an empty stream (no batch, so no columns)".into()));
-        }
-        tables.push(kfmc::score::InMemoryTable { name, batches });
+        let df = DataFrame::new(batch.len(), columns)
+            .map_err(|e| bad(format!("cannot form a table: {e}")))?;
+        batches.push(df);
     }
-    Ok(tables)
+    if batches.is_empty() {
+        return Err(bad("an empty stream (no batch, so no columns)".into()));
+    }
+    Ok(kfmc::score::InMemoryTable { name, batches })
 }
 
-/// Attaches estimates files and in-memory tables to `plan`, as EstimatesError on trouble.
+/// Attaches estimates to `plan`, as EstimatesError on trouble: the files `paths`, then what
+/// `streams` yields (any iterable: objects with `__arrow_c_stream__`, or a file's path as a
+/// `str`). The iterable is taken one item at a time and each table is read and dropped
+/// before the next is asked for, so a generator yielding each run's estimates is never held
+/// whole. An exception the iterable raises is raised as it is.
 fn attach(
     plan: &mut Plan,
     paths: &[PathBuf],
-    streams: &[Bound<'_, PyAny>],
+    streams: &Bound<'_, PyAny>,
     unstamped: kfmc::check::Unstamped,
 ) -> PyResult<()> {
-    let tables = import_streams(streams)?;
-    kfmc::check::attach_estimates_with_tables(plan, paths, &tables, unstamped).map_err(|e| {
+    use kfmc::score::EstimatesSource;
+    let mut raised: Option<PyErr> = None;
+    let mut items = streams.try_iter()?.enumerate();
+    let mut next_item = |raised: &mut Option<PyErr>| -> Option<EstimatesSource> {
+        let (i, item) = items.next()?;
+        let read = item.and_then(|obj| {
+            if let Ok(path) = obj.extract::<String>() {
+                Ok(EstimatesSource::File(PathBuf::from(path)))
+            } else {
+                import_stream(&obj, format!("<estimates {i}>")).map(EstimatesSource::Table)
+            }
+        });
+        match read {
+            Ok(source) => Some(source),
+            Err(e) => {
+                *raised = Some(e);
+                None
+            }
+        }
+    };
+    let from_streams = std::iter::from_fn(|| next_item(&mut raised).map(Ok));
+    let sources = paths
+        .iter()
+        .cloned()
+        .map(|p| Ok(EstimatesSource::File(p)))
+        .chain(from_streams);
+    let result = kfmc::check::attach_estimates_from(plan, sources, unstamped);
+    if let Some(e) = raised {
+        return Err(e);
+    }
+    result.map_err(|e| {
         Failure::new(Kind::Estimates, e)
             .context("reading the estimates".into())
             .into_py()
@@ -623,7 +651,7 @@ fn score<'py>(
     py: Python<'py>,
     simulation: PathBuf,
     paths: Vec<PathBuf>,
-    streams: Vec<Bound<'py, PyAny>>,
+    streams: Bound<'py, PyAny>,
     out: Option<PathBuf>,
     threads: Option<usize>,
     quiet: bool,
@@ -657,7 +685,7 @@ fn check<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
     paths: Vec<PathBuf>,
-    streams: Vec<Bound<'py, PyAny>>,
+    streams: Bound<'py, PyAny>,
     out: Option<PathBuf>,
     runs: Option<usize>,
     seed: Option<u64>,
@@ -682,7 +710,8 @@ fn check<'py>(
         plan.check_sequential = overrides
             .apply(plan.check_sequential.as_ref())
             .map_err(gate_override_error)?;
-        if !(paths.is_empty() && streams.is_empty()) {
+        // An iterable without a length (a generator) may yield estimates: it is read.
+        if !(paths.is_empty() && streams.len().is_ok_and(|n| n == 0)) {
             let unstamped = if allow_unstamped {
                 kfmc::check::Unstamped::Warn
             } else {

@@ -591,9 +591,11 @@ def _as_stream(x: Any) -> Any:
 
 def _estimates(
     estimates: Any, stamp: Optional[Callable[[], Mapping[str, str]]] = None
-) -> Tuple[List[str], List[Any]]:
+) -> Tuple[List[str], Iterable[Any]]:
     """Paths and Arrow streams of ``estimates``; an :class:`Estimates` is checked against
-    ``stamp()`` (the world it is scored on) first."""
+    ``stamp()`` (the world it is scored on) first. A list or tuple is taken whole; any other
+    iterable (a generator yielding each run's estimates) is passed on lazily, so the library
+    reads each item and lets it go before asking for the next."""
     if estimates is None:
         return [], []
     if (
@@ -603,23 +605,43 @@ def _estimates(
         or type(estimates).__module__.startswith("pandas")
     ):
         estimates = [estimates]
+    ours: List[Optional[Dict[str, str]]] = []
+
+    def stream_of(e: Any) -> Any:
+        if _is_path(e):
+            return os.fspath(e)
+        if isinstance(e, Estimates):
+            if not ours:
+                ours.append(None if stamp is None else dict(stamp()))
+            if ours[0] is not None and e.metadata != ours[0]:
+                raise EstimatesError(
+                    f"the estimates `{e.label}` were made on the simulation {e.folder} (world "
+                    f"{e.world_stamp}, master seed {e.master_seed}); this study's runs are world "
+                    f"{ours[0].get('kfmc.world_stamp')}, master seed {ours[0].get('kfmc.master_seed')}: "
+                    "score them against the simulation they were made from"
+                )
+            return e.to_polars()
+        return _as_stream(e)
+
+    if not isinstance(estimates, (list, tuple)):
+
+        def lazily(items: Iterable[Any]) -> Iterator[Any]:
+            # Each reference is dropped before the next item is asked for (a generator
+            # expression would keep the last one alive while its producer makes the next).
+            for e in items:
+                s = stream_of(e)
+                del e
+                yield s
+                del s
+
+        return [], lazily(estimates)
     paths: List[str] = []
     streams: List[Any] = []
     for e in estimates:
         if _is_path(e):
             paths.append(os.fspath(e))
-        elif isinstance(e, Estimates):
-            ours = None if stamp is None else dict(stamp())
-            if ours is not None and e.metadata != ours:
-                raise EstimatesError(
-                    f"the estimates `{e.label}` were made on the simulation {e.folder} (world "
-                    f"{e.world_stamp}, master seed {e.master_seed}); this study's runs are world "
-                    f"{ours.get('kfmc.world_stamp')}, master seed {ours.get('kfmc.master_seed')}: "
-                    "score them against the simulation they were made from"
-                )
-            streams.append(e.to_polars())
         else:
-            streams.append(_as_stream(e))
+            streams.append(stream_of(e))
     return paths, streams
 
 

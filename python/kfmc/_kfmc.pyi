@@ -1,6 +1,6 @@
 # The compiled module (py/src/lib.rs); the documented API is kfmc/__init__.py.
 import os
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union, final
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union, final
 
 __all__ = [
     "__version__",
@@ -67,7 +67,7 @@ def simulate(
 def score(
     simulation: _Path,
     paths: Sequence[_Path],
-    streams: Sequence[Any],
+    streams: Iterable[Any],
     *,
     out: Optional[_Path] = None,
     threads: Optional[int] = None,
@@ -77,7 +77,7 @@ def score(
 def check(
     spec: _Spec,
     paths: Sequence[_Path],
-    streams: Sequence[Any],
+    streams: Iterable[Any],
     *,
     out: Optional[_Path] = None,
     runs: Optional[int] = None,

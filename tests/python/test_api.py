@@ -238,6 +238,41 @@ def test_score_from_memory_equals_score_from_a_file(l1_world, kfmc_bin, tmp_path
     assert (abs(mine - kf) <= 1e-12 * abs(kf)).all()
 
 
+def test_a_generator_of_runs_is_read_one_run_at_a_time(l1_world, tmp_path):
+    """A filter loop that yields each run's estimates is scored as the whole table is, and
+    each yielded table is let go before the next is asked for (a list would hold them all:
+    10,000 runs of estimates do not fit where one does)."""
+    import gc
+    import weakref
+
+    spec, sim, est, base = l1_world
+    whole = kfmc.score(sim, est, out=tmp_path / "whole", quiet=True)
+    runs = est["run"].unique().sort().to_list()
+    assert len(runs) > 2
+    previous = []
+    alive_when_asked = []
+
+    def per_run():
+        for r in runs:
+            gc.collect()
+            alive_when_asked.append(any(p() is not None for p in previous))
+            part = est.filter(pl.col("run") == r)
+            previous.append(weakref.ref(part))
+            yield part
+            del part
+
+    study = kfmc.score(sim, per_run(), out=tmp_path / "lazy", quiet=True)
+    assert_same_tables(whole.folder, study.folder)
+    assert alive_when_asked == [False] * len(runs), alive_when_asked
+    # An exception of the generator reaches the caller as it is.
+    def broken():
+        yield est.filter(pl.col("run") == runs[0])
+        raise KeyError("the user's loop failed")
+
+    with pytest.raises(KeyError, match="the user's loop failed"):
+        kfmc.score(sim, broken(), out=tmp_path / "broken", quiet=True)
+
+
 @pytest.mark.parametrize(
     "column",
     ["est_x", "step", "P_x_x"],
