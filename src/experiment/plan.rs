@@ -635,6 +635,14 @@ pub(crate) fn validate_into(
 ) -> Result<Plan, SpecErrors> {
     let path = c.file().to_path_buf();
     let (kind, model, system) = model_table(&mut c, &spec, registry);
+    let presentation_keys: Vec<String> = system
+        .map(|s| {
+            s.presentation_keys()
+                .iter()
+                .map(|k| k.to_string())
+                .collect()
+        })
+        .unwrap_or_default();
     let names = scenario_names(&mut c, &spec);
     let labels = filter_labels(&mut c, &spec);
     figure_name_clashes(&mut c, &spec, &names, &labels);
@@ -693,9 +701,14 @@ pub(crate) fn validate_into(
         }
     };
     let text = c.text().to_string();
+    // Keys that only say how results are shown do not make another world.
+    let mut world_model = spec.model.clone();
+    for key in &presentation_keys {
+        world_model.remove(key);
+    }
     let world = world_canonical(
         &kind,
-        &spec.model,
+        &world_model,
         &spec.scenarios,
         initial.mode,
         initial.p0_std.as_ref(),

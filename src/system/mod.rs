@@ -352,6 +352,12 @@ pub trait System: Send + Sync {
         spec: &SystemSpec<'_>,
         checker: &mut Checker,
     ) -> Option<Arc<dyn SystemPlan>>;
+    /// The `[model]` keys that change only how results are shown (figure roles), never the
+    /// world: they are left out of the world stamp, so estimates made before such a key was
+    /// set are still of this world.
+    fn presentation_keys(&self) -> &[&str] {
+        &[]
+    }
 }
 
 /// A configured system: the world, the filters and the evaluated quantities of one spec.

@@ -125,6 +125,10 @@ impl System for LinearSystem {
         KIND
     }
 
+    fn presentation_keys(&self) -> &[&str] {
+        &["positions", "position_frame"]
+    }
+
     fn catalogue(&self) -> Catalogue {
         let kinds =
             linear_kinds::<1, NU_MAX, 1, LinearModel<1, NU_MAX, 1>>(detectable::<1, NU_MAX, 1>);

@@ -738,3 +738,26 @@ fn shipped_linear_specs_load_and_list_shows_the_system() {
         "{out}"
     );
 }
+
+/// The position roles only say how results are shown: the world stamp (which ties estimates
+/// to a study's runs) is the same with and without them, and still changes with the model.
+#[test]
+fn position_roles_leave_the_world_stamp_alone() {
+    let path = repo().join("experiments/linear_cv_target.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let stamp = |t: &str| experiment::parse(t, &path).unwrap().world_stamp();
+    let with_roles = stamp(&text);
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("positions ="))
+        .expect("the spec declares its positions");
+    let without = text.replace(&format!("{line}\n"), "");
+    assert_ne!(without, text);
+    assert_eq!(stamp(&without), with_roles);
+    let framed = text.replace(line, &format!("{line}\nposition_frame = \"xyz\""));
+    assert_eq!(stamp(&framed), with_roles);
+    // A key of the world does change it.
+    let other = text.replace("dt_s = ", "dt_s = 0.5 #");
+    assert_ne!(other, text);
+    assert_ne!(stamp(&other), with_roles);
+}
