@@ -775,21 +775,7 @@ fn inv3(m: [[f64; 3]; 3]) -> [[f64; 3]; 3] {
 #[test]
 fn block_anees_is_the_traced_runs_mean_of_the_block_nees() {
     let tmp = tempfile::tempdir().unwrap();
-    let res = tmp.path().join("d");
-    let spec = tmp.path().join("d.toml");
-    std::fs::write(
-        &spec,
-        format!(
-            "name = \"d\"\nmaster_seed = 3\nruns = 3\ntrace_runs = 3\noutput = \"{}\"\n[model]\nkind = \"drone\"\nimu_output = \"specific_force\"\n[[scenarios]]\nname = \"maneuver\"\nduration_s = 3.0\n[[filters]]\nlabel = \"ekf9\"\nkind = \"ekf9\"\n[initial_estimate]\nmode = \"sampled\"\n",
-            res.display()
-        ),
-    )
-    .unwrap();
-    let o = kfmc()
-        .args(["run", spec.to_str().unwrap(), "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let res = drone_maneuver_study(tmp.path(), 3, 3);
     let t = Tables::load(&res).unwrap();
     let bl = kfmc::plot::blocks::blocks(&t);
     let names: Vec<(&str, Vec<String>)> = bl
@@ -1092,21 +1078,7 @@ fn a_linear_system_with_declared_positions_gets_a_trajectory_with_its_fixes() {
 #[test]
 fn the_drone_route_finds_its_fixes_by_role_and_an_old_manifest_by_name() {
     let tmp = tempfile::tempdir().unwrap();
-    let res = tmp.path().join("d");
-    let spec = tmp.path().join("d.toml");
-    std::fs::write(
-        &spec,
-        format!(
-            "name = \"d\"\nmaster_seed = 3\nruns = 2\ntrace_runs = 1\noutput = \"{}\"\n[model]\nkind = \"drone\"\nimu_output = \"specific_force\"\n[[scenarios]]\nname = \"maneuver\"\nduration_s = 3.0\n[[filters]]\nlabel = \"ekf9\"\nkind = \"ekf9\"\n[initial_estimate]\nmode = \"sampled\"\n",
-            res.display()
-        ),
-    )
-    .unwrap();
-    let o = kfmc()
-        .args(["run", spec.to_str().unwrap(), "--quiet"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let res = drone_maneuver_study(tmp.path(), 2, 1);
     let route = |res: &Path| {
         let t = Tables::load(res).unwrap();
         let figs =
@@ -1243,4 +1215,25 @@ fn the_divergence_histogram_puts_each_run_at_its_grid_multiplier() {
         }
     }
     assert!(seen_at_7 > 0, "some run crossed at ×7");
+}
+
+/// Runs `runs` drone runs (the first `trace_runs` traced) of 3 s on the maneuver route with
+/// ekf9 under `dir`; returns the result folder.
+fn drone_maneuver_study(dir: &Path, runs: usize, trace_runs: usize) -> std::path::PathBuf {
+    let res = dir.join("d");
+    let spec = dir.join("d.toml");
+    std::fs::write(
+        &spec,
+        format!(
+            "name = \"d\"\nmaster_seed = 3\nruns = {runs}\ntrace_runs = {trace_runs}\noutput = \"{}\"\n[model]\nkind = \"drone\"\nimu_output = \"specific_force\"\n[[scenarios]]\nname = \"maneuver\"\nduration_s = 3.0\n[[filters]]\nlabel = \"ekf9\"\nkind = \"ekf9\"\n[initial_estimate]\nmode = \"sampled\"\n",
+            res.display()
+        ),
+    )
+    .unwrap();
+    let o = kfmc()
+        .args(["run", spec.to_str().unwrap(), "--quiet"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    res
 }
