@@ -18,7 +18,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use statrs::distribution::{Beta, ContinuousCDF};
 
-use crate::error::{KfmcError, OutputError};
+use crate::error::{KfmcError, OutputError, SpecErrors};
 use crate::experiment::Plan;
 use crate::experiment::plan::ConsistencyPlan;
 use crate::metrics::quantile_sorted;
@@ -442,6 +442,242 @@ fn fold_sequential(
     Ok(())
 }
 
+/// A power study as `kfmc power` (and Python's `kfmc.power`) asks for it, beyond the plan.
+#[derive(Debug, Clone, Default)]
+pub struct PowerRequest {
+    /// Independent replications of the whole study (at least 1).
+    pub replications: usize,
+    /// The folder of power.parquet; `None`: `<the plan's output>/power`.
+    pub out: Option<PathBuf>,
+    /// Accept a study larger than the limits on filter steps.
+    pub allow_large: bool,
+    /// A group-sequential gate measured beside the fixed verdict (built by the front end from
+    /// its flags or keywords, which it names in its errors).
+    pub gate: Option<Gate>,
+    /// How many runs are needed for a power against a variant: the tests are also evaluated
+    /// on the first N/10, 2N/10, … runs of each cell, and the answer read off the curve.
+    pub target: Option<PowerTarget>,
+}
+
+/// "What N reaches this power against this variant?" (`--target-power P --against …`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PowerTarget {
+    /// The power wanted, in (0, 1).
+    pub power: f64,
+    /// The mistuned variant it is wanted against.
+    pub against: Against,
+}
+
+impl PowerTarget {
+    /// A target of `power` against `against`; `power` must lie in (0, 1).
+    pub fn new(power: f64, against: Against) -> Result<Self, String> {
+        if power > 0.0 && power < 1.0 {
+            Ok(Self { power, against })
+        } else {
+            Err(format!("must lie in (0, 1); got {power}"))
+        }
+    }
+}
+
+/// A filter variant by its multipliers, `q_scale=0.9[,r_scale=1]`; an axis not named
+/// matches any value.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Against {
+    /// The variant's Q multiplier, if named.
+    pub q_scale: Option<f64>,
+    /// The variant's R multiplier, if named.
+    pub r_scale: Option<f64>,
+}
+
+impl Against {
+    /// Whether a variant with these multipliers is the one meant.
+    pub fn matches(&self, q_scale: Option<f64>, r_scale: Option<f64>) -> bool {
+        let axis = |want: Option<f64>, got: Option<f64>| want.is_none_or(|w| got == Some(w));
+        axis(self.q_scale, q_scale) && axis(self.r_scale, r_scale)
+    }
+}
+
+impl std::str::FromStr for Against {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        let mut against = Against::default();
+        for pair in text.split(',') {
+            let (key, value) = pair
+                .split_once('=')
+                .ok_or_else(|| format!("`{pair}` is not KEY=VALUE (e.g. q_scale=0.9)"))?;
+            let number: f64 = value
+                .trim()
+                .parse()
+                .ok()
+                .filter(|v: &f64| v.is_finite() && *v > 0.0)
+                .ok_or_else(|| format!("`{value}` is not a positive number"))?;
+            match key.trim() {
+                "q_scale" => against.q_scale = Some(number),
+                "r_scale" => against.r_scale = Some(number),
+                other => {
+                    return Err(format!(
+                        "unknown key `{other}` (expected q_scale or r_scale)"
+                    ));
+                }
+            }
+        }
+        Ok(against)
+    }
+}
+
+impl std::fmt::Display for Against {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let named: Vec<String> = [("q_scale", self.q_scale), ("r_scale", self.r_scale)]
+            .into_iter()
+            .filter_map(|(key, v)| v.map(|v| format!("{key}={v}")))
+            .collect();
+        if named.is_empty() {
+            f.write_str("any variant")
+        } else {
+            f.write_str(&named.join(","))
+        }
+    }
+}
+
+/// What [`run`] measured.
+#[derive(Debug, Clone)]
+pub struct PowerOutcome {
+    /// The power study's folder, tables and timing.
+    pub report: StudyReport,
+    /// With a [`PowerTarget`]: the power curves of the variants it names.
+    pub runs_needed: Option<RunsNeeded>,
+}
+
+/// The answer to a [`PowerTarget`]: each matching variant's power curve over N. Its
+/// `Display` is the text `kfmc power --target-power` prints.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunsNeeded {
+    /// The question.
+    pub target: PowerTarget,
+    /// One curve per (cell, variant) the target names, with at least one point.
+    pub curves: Vec<PowerCurve>,
+}
+
+impl std::fmt::Display for RunsNeeded {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (target, against) = (self.target.power, self.target.against);
+        for c in &self.curves {
+            let noise = if c.noise_scale == 1.0 {
+                String::new()
+            } else {
+                format!(", noise ×{}", c.noise_scale)
+            };
+            writeln!(
+                f,
+                "{} ({against}), scenario {}{noise}: power of the verdict by runs per cell",
+                c.filter, c.scenario
+            )?;
+            for p in &c.points {
+                writeln!(
+                    f,
+                    "  N = {:>6}: {:.3} [{:.3}, {:.3}] over {} replications",
+                    p.runs, p.rate, p.interval.0, p.interval.1, p.replications
+                )?;
+            }
+            let (point, sure) = c.smallest_runs(target);
+            match point {
+                Some(p) => write!(
+                    f,
+                    "  smallest N with power ≥ {target}: {} (rate {:.3} [{:.3}, {:.3}])",
+                    p.runs, p.rate, p.interval.0, p.interval.1
+                )?,
+                None => write!(
+                    f,
+                    "  power {target} is not reached at the spec's {} runs: raise `runs`",
+                    c.points.last().map_or(0, |p| p.runs)
+                )?,
+            }
+            match (point, sure) {
+                (Some(_), Some(q)) => writeln!(
+                    f,
+                    "; its interval's lower end reaches {target} at N = {}",
+                    q.runs
+                )?,
+                (Some(_), None) => writeln!(f, "; no N here has its interval above the target")?,
+                _ => writeln!(f)?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Runs a power study as `kfmc power` does: checks the request against the plan (at least
+/// one replication, within the limits unless `allow_large`, a target's variant present among
+/// the plan's filters) before any run, measures the replications (with the gate and the
+/// target's curve), writes power.parquet into the request's folder and, with a target, reads
+/// the runs needed off it.
+pub fn run(
+    plan: &Plan,
+    request: &PowerRequest,
+    exec: &ExecOptions,
+    observer: &dyn RunObserver,
+) -> Result<PowerOutcome, KfmcError> {
+    let replications = request.replications;
+    if replications == 0 {
+        return Err(SpecErrors(vec![plan.err(
+            "replications",
+            "must be at least 1 (`--replications`, `-R`)",
+        )])
+        .into());
+    }
+    crate::study::check_replications(plan, replications, request.allow_large)?;
+    if let Some(target) = &request.target
+        && !plan.filters.iter().any(|f| {
+            let (q, r) = f.multipliers().unzip();
+            target.against.matches(q, r)
+        })
+    {
+        return Err(SpecErrors(vec![plan.err(
+            "filters",
+            format!(
+                "no filter variant has {}: add it to a filter's q_scale / r_scale list \
+                 (`--against` names a variant the power is wanted against)",
+                target.against
+            ),
+        )])
+        .into());
+    }
+    let out = request
+        .out
+        .clone()
+        .unwrap_or_else(|| plan.output.join("power"));
+    let mut plan = plan.clone();
+    plan.output = out.clone();
+    let extras = PowerExtras {
+        gate: request.gate.as_ref(),
+        curve: match request.target {
+            Some(_) => crate::sequential::default_looks(plan.runs, 10),
+            None => Vec::new(),
+        },
+    };
+    let report = power_with(
+        &plan,
+        replications,
+        plan.master_seed,
+        &out,
+        exec,
+        observer,
+        &extras,
+    )?;
+    let runs_needed = match request.target {
+        Some(target) => Some(RunsNeeded {
+            target,
+            curves: power_curves(&report.output.join("power.parquet"), target.against)?,
+        }),
+        None => None,
+    };
+    Ok(PowerOutcome {
+        report,
+        runs_needed,
+    })
+}
+
 /// The fixed verdict's rejection rate at one run count, from `power.parquet`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CurvePoint {
@@ -485,10 +721,7 @@ impl PowerCurve {
 
 /// The fixed verdict's power curves in `power.parquet` of the variants whose `q_scale` and
 /// `r_scale` equal `against` (a `None` matches any).
-pub fn power_curves(
-    path: &Path,
-    against: (Option<f64>, Option<f64>),
-) -> Result<Vec<PowerCurve>, OutputError> {
+pub fn power_curves(path: &Path, against: Against) -> Result<Vec<PowerCurve>, OutputError> {
     let df = read(path)?;
     let bad = |e| OutputError::Polars {
         action: "unexpected columns in",
@@ -512,13 +745,11 @@ pub fn power_curves(
         .column("sequential")
         .and_then(|c| c.bool().cloned())
         .map_err(bad)?;
-    let matches = |want: Option<f64>, got: Option<f64>| want.is_none_or(|w| got == Some(w));
     let mut curves: Vec<PowerCurve> = Vec::new();
     for k in 0..df.height() {
         if test.get(k) != Some(crate::metrics::consistency::VERDICT)
             || sequential.get(k) != Some(false)
-            || !matches(against.0, q.get(k))
-            || !matches(against.1, r.get(k))
+            || !against.matches(q.get(k), r.get(k))
         {
             continue;
         }

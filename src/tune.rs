@@ -92,6 +92,41 @@ pub struct TuneReport {
     pub table: PathBuf,
 }
 
+/// A candidate's consistency averaged over the cells it was evaluated in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CandidateAverages {
+    /// The mean of the cells' ANEES (`None` where no cell has one).
+    pub anees: Option<f64>,
+    /// The mean of the cells' ANIS.
+    pub anis: Option<f64>,
+}
+
+impl TuneReport {
+    /// The averages of candidate (`q_scale`, `r_scale`) over the cells it was evaluated in,
+    /// or over the cells of one truth-noise scale.
+    pub fn averages(
+        &self,
+        q_scale: f64,
+        r_scale: f64,
+        noise_scale: Option<f64>,
+    ) -> CandidateAverages {
+        let points: Vec<&TunePoint> = self
+            .points
+            .iter()
+            .filter(|p| p.q_scale == q_scale && p.r_scale == r_scale)
+            .filter(|p| noise_scale.is_none_or(|s| p.noise_scale == s))
+            .collect();
+        let mean = |value: fn(&TunePoint) -> Option<f64>| {
+            let v: Vec<f64> = points.iter().filter_map(|p| value(p)).collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        };
+        CandidateAverages {
+            anees: mean(|p| p.anees),
+            anis: mean(|p| p.anis),
+        }
+    }
+}
+
 fn log_grid(center: f64, half_decades: f64, points: usize) -> Vec<f64> {
     (0..points)
         .map(|i| {

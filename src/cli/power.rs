@@ -4,6 +4,7 @@
 //! q_scale/r_scale variant.
 
 use super::*;
+use crate::power::{PowerRequest, PowerTarget};
 
 /// The arguments of `kfmc power`.
 #[derive(Debug, clap::Args)]
@@ -42,52 +43,31 @@ impl Power {
             against,
         } = self;
         let target = match (target_power, against.as_deref()) {
-            (Some(p), Some(a)) => Some((power_target(p)?, against_variant(a)?)),
+            (Some(power), Some(text)) => {
+                let against = text.parse().map_err(|e| usage("--against", e))?;
+                Some(PowerTarget::new(power, against).map_err(|e| usage("--target-power", e))?)
+            }
             _ => None,
         };
-        if replications == 0 {
-            return Err(
-                KfmcError::Spec(crate::error::SpecErrors(vec![crate::error::SpecError {
-                    file: study.spec.clone(),
-                    key_path: "--replications".into(),
-                    message: "must be at least 1".into(),
-                }]))
-                .into(),
-            );
-        }
-        let out_given = study.out.clone();
-        let mut plan = study.plan(registry, Some(0))?;
-        crate::study::check_replications(&plan, replications, study.allow_large)
-            .map_err(KfmcError::from)?;
-        let gate = sequential.gate(plan.runs, plan.alpha)?;
-        let curve = if target.is_some() {
-            crate::sequential::default_looks(plan.runs, 10)
-        } else {
-            Vec::new()
-        };
-        let out = out_given.unwrap_or_else(|| plan.output.join("power"));
-        plan.output = out.clone();
-        let threads = study.threads(study.quiet);
-        let observer = ProgressObserver::new(!study.quiet);
-        let report = crate::power::power_with(
-            &plan,
+        let plan = study.plan(registry, Some(0))?;
+        let request = PowerRequest {
             replications,
-            plan.master_seed,
-            &out,
-            &crate::study::ExecOptions {
-                threads,
-                force: study.force,
-                shard: None,
-                checkpoints: None,
-            },
-            &observer,
-            &crate::power::PowerExtras {
-                gate: gate.as_ref(),
-                curve,
-            },
-        )
-        .map_err(anyhow::Error::from)
-        .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
+            out: study.out.clone(),
+            allow_large: study.allow_large,
+            gate: sequential.gate(plan.runs, plan.alpha)?,
+            target,
+        };
+        let exec = crate::study::ExecOptions {
+            threads: study.threads(study.quiet),
+            force: study.force,
+            shard: None,
+            checkpoints: None,
+        };
+        let outcome =
+            crate::power::run(&plan, &request, &exec, &ProgressObserver::new(!study.quiet))
+                .map_err(anyhow::Error::from)
+                .map_err(|e| e.context(format!("power of {}", study.spec.display())))?;
+        let report = &outcome.report;
         if !study.quiet {
             outln!(
                 "{replications} replications ({} runs) in {:.1} s → {}",
@@ -97,13 +77,8 @@ impl Power {
             );
             print_tables(&report.tables);
         }
-        if let (Some((target, variant)), Some(text)) = (target, against.as_deref()) {
-            emit(&runs_needed(
-                &report.output.join("power.parquet"),
-                target,
-                variant,
-                text,
-            )?);
+        if let Some(answer) = &outcome.runs_needed {
+            emit(&answer.to_string());
         }
         Ok(())
     }

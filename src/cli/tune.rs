@@ -46,15 +46,6 @@ impl Tune {
             .map_err(anyhow::Error::from)
             .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
         let (q, r, obj) = report.best;
-        let pts: Vec<_> = report
-            .points
-            .iter()
-            .filter(|p| p.q_scale == q && p.r_scale == r)
-            .collect();
-        let mean = |f: &dyn Fn(&crate::tune::TunePoint) -> Option<f64>| {
-            let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        };
         let fmt = |v: Option<f64>| v.map_or("—".into(), |x| format!("{x:.4}"));
         outln!(
             "kfmc tune {}: filter {}, objective {:?}, {} candidates evaluated → {}",
@@ -64,29 +55,22 @@ impl Tune {
             report.points.len(),
             report.table.display()
         );
+        let best = report.averages(q, r, None);
         outln!(
             "best q_scale = {q}, r_scale = {r}: objective {obj:.4}, ANEES {} (n = {}), ANIS {} (p = {})",
-            fmt(mean(&|p| p.anees)),
+            fmt(best.anees),
             plan.layout().quantities.len(),
-            fmt(mean(&|p| p.anis)),
+            fmt(best.anis),
             plan.layout().measurements.len()
         );
         if report.per_noise_scale.len() > 1 {
             outln!("best per truth-noise scale (over the scenarios):");
-            for (s, q, r, o) in &report.per_noise_scale {
-                let pts: Vec<_> = report
-                    .points
-                    .iter()
-                    .filter(|p| p.noise_scale == *s && p.q_scale == *q && p.r_scale == *r)
-                    .collect();
-                let m = |f: &dyn Fn(&crate::tune::TunePoint) -> Option<f64>| {
-                    let v: Vec<f64> = pts.iter().filter_map(|p| f(p)).collect();
-                    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-                };
+            for &(s, q, r, o) in &report.per_noise_scale {
+                let at = report.averages(q, r, Some(s));
                 outln!(
                     "  noise_scale {s:<6} q_scale {q:<10} r_scale {r:<10} objective {o:.4}  ANEES {}  ANIS {}",
-                    fmt(m(&|p| p.anees)),
-                    fmt(m(&|p| p.anis))
+                    fmt(at.anees),
+                    fmt(at.anis)
                 );
             }
         }

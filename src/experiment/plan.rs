@@ -1761,7 +1761,6 @@ fn experiment_name(c: &mut Checker, spec: &Spec, path: &Path) -> String {
 /// with sorted keys and numbers by their bits, so neither comments, key order, formatting nor
 /// `1` against `1.0` change it. Filters, run counts and the judging settings are left out:
 /// they do not change what run i's world is.
-#[allow(clippy::too_many_arguments)]
 fn world_canonical(
     kind: &str,
     model: &toml::Table,

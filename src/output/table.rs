@@ -156,7 +156,6 @@ impl TableWriter {
     /// verified) into the table, each row also handed to `on_row`, and
     /// the journal continues after them: the table receives exactly the rows, in the order,
     /// of the run that wrote the journal.
-    #[allow(clippy::too_many_arguments)]
     pub(crate) fn journaled(
         dir: &Path,
         name: &str,

@@ -131,6 +131,58 @@ pub fn read(path: &Path) -> polars::prelude::DataFrame {
         .unwrap()
 }
 
+/// A column of `df` as floats (a float32 column widened), null as `None`.
+pub fn f64s(df: &polars::prelude::DataFrame, name: &str) -> Vec<Option<f64>> {
+    df.column(name)
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .cast(&polars::prelude::DataType::Float64)
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .f64()
+        .expect("cast to float64")
+        .iter()
+        .collect()
+}
+
+/// A column of `df` as floats, null as NaN.
+pub fn f64s_or_nan(df: &polars::prelude::DataFrame, name: &str) -> Vec<f64> {
+    f64s(df, name)
+        .into_iter()
+        .map(|v| v.unwrap_or(f64::NAN))
+        .collect()
+}
+
+/// An integer column of `df`; a null panics, naming the column.
+pub fn i64s(df: &polars::prelude::DataFrame, name: &str) -> Vec<i64> {
+    df.column(name)
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .i64()
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .iter()
+        .map(|v| v.unwrap_or_else(|| panic!("column {name}: null")))
+        .collect()
+}
+
+/// A string column of `df`, null as the empty string.
+pub fn strs(df: &polars::prelude::DataFrame, name: &str) -> Vec<String> {
+    df.column(name)
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .str()
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .iter()
+        .map(|s| s.unwrap_or("").to_string())
+        .collect()
+}
+
+/// A boolean column of `df`, null as `None`.
+pub fn bools(df: &polars::prelude::DataFrame, name: &str) -> Vec<Option<bool>> {
+    df.column(name)
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .bool()
+        .unwrap_or_else(|e| panic!("column {name}: {e}"))
+        .iter()
+        .collect()
+}
+
 /// Six cells (two planar scenarios × three noise scales, two filters, the EKF at two Q
 /// scales) with every journaled table: runs, steps, summary, traces and consistency, and
 /// divergence points rebuilt across the cells. The study that resume and shards cut apart

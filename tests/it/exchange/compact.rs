@@ -14,7 +14,7 @@
 use std::path::Path;
 
 use super::exchange::{Study, score, study};
-use crate::common::read;
+use crate::common::{f64s, read};
 use kfmc::linalg::Matrix;
 use polars::prelude::*;
 
@@ -34,17 +34,6 @@ fn quantities(df: &DataFrame) -> Vec<String> {
     df.get_column_names()
         .iter()
         .filter_map(|c| c.strip_prefix("est_").map(str::to_string))
-        .collect()
-}
-
-fn f64s(df: &DataFrame, name: &str) -> Vec<Option<f64>> {
-    df.column(name)
-        .unwrap()
-        .cast(&DataType::Float64)
-        .unwrap()
-        .f64()
-        .unwrap()
-        .iter()
         .collect()
 }
 

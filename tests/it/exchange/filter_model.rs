@@ -19,23 +19,12 @@ use kfmc::model::Model;
 use kfmc::sim::NoiseDraws;
 use kfmc::system::additive::AdditivePlan;
 use kfmc::systems::linear_quadrotor::model::Linear;
-use polars::prelude::*;
 
-use crate::common::{kfmc, read, spec_in_tempdir};
+use crate::common::{f64s_or_nan, kfmc, read, spec_in_tempdir};
 
 fn plan_of(text: &str) -> kfmc::experiment::Plan {
     kfmc::experiment::parse_with(text, Path::new("spec.toml"), &kfmc::systems::builtin())
         .unwrap_or_else(|e| panic!("{e}"))
-}
-
-fn column(df: &DataFrame, name: &str) -> Vec<f64> {
-    df.column(name)
-        .unwrap()
-        .f64()
-        .unwrap()
-        .iter()
-        .map(|v| v.unwrap_or(f64::NAN))
-        .collect()
 }
 
 const P1_ROLL: &str = r#"
@@ -89,15 +78,15 @@ fn the_planar_truth_is_f_of_the_previous_row_with_this_rows_input_plus_its_noise
     let states = ["x", "xdot", "y", "ydot", "theta", "thetadot"];
     let xs: Vec<Vec<f64>> = states
         .iter()
-        .map(|s| column(&truth, &format!("truth_{s}")))
+        .map(|s| f64s_or_nan(&truth, &format!("truth_{s}")))
         .collect();
     let us: Vec<Vec<f64>> = ["u1", "u2"]
         .iter()
-        .map(|s| column(&meas, &format!("u_{s}")))
+        .map(|s| f64s_or_nan(&meas, &format!("u_{s}")))
         .collect();
     let zs: Vec<Vec<f64>> = ["y", "theta", "thetadot"]
         .iter()
-        .map(|s| column(&meas, &format!("z_{s}")))
+        .map(|s| f64s_or_nan(&meas, &format!("z_{s}")))
         .collect();
     let steps = 1000;
     assert_eq!(truth.height(), 3 * (steps + 1));

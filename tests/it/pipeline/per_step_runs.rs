@@ -2,26 +2,8 @@
 //! `run_steps.parquet`, agreeing with the per-run means of runs.parquet and the per-step
 //! averages of steps.parquet, which are computed apart from it.
 
-use crate::common::{read, repo, run_cli as run, spec_in_tempdir};
-use polars::prelude::*;
+use crate::common::{f64s, i64s, read, repo, run_cli as run, spec_in_tempdir, strs};
 use std::collections::HashMap;
-
-fn column_f64(df: &DataFrame, c: &str) -> Vec<Option<f64>> {
-    let col = df.column(c).unwrap().f64().unwrap().clone();
-    (0..col.len()).map(|i| col.get(i)).collect()
-}
-
-fn column_i64(df: &DataFrame, c: &str) -> Vec<i64> {
-    let col = df.column(c).unwrap().i64().unwrap().clone();
-    (0..col.len()).map(|i| col.get(i).unwrap()).collect()
-}
-
-fn column_str(df: &DataFrame, c: &str) -> Vec<String> {
-    let col = df.column(c).unwrap().str().unwrap().clone();
-    (0..col.len())
-        .map(|i| col.get(i).unwrap().to_string())
-        .collect()
-}
 
 fn close(a: f64, b: f64) -> bool {
     (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1e-300)
@@ -60,15 +42,15 @@ fn every_runs_nees_per_step_agrees_with_the_runs_and_steps_tables() {
     assert_eq!(per_step.height(), 4 * 12 * samples);
 
     let (scenario, filter, run_col, step) = (
-        column_str(&per_step, "scenario"),
-        column_str(&per_step, "filter"),
-        column_i64(&per_step, "run"),
-        column_i64(&per_step, "step"),
+        strs(&per_step, "scenario"),
+        strs(&per_step, "filter"),
+        i64s(&per_step, "run"),
+        i64s(&per_step, "step"),
     );
     let (nees, nis, dof) = (
-        column_f64(&per_step, "nees"),
-        column_f64(&per_step, "nis"),
-        column_i64(&per_step, "nis_dof"),
+        f64s(&per_step, "nees"),
+        f64s(&per_step, "nis"),
+        i64s(&per_step, "nis_dof"),
     );
     // Step 0 is the prior: no measurement, no NIS.
     for i in 0..per_step.height() {
@@ -95,11 +77,11 @@ fn every_runs_nees_per_step_agrees_with_the_runs_and_steps_tables() {
         }
     }
     let (r_s, r_f, r_r, r_nees, r_nis) = (
-        column_str(&runs, "scenario"),
-        column_str(&runs, "filter"),
-        column_i64(&runs, "run"),
-        column_f64(&runs, "nees_mean"),
-        column_f64(&runs, "nis_mean"),
+        strs(&runs, "scenario"),
+        strs(&runs, "filter"),
+        i64s(&runs, "run"),
+        f64s(&runs, "nees_mean"),
+        f64s(&runs, "nis_mean"),
     );
     assert_eq!(per_run.len(), runs.height());
     for i in 0..runs.height() {
@@ -118,10 +100,10 @@ fn every_runs_nees_per_step_agrees_with_the_runs_and_steps_tables() {
         e.1 += 1.0;
     }
     let (s_s, s_f, s_k, s_anees) = (
-        column_str(&steps, "scenario"),
-        column_str(&steps, "filter"),
-        column_i64(&steps, "step"),
-        column_f64(&steps, "anees"),
+        strs(&steps, "scenario"),
+        strs(&steps, "filter"),
+        i64s(&steps, "step"),
+        f64s(&steps, "anees"),
     );
     for i in 0..steps.height() {
         let (sum, n) = per_k[&(s_s[i].clone(), s_f[i].clone(), s_k[i])];

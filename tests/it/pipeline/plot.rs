@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use crate::common::{EKF_AND_MEAN, kfmc, repo, small_spec, spec_in_tempdir};
+use crate::common::{EKF_AND_MEAN, f64s, kfmc, repo, small_spec, spec_in_tempdir, strs};
 use kfmc::plot::{Figure, FigureKind, Mark, Tables};
 use polars::prelude::*;
 
@@ -32,27 +32,6 @@ fn study() -> (tempfile::TempDir, std::path::PathBuf) {
 fn df(dir: &Path, table: &str) -> DataFrame {
     let f = std::fs::File::open(dir.join(format!("{table}.parquet"))).unwrap();
     ParquetReader::new(f).finish().unwrap()
-}
-
-fn f64s(df: &DataFrame, c: &str) -> Vec<Option<f64>> {
-    df.column(c)
-        .unwrap()
-        .cast(&DataType::Float64)
-        .unwrap()
-        .f64()
-        .unwrap()
-        .iter()
-        .collect()
-}
-
-fn strs(df: &DataFrame, c: &str) -> Vec<String> {
-    df.column(c)
-        .unwrap()
-        .str()
-        .unwrap()
-        .iter()
-        .map(|s| s.unwrap_or("").to_string())
-        .collect()
 }
 
 /// The points of the line labelled `label` in the panel titled `panel`.

@@ -3,7 +3,9 @@
 //! p-value is the fixed study's verdict on that many runs, and the same spec gives the same
 //! tables on any thread count.
 
-use crate::common::{read, repo, run_cli as run, spec_in_tempdir, table_bytes};
+use crate::common::{
+    bools, f64s, i64s, read, repo, run_cli as run, spec_in_tempdir, strs, table_bytes,
+};
 use polars::prelude::*;
 
 /// The bundled CI gate spec with `runs`, its filters and the `[check]` section replaced.
@@ -18,28 +20,6 @@ fn gate_spec(runs: usize, filters: &str, check: &str) -> String {
 const MISTUNED: &str = "[[filters]]\nlabel = \"ekf\"\nkind = \"ekf\"\nq_scale = 4.0\n";
 const TUNED: &str = "[[filters]]\nlabel = \"ekf\"\nkind = \"ekf\"\n";
 const ASSERT: &str = "[[check.assert]]\nkind = \"consistent\"\nfilter = \"ekf\"\n";
-
-fn i64s(df: &DataFrame, c: &str) -> Vec<i64> {
-    let col = df.column(c).unwrap().i64().unwrap().clone();
-    (0..col.len()).map(|i| col.get(i).unwrap()).collect()
-}
-
-fn f64s(df: &DataFrame, c: &str) -> Vec<Option<f64>> {
-    let col = df.column(c).unwrap().f64().unwrap().clone();
-    (0..col.len()).map(|i| col.get(i)).collect()
-}
-
-fn bools(df: &DataFrame, c: &str) -> Vec<Option<bool>> {
-    let col = df.column(c).unwrap().bool().unwrap().clone();
-    (0..col.len()).map(|i| col.get(i)).collect()
-}
-
-fn strs(df: &DataFrame, c: &str) -> Vec<String> {
-    let col = df.column(c).unwrap().str().unwrap().clone();
-    (0..col.len())
-        .map(|i| col.get(i).unwrap().to_string())
-        .collect()
-}
 
 fn check(spec: &std::path::Path, out: &std::path::Path, extra: &[&str]) -> (i32, String) {
     let mut args = vec![

@@ -2,7 +2,7 @@
 //! indicator, and the credible filter's reference values beside them.
 
 use crate::common;
-use crate::common::run_cli as run;
+use crate::common::{f64s, run_cli as run, strs};
 use polars::prelude::DataFrame;
 
 /// A generic linear system: a double integrator with a position sensor. `units` are the two
@@ -54,25 +54,6 @@ fn study(text: &str) -> (tempfile::TempDir, DataFrame, DataFrame) {
     let steps = common::read(&out.join("steps.parquet"));
     let cons = common::read(&out.join("consistency.parquet"));
     (dir, steps, cons)
-}
-
-fn f64s(df: &DataFrame, name: &str) -> Vec<Option<f64>> {
-    df.column(name)
-        .unwrap_or_else(|_| panic!("column {name}"))
-        .f64()
-        .unwrap()
-        .iter()
-        .collect()
-}
-
-fn strs(df: &DataFrame, name: &str) -> Vec<String> {
-    df.column(name)
-        .unwrap()
-        .str()
-        .unwrap()
-        .iter()
-        .map(|s| s.unwrap_or("").to_string())
-        .collect()
 }
 
 /// The value of `col` on the consistency row of `filter`'s `test`.

@@ -354,3 +354,41 @@ fn target_power_reads_a_curve_of_prefix_studies() {
         "{text}"
     );
 }
+
+/// A power request that cannot be answered is refused before any replication runs (exit 2,
+/// nothing written): no replications, a target outside (0, 1), an `--against` that is not
+/// KEY=VALUE, and a variant the spec's filters do not have (which used to surface only after
+/// every replication had run).
+#[test]
+fn unanswerable_power_requests_are_refused_before_running() {
+    let (dir, spec) = spec_in_tempdir(SPEC);
+    let cases: [(&[&str], &str); 4] = [
+        (&["-R", "0"], "replications: must be at least 1"),
+        (
+            &["-R", "5", "--target-power", "1.2", "--against", "q_scale=2"],
+            "--target-power",
+        ),
+        (
+            &["-R", "5", "--target-power", "0.8", "--against", "q=2"],
+            "unknown key `q`",
+        ),
+        (
+            &["-R", "5", "--target-power", "0.8", "--against", "q_scale=3"],
+            "no filter variant has q_scale=3",
+        ),
+    ];
+    for (i, (args, message)) in cases.into_iter().enumerate() {
+        let out = dir.path().join(format!("p{i}"));
+        let o = kfmc()
+            .args(["power", "-q", "--out"])
+            .arg(&out)
+            .args(args)
+            .arg(&spec)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(message), "{args:?}: {err}");
+        assert!(!out.exists(), "{args:?} wrote {}", out.display());
+    }
+}

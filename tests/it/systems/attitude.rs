@@ -12,7 +12,7 @@ use kfmc::runner::NullObserver;
 use kfmc::study::{ExecOptions, run};
 use polars::prelude::*;
 
-use crate::common::kfmc;
+use crate::common::{f64s_or_nan, kfmc};
 
 /// The drone nose-up at pitch 89.9° with a roll swing about its upward body axis: the full
 /// world of `drone_principled` (specific force, biases, drifts, latency, delay), 10 s.
@@ -254,16 +254,6 @@ fn write_with(df: &DataFrame, path: &Path, meta: &[(String, String)]) {
         .unwrap();
 }
 
-fn f64s(df: &DataFrame, c: &str) -> Vec<f64> {
-    df.column(c)
-        .unwrap()
-        .f64()
-        .unwrap()
-        .iter()
-        .map(|v| v.unwrap_or(f64::NAN))
-        .collect()
-}
-
 #[test]
 fn the_exchange_carries_a_rotation_as_a_quaternion_or_as_euler_angles() {
     let tmp = tempfile::tempdir().unwrap();
@@ -313,10 +303,10 @@ fn the_exchange_carries_a_rotation_as_a_quaternion_or_as_euler_angles() {
     assert!(text.contains("quat_roll_pitch_yaw_w"), "{text}");
     assert!(text.contains("log(R̂ᵀR)"), "{text}");
     // The unit quaternion (w ≥ 0) of every row.
-    let w = f64s(&quat, "quat_roll_pitch_yaw_w");
-    let x = f64s(&quat, "quat_roll_pitch_yaw_x");
-    let y = f64s(&quat, "quat_roll_pitch_yaw_y");
-    let z = f64s(&quat, "quat_roll_pitch_yaw_z");
+    let w = f64s_or_nan(&quat, "quat_roll_pitch_yaw_w");
+    let x = f64s_or_nan(&quat, "quat_roll_pitch_yaw_x");
+    let y = f64s_or_nan(&quat, "quat_roll_pitch_yaw_y");
+    let z = f64s_or_nan(&quat, "quat_roll_pitch_yaw_z");
     for i in 0..w.len() {
         let n = w[i] * w[i] + x[i] * x[i] + y[i] * y[i] + z[i] * z[i];
         assert!(
@@ -370,7 +360,7 @@ fn the_exchange_carries_a_rotation_as_a_quaternion_or_as_euler_angles() {
             "rmse_pitch",
             "rmse_yaw",
         ] {
-            let (a, b) = (f64s(&run, c), f64s(&scored, c));
+            let (a, b) = (f64s_or_nan(&run, c), f64s_or_nan(&scored, c));
             assert_eq!(a.len(), b.len());
             for (p, q) in a.iter().zip(&b) {
                 assert!(
@@ -392,7 +382,7 @@ fn the_exchange_carries_a_rotation_as_a_quaternion_or_as_euler_angles() {
         .unwrap();
     for c in ["w", "x", "y", "z"] {
         let name = format!("quat_roll_pitch_yaw_{c}");
-        let mut v = f64s(&zero, &name);
+        let mut v = f64s_or_nan(&zero, &name);
         v[at] = 0.0;
         zero.with_column(Column::new(name.into(), v)).unwrap();
     }

@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use crate::common::{kfmc, repo};
+use crate::common::{f64s, kfmc, repo, strs};
 use kfmc::experiment::{self, Overrides, Plan};
 use kfmc::model::Model;
 use kfmc::output::table::read;
@@ -151,24 +151,9 @@ mode = "sampled"
 p0_std = [2.0, 1.0, 2.0, 1.0]
 "#;
 
-fn column(df: &DataFrame, name: &str) -> Vec<Option<f64>> {
-    let c = df
-        .column(name)
-        .unwrap_or_else(|_| panic!("no column {name}"));
-    let c = c.f64().unwrap();
-    (0..c.len()).map(|i| c.get(i)).collect()
-}
-
 /// A component that did not report: null (or NaN) in the traces.
 fn missing(v: Option<f64>) -> bool {
     v.is_none_or(f64::is_nan)
-}
-
-fn strings(df: &DataFrame, name: &str) -> Vec<String> {
-    let c = df.column(name).unwrap().str().unwrap().clone();
-    (0..c.len())
-        .map(|i| c.get(i).unwrap().to_string())
-        .collect()
 }
 
 fn steps(df: &DataFrame) -> Vec<i64> {
@@ -195,7 +180,7 @@ fn a_sensor_group_reports_only_every_n_steps() {
     // The traces: z_px is missing (NaN) between fixes, z_vx never.
     let tr = read(&tmp.path().join("traces.parquet")).unwrap();
     let step = steps(&tr);
-    let (zpx, zvx) = (column(&tr, "z_px"), column(&tr, "z_vx"));
+    let (zpx, zvx) = (f64s(&tr, "z_px"), f64s(&tr, "z_vx"));
     assert_eq!(step.len(), 201);
     for (i, k) in step.iter().enumerate() {
         assert_eq!(missing(zpx[i]), k % 5 != 0, "z_px at step {k}");
@@ -205,9 +190,9 @@ fn a_sensor_group_reports_only_every_n_steps() {
     // (a consistent KF) and its χ² band sit at 4 and at 2.
     let st = read(&tmp.path().join("steps.parquet")).unwrap();
     let (anis, lo, hi) = (
-        column(&st, "anis"),
-        column(&st, "anis_lo"),
-        column(&st, "anis_hi"),
+        f64s(&st, "anis"),
+        f64s(&st, "anis_lo"),
+        f64s(&st, "anis_hi"),
     );
     let mean = |fix: bool| {
         let v: Vec<f64> = (1..=200)
@@ -332,7 +317,7 @@ fn kf_information_and_sqrt_agree_on_a_three_state_system() {
     .unwrap();
 
     let tr = read(&out.join("traces.parquet")).unwrap();
-    let label = strings(&tr, "filter");
+    let label = strs(&tr, "filter");
     // Every estimate and covariance entry of the four forms agrees to round-off.
     let cols: Vec<String> = tr
         .get_column_names()
@@ -349,7 +334,7 @@ fn kf_information_and_sqrt_agree_on_a_three_state_system() {
         let rows = rows_of(other);
         assert_eq!(rows.len(), kf.len());
         for c in &cols {
-            let v = column(&tr, c);
+            let v = f64s(&tr, c);
             for (&a, &b) in kf.iter().zip(&rows) {
                 let (a, b) = (v[a].unwrap(), v[b].unwrap());
                 let d = (a - b).abs() / a.abs().max(1.0);
@@ -361,7 +346,7 @@ fn kf_information_and_sqrt_agree_on_a_three_state_system() {
     println!("largest relative difference from kf: {worst:.1e}");
 
     // The traces carry the real input only, with the stage values.
-    let u = column(&tr, "u_jerk");
+    let u = f64s(&tr, "u_jerk");
     let step = steps(&tr);
     for i in kf.iter().take(101) {
         let expected = match step[*i] {
@@ -377,13 +362,13 @@ fn kf_information_and_sqrt_agree_on_a_three_state_system() {
             .any(|c| c.as_str().starts_with("u_") && c.as_str() != "u_jerk")
     );
     // The position reports every third step.
-    let zp = column(&tr, "z_p");
+    let zp = f64s(&tr, "z_p");
     for i in kf.iter().take(101) {
         assert_eq!(missing(zp[*i]), step[*i] % 3 != 0);
     }
     // And every run of every form completed.
     let runs = read(&out.join("runs.parquet")).unwrap();
-    assert!(strings(&runs, "status").iter().all(|s| s == "ok"));
+    assert!(strs(&runs, "status").iter().all(|s| s == "ok"));
 }
 
 #[test]
@@ -410,7 +395,7 @@ kind = "open_loop"
     );
     run_plan(plan, &tmp.path().join("fixed"), 10, 0);
     let runs = read(&tmp.path().join("fixed/runs.parquet")).unwrap();
-    assert!(strings(&runs, "status").iter().all(|s| s == "ok"));
+    assert!(strs(&runs, "status").iter().all(|s| s == "ok"));
 
     let batch = CV.replace("EXTRA", "").replace(
         "mode = \"sampled\"\np0_std = [2.0, 1.0, 2.0, 1.0]",
@@ -421,7 +406,7 @@ kind = "open_loop"
     run_plan(plan, &tmp.path().join("batch"), 10, 0);
     let runs = read(&tmp.path().join("batch/runs.parquet")).unwrap();
     assert!(
-        column(&runs, "nees_mean")
+        f64s(&runs, "nees_mean")
             .iter()
             .all(|v| v.unwrap().is_finite())
     );

@@ -6,6 +6,7 @@
 //! `cargo test --release --test it systems::own_filter::` alone does not build examples, so build it first
 //! (`cargo build --release --example own_filter`).
 
+use crate::common::{f64s, strs};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -129,25 +130,6 @@ fn a_bad_key_in_the_user_model_table_names_its_path_and_line() {
     assert!(err.contains(&format!("line {line}")), "{err}");
 }
 
-fn column(df: &DataFrame, name: &str) -> Vec<Option<f64>> {
-    df.column(name)
-        .unwrap_or_else(|e| panic!("{name}: {e}"))
-        .f64()
-        .expect("f64")
-        .iter()
-        .collect()
-}
-
-fn strings(df: &DataFrame, name: &str) -> Vec<String> {
-    df.column(name)
-        .unwrap_or_else(|e| panic!("{name}: {e}"))
-        .str()
-        .expect("str")
-        .iter()
-        .map(|s| s.unwrap_or("").to_string())
-        .collect()
-}
-
 fn rows_of(df: &DataFrame, filter: &str) -> DataFrame {
     let mask = df
         .column("filter")
@@ -175,12 +157,12 @@ fn the_user_ekf_equals_kfmcs_ekf_to_round_off_and_is_consistent() {
     let (user, ekf) = (rows_of(&runs, "user_ekf"), rows_of(&runs, "kfmc_ekf"));
     assert_eq!(user.height(), 200);
     assert_eq!(user.height(), ekf.height());
-    assert_eq!(strings(&user, "scenario"), strings(&ekf, "scenario"));
-    assert_eq!(strings(&user, "status"), vec!["ok".to_string(); 200]);
+    assert_eq!(strs(&user, "scenario"), strs(&ekf, "scenario"));
+    assert_eq!(strs(&user, "status"), vec!["ok".to_string(); 200]);
     let mut worst: f64 = 0.0;
     for s in ["px", "vx", "py", "vy"] {
         let col = format!("rmse_{s}");
-        for (a, b) in column(&user, &col).iter().zip(column(&ekf, &col)) {
+        for (a, b) in f64s(&user, &col).iter().zip(f64s(&ekf, &col)) {
             let (a, b) = (a.expect("finite"), b.expect("finite"));
             worst = worst.max((a - b).abs() / b);
         }
@@ -191,7 +173,7 @@ fn the_user_ekf_equals_kfmcs_ekf_to_round_off_and_is_consistent() {
     let cons =
         kfmc::output::table::read(&dir.path().join("consistency.parquet")).expect("consistency");
     let user = rows_of(&cons, "user_ekf");
-    let tests = strings(&user, "test");
+    let tests = strs(&user, "test");
     let pass: Vec<Option<bool>> = user
         .column("pass")
         .expect("pass")
