@@ -1405,11 +1405,7 @@ pub fn run<O: crate::runner::RunObserver>(
     // Consistency assertions need the tests even when the spec did not ask for them.
     let alpha = plan.alpha;
     plan.consistency
-        .get_or_insert(crate::experiment::plan::ConsistencyPlan {
-            alpha,
-            whiteness_lags: 5,
-            subsets: Vec::new(),
-        });
+        .get_or_insert(crate::experiment::plan::ConsistencyPlan::at_level(alpha));
     plan.sequential = plan
         .check_gate()
         .map_err(|e| RunError::Invalid(KfmcError::Spec(e)))?;

@@ -157,11 +157,8 @@ pub fn power_with(
     one.trace_runs = 0;
     one.export_estimates = false;
     one.output = scratch.clone();
-    one.consistency.get_or_insert(ConsistencyPlan {
-        alpha: plan.alpha,
-        whiteness_lags: 5,
-        subsets: Vec::new(),
-    });
+    one.consistency
+        .get_or_insert(ConsistencyPlan::at_level(plan.alpha));
     let consistency = one.consistency.as_mut().expect("set above");
     for &n in &extras.curve {
         let subset = (n, plan.alpha);

@@ -20,6 +20,55 @@ use crate::runner::{RunObserver, execute_windowed, window_for};
 use crate::study::{ExecOptions, StudyReport};
 use crate::trial::Unit;
 
+/// The plan that scores outside estimates against the `kfmc simulate` folder `dir` (`kfmc
+/// score DIR`, Python's `kfmc.score`): the spec recorded in the folder, checked against its
+/// manifest (a whole simulation, unaltered), with the folder's runs and master seed, writing
+/// into `out` (default `DIR/score`). The estimates are the caller's to attach
+/// ([`crate::check::attach_estimates_from`]).
+pub fn scoring_plan(
+    dir: &std::path::Path,
+    out: Option<std::path::PathBuf>,
+    registry: &crate::system::Registry,
+) -> Result<Plan, KfmcError> {
+    let refuse = |why: String| {
+        KfmcError::from(OutputError::Mismatch {
+            path: dir.to_path_buf(),
+            why,
+        })
+    };
+    if dir.is_file() {
+        return Err(refuse(
+            "is a file; kfmc score takes the folder `kfmc simulate` wrote: kfmc score SIM_DIR --estimates FILE…".into(),
+        ));
+    }
+    let manifest = crate::output::folder::verify(dir)?;
+    if manifest.exchange.is_none() {
+        return Err(refuse(
+            "was not written by `kfmc simulate` (its manifest has no [exchange] section)".into(),
+        ));
+    }
+    if manifest.shard.is_some() {
+        return Err(refuse(
+            "is one part of a sharded simulation; score the whole simulation's folder (`kfmc merge` puts the parts together)".into(),
+        ));
+    }
+    let spec_path = std::path::PathBuf::from(&manifest.spec_path);
+    let mut plan = crate::experiment::parse_with(&manifest.spec, &spec_path, registry)?;
+    if plan.spec_hash != manifest.spec_hash {
+        return Err(refuse(format!(
+            "holds an altered simulation: its recorded spec hashes to {}, its manifest says {}",
+            plan.spec_hash, manifest.spec_hash
+        )));
+    }
+    plan.apply(&crate::experiment::Overrides {
+        runs: Some(manifest.runs_per_cell as usize),
+        master_seed: Some(manifest.master_seed),
+        output: Some(out.unwrap_or_else(|| dir.join("score"))),
+        trace_runs: None,
+    })?;
+    Ok(plan)
+}
+
 /// Writes the simulation of `plan` into `plan.output` (or its part folder): streamed, one run
 /// at a time, committed like every study.
 pub fn simulate(

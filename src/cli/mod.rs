@@ -570,56 +570,14 @@ fn list(registry: &Registry) -> String {
     s
 }
 
-/// The plan `kfmc score DIR` runs: the spec recorded in the `kfmc simulate` folder `dir`
-/// (checked against its manifest: a whole simulation, unaltered), with the folder's runs and
-/// seed, writing into `out` (default `DIR/score`). The estimates are the caller's to attach.
+/// The plan `kfmc score DIR` runs: [`crate::simulate::scoring_plan`].
+#[deprecated(note = "use kfmc::simulate::scoring_plan")]
 pub fn score_plan(
     dir: &std::path::Path,
     out: Option<PathBuf>,
     registry: &Registry,
 ) -> anyhow::Result<Plan> {
-    if dir.is_file() {
-        return Err(anyhow::anyhow!(
-            "{} is a file; kfmc score takes the folder `kfmc simulate` wrote: kfmc score SIM_DIR --estimates FILE…",
-            dir.display()
-        ));
-    }
-    let manifest = crate::output::folder::verify(dir)
-        .map_err(KfmcError::from)
-        .map_err(|e| anyhow::Error::from(e).context(format!("reading {}", dir.display())))?;
-    if manifest.exchange.is_none() {
-        return Err(anyhow::anyhow!(
-            "{} was not written by `kfmc simulate` (its manifest has no [exchange] section)",
-            dir.display()
-        ));
-    }
-    let spec_path = PathBuf::from(&manifest.spec_path);
-    let mut plan = experiment::parse_with(&manifest.spec, &spec_path, registry)
-        .map_err(KfmcError::from)
-        .map_err(|e| {
-            anyhow::Error::from(e).context(format!("the spec recorded in {}", dir.display()))
-        })?;
-    if plan.spec_hash != manifest.spec_hash {
-        return Err(anyhow::anyhow!(
-            "{}: the recorded spec hashes to {}, the manifest says {}; the folder was altered",
-            dir.join("manifest.toml").display(),
-            plan.spec_hash,
-            manifest.spec_hash
-        ));
-    }
-    if manifest.shard.is_some() {
-        return Err(anyhow::anyhow!(
-            "{} is one part of a sharded simulation; score the whole simulation's folder",
-            dir.display()
-        ));
-    }
-    plan.apply(&Overrides {
-        runs: Some(manifest.runs_per_cell as usize),
-        master_seed: Some(manifest.master_seed),
-        output: Some(out.unwrap_or_else(|| dir.join("score"))),
-        trace_runs: None,
-    })?;
-    Ok(plan)
+    Ok(crate::simulate::scoring_plan(dir, out, registry)?)
 }
 
 /// The whole command line for the systems of `registry`: parses the process's arguments,

@@ -38,7 +38,9 @@ impl Score {
             quiet,
             force,
         } = self;
-        let mut plan = score_plan(&dir, out, registry)?;
+        let mut plan = crate::simulate::scoring_plan(&dir, out, registry)
+            .map_err(anyhow::Error::from)
+            .map_err(|e| e.context(format!("scoring against {}", dir.display())))?;
         attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
         let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
         let observer = ProgressObserver::new(!quiet);

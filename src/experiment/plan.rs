@@ -1071,7 +1071,9 @@ fn consistency_table(c: &mut Checker, spec: &Spec, runs: u64) -> Consistency {
     if !(alpha > 0.0 && alpha < 1.0) {
         c.err("consistency.alpha", format!("{alpha} is not in (0, 1)"));
     }
-    let whiteness_lags = cs.and_then(|c| c.whiteness_lags).unwrap_or(5);
+    let whiteness_lags = cs
+        .and_then(|c| c.whiteness_lags)
+        .unwrap_or(ConsistencyPlan::DEFAULT_WHITENESS_LAGS as u64);
     if whiteness_lags > limits::MAX_WHITENESS_LAGS {
         c.err(
             "consistency.whiteness_lags",

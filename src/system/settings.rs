@@ -82,6 +82,22 @@ pub struct ConsistencyPlan {
     pub subsets: Vec<(usize, f64)>,
 }
 
+impl ConsistencyPlan {
+    /// The whiteness lags of a spec that does not set `consistency.whiteness_lags`.
+    pub const DEFAULT_WHITENESS_LAGS: usize = 5;
+
+    /// The tests at level `alpha` with the default lags and no subsets: what a spec without
+    /// `[consistency]` gets when a command needs the tests (`check`'s consistency
+    /// assertions, `power`).
+    pub fn at_level(alpha: f64) -> Self {
+        Self {
+            alpha,
+            whiteness_lags: Self::DEFAULT_WHITENESS_LAGS,
+            subsets: Vec::new(),
+        }
+    }
+}
+
 /// What the filters assume when the truth noise is scaled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FilterNoiseMode {

@@ -1104,6 +1104,57 @@ fn a_csv_both_covariance_forms_and_a_file_for_the_folder_get_messages_that_say_s
     );
 }
 
+/// `kfmc score` scores against a whole, unaltered `kfmc simulate` folder and nothing else:
+/// a `kfmc run` folder, one part of a sharded simulation and a folder whose recorded spec no
+/// longer hashes to its manifest's are refused, each saying which.
+#[test]
+fn score_takes_only_a_whole_unaltered_simulation_folder() {
+    let s = study();
+    let refused = |sim: &Path, out: &str, why: &str| {
+        let o = kfmc()
+            .args(["score", "-q"])
+            .arg(sim)
+            .arg("--out")
+            .arg(s.dir.join(out))
+            .arg("--estimates")
+            .arg(s.dir.join("kf.parquet"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{out}: {err}");
+        assert!(err.contains(why), "{out}: {err}");
+        assert!(!s.dir.join(out).exists(), "{out} was written");
+    };
+    refused(
+        &s.dir.join("run"),
+        "of_run",
+        "was not written by `kfmc simulate`",
+    );
+
+    ok(kfmc()
+        .args(["simulate", "-q", "--shard", "1/2", "--out"])
+        .arg(s.dir.join("sharded"))
+        .arg(&s.ext_spec));
+    let part = s.dir.join("sharded/parts/part-00001-of-00002");
+    assert!(part.join("manifest.toml").exists());
+    refused(&part, "of_part", "is one part of a sharded simulation");
+
+    let altered = s.dir.join("altered");
+    fs::create_dir(&altered).unwrap();
+    for entry in fs::read_dir(s.dir.join("sim")).unwrap() {
+        let entry = entry.unwrap();
+        fs::copy(entry.path(), altered.join(entry.file_name())).unwrap();
+    }
+    let manifest = fs::read_to_string(altered.join("manifest.toml")).unwrap();
+    assert!(manifest.contains("duration_s = "));
+    fs::write(
+        altered.join("manifest.toml"),
+        manifest.replacen("duration_s = ", "duration_s =  ", 1),
+    )
+    .unwrap();
+    refused(&altered, "of_altered", "holds an altered simulation");
+}
+
 #[test]
 fn measurements_have_no_step_0_measurement_and_schema_says_so() {
     let s = study();
