@@ -1,4 +1,4 @@
-//! The drone system of seed 004 (issue 11): its world against hand calculations and the
+//! The drone system of seed 004: its world against hand calculations and the
 //! seed's sensor tables, the principled EKF's consistency on a white-noise world, and
 //! determinism.
 
