@@ -18,8 +18,8 @@ use std::fmt::Debug;
 use std::sync::Arc;
 
 pub use super::filter_kind::{
-    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FnKind,
-    RunFilter, check_scenarios,
+    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup,
+    FnKind, RunFilter, check_scenarios,
 };
 pub use super::kinds::{common_kinds, linear_kinds};
 use super::settings::{FilterPlan, InitialMode, RunSettings};
