@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 pub use super::filter_kind::{
     AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup,
-    FnKind, RunFilter, check_scenarios,
+    FnKind, RunFilter, UnknownKind, check_scenarios,
 };
 pub use super::kinds::{common_kinds, linear_kinds};
 use super::settings::{FilterPlan, InitialMode, RunSettings};

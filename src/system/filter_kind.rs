@@ -166,8 +166,12 @@ pub struct FilterSetup<'a, M> {
     pub measurement_std: &'a [f64],
     /// Explains a kind this set does not have (one registered for another sensor set), or
     /// gives `None` for the usual message listing the tags.
-    pub unknown: Option<&'a dyn Fn(&str) -> Option<String>>,
+    pub unknown: Option<UnknownKind<'a>>,
 }
+
+/// The message for a kind a set does not have, or `None` for the usual one listing the tags
+/// ([`FilterSetup::explaining_unknown`]).
+pub type UnknownKind<'a> = &'a dyn Fn(&str) -> Option<String>;
 
 impl<'a, M> FilterSetup<'a, M> {
     /// The setup of a system's entries; an unknown kind gets the usual message.
@@ -188,7 +192,7 @@ impl<'a, M> FilterSetup<'a, M> {
 
     /// The setup with `unknown` explaining a kind this set does not have (its message, or
     /// `None` for the usual one): a kind that exists for another sensor set, say.
-    pub fn explaining_unknown(mut self, unknown: &'a dyn Fn(&str) -> Option<String>) -> Self {
+    pub fn explaining_unknown(mut self, unknown: UnknownKind<'a>) -> Self {
         self.unknown = Some(unknown);
         self
     }

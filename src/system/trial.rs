@@ -3,8 +3,8 @@
 //!
 //! The two kits' trials (additive and world) run a unit the same way: derive the run's seed
 //! and cell, simulate, run every filter variant on the one simulation (paired comparison),
-//! replay the external ones, and assemble the trace. That is [`UnitRunner::run`], written
-//! once; a kit says only what differs through [`TrialKit`]: how a run is simulated, how a
+//! replay the external ones, and assemble the trace. That is `UnitRunner::run`, written
+//! once; a kit says only what differs through `TrialKit`: how a run is simulated, how a
 //! variant's filter is built and run, and on which model external rows are replayed.
 
 use std::sync::OnceLock;
