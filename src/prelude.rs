@@ -33,7 +33,7 @@ pub use crate::sim::TruthNoise;
 pub use crate::sim::seed::world_normals;
 pub use crate::system::additive::{
     AdditivePlan, AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds,
-    FnKind, RunFilter, common_kinds, linear_kinds,
+    FilterSetup, FnKind, RunFilter, common_kinds, linear_kinds,
 };
 pub use crate::system::checker::{non_negative, positive};
 pub use crate::system::world::{

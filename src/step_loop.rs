@@ -216,6 +216,20 @@ pub fn wrap_angle(e: f64, degrees: bool) -> f64 {
     crate::model::wrap_symmetric(e, if degrees { 180.0 } else { std::f64::consts::PI })
 }
 
+/// What a consistency window reads of one step: the quantities' P_k (with its factor) and
+/// P_{k−1}, the error transition A_k when the filter has one, the error, its NEES and the
+/// step's innovation.
+#[derive(Clone, Copy)]
+struct WindowStep<'s, const NX: usize, const NZ: usize> {
+    chol: &'s SmallCholesky<NX>,
+    p: &'s Matrix<NX, NX>,
+    p_prev: &'s Matrix<NX, NX>,
+    a: Option<&'s Matrix<NX, NX>>,
+    e: &'s Vector<NX>,
+    nees: f64,
+    innovation: Option<&'s Innovation<NZ>>,
+}
+
 /// Consistency sums from one starting step on: W_k for ρ, the whitened-innovation lags, …
 struct Window<const NX: usize, const NZ: usize> {
     first: usize,
@@ -243,19 +257,19 @@ impl<const NX: usize, const NZ: usize> Window<NX, NZ> {
         }
     }
 
-    /// Adds step k; `a` is A_k, `p_prev` is P_{k−1}.
-    #[allow(clippy::too_many_arguments)]
-    fn observe(
-        &mut self,
-        chol: &SmallCholesky<NX>,
-        p: &Matrix<NX, NX>,
-        p_prev: &Matrix<NX, NX>,
-        a: Option<&Matrix<NX, NX>>,
-        e: &Vector<NX>,
-        nees: f64,
-        innovation: Option<&Innovation<NZ>>,
-        lags: usize,
-    ) {
+    /// Adds step k.
+    fn observe(&mut self, step: &WindowStep<'_, NX, NZ>) {
+        let WindowStep {
+            chol,
+            p,
+            p_prev,
+            a,
+            e,
+            nees,
+            innovation,
+        } = *step;
+        // The window keeps one lag product per lag.
+        let lags = self.sums.lag_prod.len();
         match (a, self.started, &mut self.sums.rho_sum) {
             (Some(a), true, Some(rho)) => {
                 self.w = a * (self.w + p_prev) * a.transpose();
@@ -486,20 +500,20 @@ where
                         after_burn_in = Some(Window::new(k, lags));
                     }
                 }
+                let step = WindowStep {
+                    chol: &chol,
+                    p: p_now,
+                    p_prev: &p_prev,
+                    a: a.as_ref(),
+                    e: &e,
+                    nees,
+                    innovation: innovation.as_ref(),
+                };
                 for w in [from_start.as_mut(), after_burn_in.as_mut()]
                     .into_iter()
                     .flatten()
                 {
-                    w.observe(
-                        &chol,
-                        p_now,
-                        &p_prev,
-                        a.as_ref(),
-                        &e,
-                        nees,
-                        innovation.as_ref(),
-                        lags,
-                    );
+                    w.observe(&step);
                 }
             }
             if opts.is_some() {

@@ -182,11 +182,7 @@ impl System for TargetSystem {
         let measurement_std = [range_std, bearing_std];
         let entries = self.kinds.configure_all(
             spec.filters,
-            &model,
-            KIND,
-            &process_std,
-            &measurement_std,
-            &|_| None,
+            &FilterSetup::new(&model, KIND, &process_std, &measurement_std),
             c,
         );
         if !c.is_clean() {

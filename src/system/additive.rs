@@ -15,25 +15,23 @@
 
 use std::any::Any;
 use std::fmt::Debug;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
 pub use super::filter_kind::{
-    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FnKind,
-    RunFilter, check_scenarios,
+    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup,
+    FnKind, RunFilter, UnknownKind, check_scenarios,
 };
 pub use super::kinds::{common_kinds, linear_kinds};
-use super::settings::{FilterNoiseMode, InitialMode, RunSettings};
-use super::trial::Trial;
+use super::settings::{FilterPlan, InitialMode, RunSettings};
+use super::trial::{Cell, Simulated, Trial, TrialKit, UnitRunner};
 use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
 use crate::filter::BatchInitial;
 use crate::linalg::{Matrix, Vector, diag_from_std};
 use crate::metrics::RunConsistency;
 use crate::model::Model;
 use crate::scenario::Scenario;
-use crate::sim::{NoiseDraws, TruthNoise, simulate};
-use crate::step_loop::{
-    ConsistencyOptions, Prior, RunContext, RunTrace, Unit, UnitResult, lower_triangle,
-};
+use crate::sim::{NoiseDraws, Trajectory, TruthNoise, simulate};
+use crate::step_loop::{FilterOutput, Prior, RunContext, Unit, UnitResult};
 
 /// A configured additive system: the model, its scenarios, the truth's noise and the
 /// validated filter entries. It is the [`SystemPlan`]; [`SystemPlan::trial`] binds it to a
@@ -156,19 +154,18 @@ where
 struct AdditiveTrial<'a, const NX: usize, const NU: usize, const NZ: usize, M> {
     sys: &'a AdditivePlan<NX, NU, NZ, M>,
     settings: &'a RunSettings,
+    runner: UnitRunner<'a, dyn RunFilter<NX, NU, NZ, M>>,
     p0: Matrix<NX, NX>,
     p0_factor: Option<Matrix<NX, NX>>,
     /// The model's full discrete Q, which filters assume (times q_scale) when it exists.
     model_q: Option<Matrix<NX, NX>>,
-    names: Vec<&'a str>,
-    /// The angle quantities (index, in degrees), whose errors are wrapped.
-    angles: Vec<(usize, bool)>,
-    /// The rotations among the quantities, scored by their rotation error.
-    rotations: Vec<crate::linalg::so3::EulerRotation>,
-    /// What the consistency tests need of every run (the same for all of them).
-    consistency: Option<ConsistencyOptions>,
-    /// Per (filter variant, noise scale): the prepared filter, built on first use.
-    prepared: Vec<OnceLock<Box<dyn RunFilter<NX, NU, NZ, M>>>>,
+}
+
+/// One simulated run of an additive system: the trajectory (with x̂_0) and P_0.
+struct AdditiveRun<const NX: usize, const NZ: usize> {
+    scenario: usize,
+    trajectory: Trajectory<NX, NZ>,
+    p0: Matrix<NX, NX>,
 }
 
 impl<'a, const NX: usize, const NU: usize, const NZ: usize, M> AdditiveTrial<'a, NX, NU, NZ, M>
@@ -181,27 +178,20 @@ where
             p0_factor: (settings.initial == InitialMode::Sampled)
                 .then(|| Matrix::<NX, NX>::from_diagonal(&sys.p0_std)),
             model_q: sys.model.process_noise_covariance(),
-            names: sys.layout.quantity_names(),
-            angles: sys.layout.angles(),
-            rotations: sys.layout.rotations(),
-            consistency: settings.consistency_options(&sys.layout),
-            prepared: (0..settings.filters.len() * settings.noise_scales.len())
-                .map(|_| OnceLock::new())
-                .collect(),
+            runner: UnitRunner::new(&sys.layout, &sys.scenario_info, settings),
             sys,
             settings,
         }
     }
 
     /// The filter's Q and R for a variant at a truth-noise scale.
-    fn assumed(&self, variant: usize, filter_scale: f64) -> AssumedNoise<NX, NZ> {
-        let f = &self.settings.filters[variant];
+    fn assumed(&self, variant: &FilterPlan, filter_scale: f64) -> AssumedNoise<NX, NZ> {
         AssumedNoise::for_cell(
-            self.sys.entries[f.entry].assumed_std(),
+            self.sys.entries[variant.entry].assumed_std(),
             self.model_q.as_ref(),
             filter_scale,
-            f.q_scale,
-            f.r_scale,
+            variant.q_scale,
+            variant.r_scale,
         )
     }
 
@@ -211,7 +201,7 @@ where
     fn initial_estimate(
         &self,
         si: usize,
-        trajectory: &mut crate::sim::Trajectory<NX, NZ>,
+        trajectory: &mut Trajectory<NX, NZ>,
         filter_scale: f64,
     ) -> Matrix<NX, NX> {
         match &self.sys.batch {
@@ -234,18 +224,18 @@ where
         let draws = NoiseDraws::<NX, NZ>::draw(0, sc.steps());
         let mut trajectory = simulate(&sys.model, sc, &sys.truth_noise, 0.0, None, &draws);
         let p0 = self.initial_estimate(si, &mut trajectory, 1.0);
-        let prior = Prior {
-            x0_hat: &trajectory.x0_hat,
-            p0: &p0,
+        let run = AdditiveRun {
+            scenario: si,
+            trajectory,
+            p0,
+        };
+        let unit = Unit {
+            scenario,
+            scale: 0,
+            run: 0,
         };
         let ctx = RunContext {
-            truth: &trajectory.truth,
-            inputs: &sc.controls,
-            measurements: &trajectory.measurements,
-            angles: &self.angles,
-            rotations: &self.rotations,
             thresholds: None,
-            quantity_names: &self.names,
             trace: false,
             export: false,
             consistency: Some(
@@ -253,24 +243,87 @@ where
                     .consistency_options(&sys.layout)
                     .unwrap_or_else(|| settings.consistency_options_with_lags(&sys.layout, 0)),
             ),
-            unit: Unit {
-                scenario,
-                scale: 0,
-                run: 0,
-            },
+            ..self.runner.context(&unit, &self.view(&run))
         };
         settings
             .filters
             .iter()
-            .enumerate()
-            .map(|(fi, f)| {
+            .map(|f| {
                 if f.external {
                     return None;
                 }
-                let filter = sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, 1.0));
-                filter.run(&sys.model, &prior, &ctx).run.consistency
+                let filter = sys.entries[f.entry].prepare(&sys.model, &self.assumed(f, 1.0));
+                self.run_filter(filter.as_ref(), &run, &ctx).run.consistency
             })
             .collect()
+    }
+}
+
+impl<const NX: usize, const NU: usize, const NZ: usize, M> TrialKit<NX, NU, NZ>
+    for AdditiveTrial<'_, NX, NU, NZ, M>
+where
+    M: Model<NX, NU, NZ>,
+{
+    type Filter = dyn RunFilter<NX, NU, NZ, M>;
+    type Run = AdditiveRun<NX, NZ>;
+    type ReplayModel = M;
+
+    fn simulate(&self, cell: &Cell, seed: u64) -> AdditiveRun<NX, NZ> {
+        let scenario = &self.sys.scenarios[cell.scenario];
+        let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
+        let mut trajectory = simulate(
+            &self.sys.model,
+            scenario,
+            &self.sys.truth_noise,
+            cell.noise_scale,
+            self.p0_factor.as_ref(),
+            &draws,
+        );
+        let p0 = self.initial_estimate(cell.scenario, &mut trajectory, cell.filter_scale);
+        AdditiveRun {
+            scenario: cell.scenario,
+            trajectory,
+            p0,
+        }
+    }
+
+    fn view<'r>(&'r self, run: &'r AdditiveRun<NX, NZ>) -> Simulated<'r, NX, NU, NZ> {
+        Simulated {
+            truth: &run.trajectory.truth,
+            inputs: &self.sys.scenarios[run.scenario].controls,
+            measurements: &run.trajectory.measurements,
+            world: &[],
+            prior: Some(Prior {
+                x0_hat: &run.trajectory.x0_hat,
+                p0: &run.p0,
+            }),
+        }
+    }
+
+    fn prepare(&self, variant: &FilterPlan, cell: &Cell) -> Box<dyn RunFilter<NX, NU, NZ, M>> {
+        self.sys.entries[variant.entry]
+            .prepare(&self.sys.model, &self.assumed(variant, cell.filter_scale))
+    }
+
+    fn run_filter(
+        &self,
+        filter: &dyn RunFilter<NX, NU, NZ, M>,
+        run: &AdditiveRun<NX, NZ>,
+        ctx: &RunContext<'_, NX, NU, NZ>,
+    ) -> FilterOutput {
+        let prior = Prior {
+            x0_hat: &run.trajectory.x0_hat,
+            p0: &run.p0,
+        };
+        filter.run(&self.sys.model, &prior, ctx)
+    }
+
+    fn replay_model(&self) -> &M {
+        &self.sys.model
+    }
+
+    fn world_metrics(&self, _run: AdditiveRun<NX, NZ>) -> Vec<f64> {
+        Vec::new()
     }
 }
 
@@ -280,91 +333,14 @@ where
     M: Model<NX, NU, NZ>,
 {
     fn run(&self, unit: &Unit) -> UnitResult {
-        let settings = self.settings;
-        let sys = self.sys;
-        let si = settings.scenarios[unit.scenario].index;
-        let scenario = &sys.scenarios[si];
-        let noise_scale = settings.noise_scales[unit.scale];
-        let seed = settings.run_seed(&scenario.name, unit.scale, unit.run);
-        let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
-        let mut trajectory = simulate(
-            &sys.model,
-            scenario,
-            &sys.truth_noise,
-            noise_scale,
-            self.p0_factor.as_ref(),
-            &draws,
-        );
-        let traced = unit.run < settings.trace_runs;
-        let filter_scale = match settings.filter_noise {
-            FilterNoiseMode::Nominal => 1.0,
-            FilterNoiseMode::Matched => noise_scale,
-        };
-        let p0 = self.initial_estimate(si, &mut trajectory, filter_scale);
-        let prior = Prior {
-            x0_hat: &trajectory.x0_hat,
-            p0: &p0,
-        };
-        let ctx = RunContext {
-            truth: &trajectory.truth,
-            inputs: &scenario.controls,
-            measurements: &trajectory.measurements,
-            angles: &self.angles,
-            rotations: &self.rotations,
-            thresholds: settings.rmse_thresholds.as_deref(),
-            quantity_names: &self.names,
-            trace: traced,
-            export: settings.export_estimates,
-            consistency: self.consistency,
-            unit: *unit,
-        };
-        let keep = traced || settings.export_estimates;
-        let mut trace = keep.then(|| {
-            let mut t = RunTrace::of_world(
-                &scenario.controls,
-                &trajectory.truth,
-                &trajectory.measurements,
-                Vec::new(),
-            );
-            t.initial = Some((trajectory.x0_hat.as_slice().to_vec(), lower_triangle(&p0)));
-            t
-        });
-        let mut filters = Vec::with_capacity(settings.filters.len());
-        for (fi, f) in settings.filters.iter().enumerate() {
-            let mut out = if f.external {
-                crate::score::replay(
-                    settings.estimates.as_deref(),
-                    fi,
-                    &f.label,
-                    &sys.model,
-                    &ctx,
-                )
-            } else {
-                let slot = &self.prepared[fi * settings.noise_scales.len() + unit.scale];
-                let filter = slot.get_or_init(|| {
-                    sys.entries[f.entry].prepare(&sys.model, &self.assumed(fi, filter_scale))
-                });
-                filter.run(&sys.model, &prior, &ctx)
-            };
-            if let Some(t) = trace.as_mut() {
-                t.push_filter(&mut out, NX);
-            }
-            filters.push(out.run);
-        }
-        UnitResult {
-            unit: *unit,
-            seed,
-            filters,
-            trace,
-            world_metrics: Vec::new(),
-        }
+        self.runner.run(self, unit)
     }
 
     fn steps(&self, scenario: usize) -> usize {
-        self.sys.scenarios[self.settings.scenarios[scenario].index].steps()
+        self.runner.steps(scenario)
     }
 
     fn layout(&self) -> &Layout {
-        &self.sys.layout
+        self.runner.layout()
     }
 }

@@ -150,6 +150,64 @@ pub trait FilterKind<const NX: usize, const NU: usize, const NZ: usize, M>: Send
     ) -> Option<Arc<dyn FilterEntry<NX, NU, NZ, M>>>;
 }
 
+/// What a system's `[[filters]]` entries are validated against
+/// ([`FilterKinds::configure_all`]): the model the filters assume, the system's `model.kind`
+/// for messages, and the truth's noise standard deviations at scale 1, the defaults of
+/// `q_std` and `r_std`.
+#[derive(Clone, Copy)]
+pub struct FilterSetup<'a, M> {
+    /// The model the filters assume.
+    pub model: &'a M,
+    /// The system's `model.kind`, for messages.
+    pub system: &'a str,
+    /// The truth's process-noise std per state (the default `q_std`).
+    pub process_std: &'a [f64],
+    /// The truth's measurement-noise std per component (the default `r_std`).
+    pub measurement_std: &'a [f64],
+    /// Explains a kind this set does not have (one registered for another sensor set), or
+    /// gives `None` for the usual message listing the tags.
+    pub unknown: Option<UnknownKind<'a>>,
+}
+
+/// The message for a kind a set does not have, or `None` for the usual one listing the tags
+/// ([`FilterSetup::explaining_unknown`]).
+pub type UnknownKind<'a> = &'a dyn Fn(&str) -> Option<String>;
+
+impl<'a, M> FilterSetup<'a, M> {
+    /// The setup of a system's entries; an unknown kind gets the usual message.
+    pub fn new(
+        model: &'a M,
+        system: &'a str,
+        process_std: &'a [f64],
+        measurement_std: &'a [f64],
+    ) -> Self {
+        FilterSetup {
+            model,
+            system,
+            process_std,
+            measurement_std,
+            unknown: None,
+        }
+    }
+
+    /// The setup with `unknown` explaining a kind this set does not have (its message, or
+    /// `None` for the usual one): a kind that exists for another sensor set, say.
+    pub fn explaining_unknown(mut self, unknown: UnknownKind<'a>) -> Self {
+        self.unknown = Some(unknown);
+        self
+    }
+}
+
+impl<M> std::fmt::Debug for FilterSetup<'_, M> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FilterSetup")
+            .field("system", &self.system)
+            .field("process_std", &self.process_std)
+            .field("measurement_std", &self.measurement_std)
+            .finish_non_exhaustive()
+    }
+}
+
 /// A system's filter kinds, in the order `kfmc list` shows them.
 pub struct FilterKinds<const NX: usize, const NU: usize, const NZ: usize, M> {
     kinds: Vec<Arc<dyn FilterKind<NX, NU, NZ, M>>>,
@@ -201,24 +259,26 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
             .collect()
     }
 
-    /// Validates every entry of `filters` whose kind is in this set; an unknown kind is an
-    /// error at `filters[i].kind` listing the tags. `unknown` may explain a kind that exists
-    /// elsewhere (another sensor set) and return its message instead. `process_std` and
-    /// `measurement_std` are the truth's, the defaults of `q_std` and `r_std`.
-    #[allow(clippy::too_many_arguments)]
+    /// Validates every entry of `filters` whose kind is in this set against `setup` (the
+    /// model, and the truth's noise whose standard deviations are the defaults of `q_std` and
+    /// `r_std`); an unknown kind is an error at `filters[i].kind` listing the tags, or the
+    /// setup's explanation of it ([`FilterSetup::explaining_unknown`]).
     pub fn configure_all(
         &self,
         filters: &[super::FilterTable],
-        model: &M,
-        system: &str,
-        process_std: &[f64],
-        measurement_std: &[f64],
-        unknown: &dyn Fn(&str) -> Option<String>,
+        setup: &FilterSetup<'_, M>,
         c: &mut Checker,
     ) -> Vec<Arc<dyn FilterEntry<NX, NU, NZ, M>>>
     where
         M: Model<NX, NU, NZ>,
     {
+        let FilterSetup {
+            model,
+            system,
+            process_std,
+            measurement_std,
+            unknown,
+        } = *setup;
         // A model with its own full Q is what its filters assume (times q_scale), so a q_std
         // would be silently ignored: the kinds refuse it.
         let full_q = model.process_noise_covariance().is_some();
@@ -238,7 +298,7 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
         for f in filters {
             let key = f.key.clone();
             let Some(kind) = self.get(&f.kind) else {
-                let msg = unknown(&f.kind).unwrap_or_else(|| {
+                let msg = unknown.and_then(|u| u(&f.kind)).unwrap_or_else(|| {
                     format!(
                         "unknown value `{}`; expected one of: {}",
                         f.kind,

@@ -447,6 +447,7 @@ fn pole_list(c: &mut Checker, key: &str, f: &PoleKeys) -> Option<Vec<(f64, f64)>
 mod tests {
     use super::*;
     use crate::linalg::{Matrix, Vector};
+    use crate::system::filter_kind::FilterSetup;
 
     /// x_k = x_{k−1} + w_k, z = x[0], with its own Q.
     struct Walk(Matrix<2, 2>);
@@ -483,11 +484,7 @@ mod tests {
         let mut c = Checker::new(std::path::Path::new("t.toml"), "");
         let entries = kinds.configure_all(
             &filters,
-            &Walk(q),
-            "walk",
-            process_std,
-            &[0.1],
-            &|_| None,
+            &FilterSetup::new(&Walk(q), "walk", process_std, &[0.1]),
             &mut c,
         );
         let errors = c.into_errors().iter().map(|e| e.to_string()).collect();
@@ -537,11 +534,7 @@ mod tests {
         let mut c = Checker::new(std::path::Path::new("t.toml"), "");
         let entries = kinds.configure_all(
             &[table("r_std = 0.5"), table("r_stdd = 0.5")],
-            &walk,
-            "walk",
-            &[0.1, 0.1],
-            &[0.1],
-            &|_| None,
+            &FilterSetup::new(&walk, "walk", &[0.1, 0.1], &[0.1]),
             &mut c,
         );
         let errors: Vec<String> = c.into_errors().iter().map(|e| e.key_path.clone()).collect();

@@ -1,8 +1,21 @@
 //! One Monte Carlo run as the executor sees it: the object-safe [`Trial`] a
 //! [`super::SystemPlan`] builds. Dynamic dispatch happens once per run, never per step.
+//!
+//! The two kits' trials (additive and world) run a unit the same way: derive the run's seed
+//! and cell, simulate, run every filter variant on the one simulation (paired comparison),
+//! replay the external ones, and assemble the trace. That is `UnitRunner::run`, written
+//! once; a kit says only what differs through `TrialKit`: how a run is simulated, how a
+//! variant's filter is built and run, and on which model external rows are replayed.
 
-use super::Layout;
-use crate::step_loop::{Unit, UnitResult};
+use std::sync::OnceLock;
+
+use super::settings::{FilterNoiseMode, FilterPlan, RunSettings};
+use super::{Layout, ScenarioInfo};
+use crate::linalg::Vector;
+use crate::model::{Measurement, Model};
+use crate::step_loop::{
+    ConsistencyOptions, FilterOutput, Prior, RunContext, RunTrace, Unit, UnitResult, lower_triangle,
+};
 
 /// A study that can execute units: what a [`crate::system::SystemPlan`] builds.
 pub trait Trial: Sync {
@@ -17,5 +30,194 @@ pub trait Trial: Sync {
     /// default.
     fn world_metrics(&self) -> &[String] {
         &[]
+    }
+}
+
+/// The cell of a unit as its simulation and filters see it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Cell {
+    /// Index of the system's scenario (not the plan's).
+    pub scenario: usize,
+    /// The truth-noise multiplier.
+    pub noise_scale: f64,
+    /// The multiplier of the filters' assumed standard deviations: 1 (`nominal`) or the
+    /// truth's (`matched`).
+    pub filter_scale: f64,
+}
+
+/// One simulated run as its filters and its trace read it.
+pub(super) struct Simulated<'r, const NQ: usize, const NU: usize, const NZ: usize> {
+    /// The true evaluated quantities q_0..q_K.
+    pub truth: &'r [Vector<NQ>],
+    /// The filters' inputs u_0..u_K.
+    pub inputs: &'r [Vector<NU>],
+    /// z_0..z_K with their availability.
+    pub measurements: &'r [Measurement<NZ>],
+    /// The world's own states, row-major per step (empty when it has none).
+    pub world: &'r [f64],
+    /// The prior every filter of the run starts from, when the kit forms one for all of them
+    /// (it is traced to `initial.parquet`).
+    pub prior: Option<Prior<'r, NQ>>,
+}
+
+/// What a kit's trial does for [`UnitRunner::run`]: everything that differs between kits.
+pub(super) trait TrialKit<const NQ: usize, const NU: usize, const NZ: usize> {
+    /// A variant's filter, prepared once per cell.
+    type Filter: ?Sized;
+    /// What one simulation produces and the filters run on.
+    type Run;
+    /// The model external filters' rows are replayed on.
+    type ReplayModel: Model<NQ, NU, NZ>;
+
+    /// Simulates the run of `cell` with this seed.
+    fn simulate(&self, cell: &Cell, seed: u64) -> Self::Run;
+    /// The run as the filters and the trace read it.
+    fn view<'r>(&'r self, run: &'r Self::Run) -> Simulated<'r, NQ, NU, NZ>;
+    /// Builds a variant's filter for a cell.
+    fn prepare(&self, variant: &FilterPlan, cell: &Cell) -> Box<Self::Filter>;
+    /// Runs a prepared filter on a run.
+    fn run_filter(
+        &self,
+        filter: &Self::Filter,
+        run: &Self::Run,
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+    ) -> FilterOutput;
+    /// The model of [`TrialKit::ReplayModel`].
+    fn replay_model(&self) -> &Self::ReplayModel;
+    /// The world's per-run metrics of a run ([`UnitResult::world_metrics`]).
+    fn world_metrics(&self, run: Self::Run) -> Vec<f64>;
+}
+
+/// What every kit's trial keeps of a study for its units: the settings, the quantities'
+/// names, angles and rotations, the consistency options, and the prepared filter of each
+/// cell (variant × noise scale), built on first use.
+pub(super) struct UnitRunner<'a, F: ?Sized> {
+    settings: &'a RunSettings,
+    layout: &'a Layout,
+    scenarios: &'a [ScenarioInfo],
+    names: Vec<&'a str>,
+    /// The angle quantities (index, in degrees), whose errors are wrapped.
+    angles: Vec<(usize, bool)>,
+    /// The rotations among the quantities, scored by their rotation error.
+    rotations: Vec<crate::linalg::so3::EulerRotation>,
+    /// What the consistency tests need of every run (the same for all of them).
+    consistency: Option<ConsistencyOptions>,
+    prepared: Vec<OnceLock<Box<F>>>,
+}
+
+impl<'a, F: ?Sized> UnitRunner<'a, F> {
+    /// The runner of a system's `layout` and `scenarios` for a study's settings.
+    pub(super) fn new(
+        layout: &'a Layout,
+        scenarios: &'a [ScenarioInfo],
+        settings: &'a RunSettings,
+    ) -> Self {
+        UnitRunner {
+            names: layout.quantity_names(),
+            angles: layout.angles(),
+            rotations: layout.rotations(),
+            consistency: settings.consistency_options(layout),
+            prepared: (0..settings.filters.len() * settings.noise_scales.len())
+                .map(|_| OnceLock::new())
+                .collect(),
+            settings,
+            layout,
+            scenarios,
+        }
+    }
+
+    /// The layout ([`Trial::layout`]).
+    pub(super) fn layout(&self) -> &'a Layout {
+        self.layout
+    }
+
+    /// K of plan scenario `scenario` ([`Trial::steps`]).
+    pub(super) fn steps(&self, scenario: usize) -> usize {
+        self.scenarios[self.settings.scenarios[scenario].index].steps
+    }
+
+    /// The context of a unit's filter runs on a simulated run, as a study runs them.
+    pub(super) fn context<'r, const NQ: usize, const NU: usize, const NZ: usize>(
+        &'r self,
+        unit: &Unit,
+        sim: &Simulated<'r, NQ, NU, NZ>,
+    ) -> RunContext<'r, NQ, NU, NZ> {
+        let settings = self.settings;
+        RunContext {
+            truth: sim.truth,
+            inputs: sim.inputs,
+            measurements: sim.measurements,
+            angles: &self.angles,
+            rotations: &self.rotations,
+            thresholds: settings.rmse_thresholds.as_deref(),
+            quantity_names: &self.names,
+            trace: unit.run < settings.trace_runs,
+            export: settings.export_estimates,
+            consistency: self.consistency,
+            unit: *unit,
+        }
+    }
+
+    /// Runs one unit ([`Trial::run`]): simulates it once through `kit`, runs every filter
+    /// variant of the plan on it in plan order (external ones replayed from their rows), and
+    /// keeps the trace of a traced or exported run.
+    pub(super) fn run<K, const NQ: usize, const NU: usize, const NZ: usize>(
+        &self,
+        kit: &K,
+        unit: &Unit,
+    ) -> UnitResult
+    where
+        K: TrialKit<NQ, NU, NZ, Filter = F>,
+    {
+        let settings = self.settings;
+        let si = settings.scenarios[unit.scenario].index;
+        let noise_scale = settings.noise_scales[unit.scale];
+        let cell = Cell {
+            scenario: si,
+            noise_scale,
+            filter_scale: match settings.filter_noise {
+                FilterNoiseMode::Nominal => 1.0,
+                FilterNoiseMode::Matched => noise_scale,
+            },
+        };
+        let seed = settings.run_seed(&self.scenarios[si].name, unit.scale, unit.run);
+        let run = kit.simulate(&cell, seed);
+        let sim = kit.view(&run);
+        let ctx = self.context(unit, &sim);
+        let mut trace = (ctx.trace || ctx.export).then(|| {
+            let mut t =
+                RunTrace::of_world(sim.inputs, sim.truth, sim.measurements, sim.world.to_vec());
+            t.initial = sim
+                .prior
+                .map(|p| (p.x0_hat.as_slice().to_vec(), lower_triangle(p.p0)));
+            t
+        });
+        let mut filters = Vec::with_capacity(settings.filters.len());
+        for (fi, f) in settings.filters.iter().enumerate() {
+            let mut out = if f.external {
+                crate::score::replay(
+                    settings.estimates.as_deref(),
+                    fi,
+                    &f.label,
+                    kit.replay_model(),
+                    &ctx,
+                )
+            } else {
+                let slot = &self.prepared[fi * settings.noise_scales.len() + unit.scale];
+                let filter = slot.get_or_init(|| kit.prepare(f, &cell));
+                kit.run_filter(filter, &run, &ctx)
+            };
+            if let Some(t) = trace.as_mut() {
+                t.push_filter(&mut out, NQ);
+            }
+            filters.push(out.run);
+        }
+        UnitResult {
+            unit: *unit,
+            seed,
+            filters,
+            trace,
+            world_metrics: kit.world_metrics(run),
+        }
     }
 }

@@ -14,14 +14,14 @@
 
 use std::any::Any;
 use std::fmt::Debug;
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
-use super::settings::{FilterNoiseMode, RunSettings};
-use super::trial::Trial;
+use super::settings::{FilterPlan, RunSettings};
+use super::trial::{Cell, Simulated, Trial, TrialKit, UnitRunner};
 use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};
 use crate::linalg::Vector;
 use crate::model::Measurement;
-use crate::step_loop::{ConsistencyOptions, FilterOutput, RunContext, RunTrace, Unit, UnitResult};
+use crate::step_loop::{FilterOutput, RunContext, Unit, UnitResult};
 
 /// One simulated run of a world.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -154,15 +154,11 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
     }
     fn trial<'a>(&'a self, settings: &'a RunSettings) -> Box<dyn Trial + 'a> {
         Box::new(WorldTrial {
-            names: self.layout.quantity_names(),
-            angles: self.layout.angles(),
-            rotations: self.layout.rotations(),
-            consistency: settings.consistency_options(&self.layout),
-            prepared: (0..settings.filters.len() * settings.noise_scales.len())
-                .map(|_| OnceLock::new())
-                .collect(),
+            runner: UnitRunner::new(&self.layout, &self.scenario_info, settings),
+            unmodelled: crate::score::Unmodelled {
+                dt_s: self.layout.dt_s,
+            },
             sys: self,
-            settings,
         })
     }
     fn as_any(&self) -> &dyn Any {
@@ -170,100 +166,75 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
     }
 }
 
+/// The trial of a [`WorldPlan`] for one study's settings.
 struct WorldTrial<'a, const NQ: usize, const NU: usize, const NZ: usize> {
     sys: &'a WorldPlan<NQ, NU, NZ>,
-    settings: &'a RunSettings,
-    names: Vec<&'a str>,
-    angles: Vec<(usize, bool)>,
-    rotations: Vec<crate::linalg::so3::EulerRotation>,
-    /// What the consistency tests need of every run (the same for all of them).
-    consistency: Option<ConsistencyOptions>,
-    prepared: Vec<OnceLock<Box<dyn WorldFilter<NQ, NU, NZ>>>>,
+    runner: UnitRunner<'a, dyn WorldFilter<NQ, NU, NZ>>,
+    /// The model external filters are replayed on.
+    unmodelled: crate::score::Unmodelled,
+}
+
+impl<const NQ: usize, const NU: usize, const NZ: usize> TrialKit<NQ, NU, NZ>
+    for WorldTrial<'_, NQ, NU, NZ>
+{
+    type Filter = dyn WorldFilter<NQ, NU, NZ>;
+    type Run = Realisation<NQ, NU, NZ>;
+    type ReplayModel = crate::score::Unmodelled;
+
+    fn simulate(&self, cell: &Cell, seed: u64) -> Realisation<NQ, NU, NZ> {
+        self.sys
+            .world
+            .simulate(cell.scenario, cell.noise_scale, seed)
+    }
+
+    fn view<'r>(&'r self, real: &'r Realisation<NQ, NU, NZ>) -> Simulated<'r, NQ, NU, NZ> {
+        Simulated {
+            truth: &real.truth,
+            inputs: &real.inputs,
+            measurements: &real.measurements,
+            world: &real.world,
+            prior: None,
+        }
+    }
+
+    fn prepare(&self, variant: &FilterPlan, cell: &Cell) -> Box<dyn WorldFilter<NQ, NU, NZ>> {
+        self.sys.entries[variant.entry].prepare(&NoiseSettings {
+            noise_scale: cell.noise_scale,
+            filter_scale: cell.filter_scale,
+            q_scale: variant.q_scale,
+            r_scale: variant.r_scale,
+        })
+    }
+
+    fn run_filter(
+        &self,
+        filter: &dyn WorldFilter<NQ, NU, NZ>,
+        real: &Realisation<NQ, NU, NZ>,
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+    ) -> FilterOutput {
+        filter.run(real, ctx)
+    }
+
+    fn replay_model(&self) -> &crate::score::Unmodelled {
+        &self.unmodelled
+    }
+
+    fn world_metrics(&self, real: Realisation<NQ, NU, NZ>) -> Vec<f64> {
+        real.metrics
+    }
 }
 
 impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_, NQ, NU, NZ> {
     fn run(&self, unit: &Unit) -> UnitResult {
-        let settings = self.settings;
-        let si = settings.scenarios[unit.scenario].index;
-        let name = &self.sys.scenario_info[si].name;
-        let noise_scale = settings.noise_scales[unit.scale];
-        let seed = settings.run_seed(name, unit.scale, unit.run);
-        let real = self.sys.world.simulate(si, noise_scale, seed);
-        let traced = unit.run < settings.trace_runs;
-        let ctx = RunContext {
-            truth: &real.truth,
-            inputs: &real.inputs,
-            measurements: &real.measurements,
-            angles: &self.angles,
-            rotations: &self.rotations,
-            thresholds: settings.rmse_thresholds.as_deref(),
-            quantity_names: &self.names,
-            trace: traced,
-            export: settings.export_estimates,
-            consistency: self.consistency,
-            unit: *unit,
-        };
-        let noise = NoiseSettings {
-            noise_scale,
-            filter_scale: match settings.filter_noise {
-                FilterNoiseMode::Nominal => 1.0,
-                FilterNoiseMode::Matched => noise_scale,
-            },
-            q_scale: 1.0,
-            r_scale: 1.0,
-        };
-        let mut trace = (traced || settings.export_estimates).then(|| {
-            RunTrace::of_world(
-                &real.inputs,
-                &real.truth,
-                &real.measurements,
-                real.world.clone(),
-            )
-        });
-        let mut filters = Vec::with_capacity(settings.filters.len());
-        let unmodelled = crate::score::Unmodelled {
-            dt_s: self.sys.layout.dt_s,
-        };
-        for (fi, f) in settings.filters.iter().enumerate() {
-            let mut out = if f.external {
-                crate::score::replay(
-                    settings.estimates.as_deref(),
-                    fi,
-                    &f.label,
-                    &unmodelled,
-                    &ctx,
-                )
-            } else {
-                let slot = &self.prepared[fi * settings.noise_scales.len() + unit.scale];
-                let filter = slot.get_or_init(|| {
-                    self.sys.entries[f.entry].prepare(&NoiseSettings {
-                        q_scale: f.q_scale,
-                        r_scale: f.r_scale,
-                        ..noise
-                    })
-                });
-                filter.run(&real, &ctx)
-            };
-            if let Some(t) = trace.as_mut() {
-                t.push_filter(&mut out, NQ);
-            }
-            filters.push(out.run);
-        }
-        UnitResult {
-            unit: *unit,
-            seed,
-            filters,
-            trace,
-            world_metrics: real.metrics,
-        }
+        self.runner.run(self, unit)
     }
 
     fn steps(&self, scenario: usize) -> usize {
-        self.sys.scenario_info[self.settings.scenarios[scenario].index].steps
+        self.runner.steps(scenario)
     }
 
     fn layout(&self) -> &Layout {
-        &self.sys.layout
+        self.runner.layout()
     }
 
     fn world_metrics(&self) -> &[String] {

@@ -11,7 +11,7 @@
 use std::sync::Arc;
 
 use super::checker::{Checker, positive};
-use super::filter_kind::{AssumedNoise, FilterEntry, FilterKinds, RunFilter};
+use super::filter_kind::{AssumedNoise, FilterEntry, FilterKinds, FilterSetup, RunFilter};
 use super::settings::InitialMode;
 use super::world::{NoiseSettings, Realisation, WorldFilter, WorldFilterEntry};
 use super::{FilterInfo, SystemSpec};
@@ -86,11 +86,12 @@ where
         );
         let entries = self.kinds.configure_all(
             spec.filters,
-            &*self.model,
-            system,
-            &self.process_std,
-            &self.measurement_std,
-            &|_| None,
+            &FilterSetup::new(
+                &*self.model,
+                system,
+                &self.process_std,
+                &self.measurement_std,
+            ),
             c,
         );
         if p0_std.len() != N {

@@ -32,7 +32,7 @@ use crate::filter::BatchInitial;
 use crate::linalg::{Matrix, SmallCholesky, Vector};
 use crate::scenario::Scenario;
 use crate::sim::TruthNoise;
-use crate::system::additive::{AdditivePlan, linear_kinds};
+use crate::system::additive::{AdditivePlan, FilterSetup, linear_kinds};
 use crate::system::checker::{Checker, positive};
 use crate::system::settings::{InitialMode, RunSettings};
 use crate::system::{
@@ -251,11 +251,7 @@ fn build<const NX: usize, const NZ: usize, const NA: usize, const NV: usize>(
         linear_kinds::<NX, NU_MAX, NZ, LinearModel<NX, NU_MAX, NZ>>(detectable::<NX, NU_MAX, NZ>);
     let entries = kinds.configure_all(
         spec.filters,
-        &model,
-        KIND,
-        &process_std,
-        &measurement_std,
-        &|_| None,
+        &FilterSetup::new(&model, KIND, &process_std, &measurement_std),
         c,
     );
 

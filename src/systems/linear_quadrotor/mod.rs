@@ -17,7 +17,7 @@ use crate::filter::BatchInitial;
 use crate::linalg::{Matrix, Vector};
 use crate::scenario::Scenario;
 use crate::sim::TruthNoise;
-use crate::system::additive::{AdditivePlan, FilterKinds, linear_kinds};
+use crate::system::additive::{AdditivePlan, FilterKinds, FilterSetup, linear_kinds};
 use crate::system::checker::{Checker, non_negative, positive};
 use crate::system::settings::InitialMode;
 use crate::system::spec_values::OneOrMany;
@@ -180,11 +180,7 @@ impl LinearQuadrotorSystem {
         let scenarios = scenarios(spec.scenarios, dt_s, c);
         let entries = kinds.configure_all(
             spec.filters,
-            &model,
-            KIND,
-            &process_std,
-            &measurement_std,
-            &|_| None,
+            &FilterSetup::new(&model, KIND, &process_std, &measurement_std),
             c,
         );
         let batch_ls = spec.initial.mode == InitialMode::BatchLs;

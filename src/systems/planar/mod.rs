@@ -16,10 +16,11 @@ use std::sync::Arc;
 use serde::Deserialize;
 
 use crate::linalg::Vector;
+use crate::model::Model;
 use crate::sim::TruthNoise;
 use crate::system::additive::{
-    AdditivePlan, AssumedNoise, FilterContext, FilterEntry, FilterKind, FilterKinds, RunFilter,
-    check_scenarios, common_kinds,
+    AdditivePlan, AssumedNoise, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup,
+    RunFilter, check_scenarios, common_kinds,
 };
 use crate::system::checker::{Checker, non_negative, positive};
 use crate::system::settings::InitialMode;
@@ -180,24 +181,48 @@ impl System for PlanarSystem {
     fn configure(&self, spec: &SystemSpec<'_>, c: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
         let m: ModelKeys = c.parse("model", spec.model).unwrap_or_default();
         let imu = c.choice("model.sensor", m.sensor.as_deref(), "p1", &["p1", "imu"]) == "imu";
-        let d = PlanarParams::default();
-        let mut param = |key: &str, v: Option<f64>, def: f64| {
-            let x = v.unwrap_or(def);
-            if !positive(x) {
-                c.err(
-                    format!("model.{key}"),
-                    format!("{x} is not a positive number"),
-                );
-            }
-            x
-        };
-        let params = PlanarParams {
-            mass_kg: param("mass_kg", m.mass_kg, d.mass_kg),
-            arm_m: param("arm_m", m.arm_m, d.arm_m),
-            inertia_kg_m2: param("inertia_kg_m2", m.inertia_kg_m2, d.inertia_kg_m2),
-            gravity_m_s2: param("gravity_m_s2", m.gravity_m_s2, d.gravity_m_s2),
-            dt_s: param("dt_s", m.dt_s, d.dt_s),
-        };
+        let parts = PlanarParts::read(&m, imu, spec, c);
+        if imu {
+            let other = |k: &str| {
+                self.p1.get(k).map(|_| {
+                    // Only the running mean's reason is known here; another P1 kind (a
+                    // user's) is named as what it is.
+                    if k == "running_mean" {
+                        format!("{k} reads y, θ, θ̇ directly and needs model.sensor = \"p1\"")
+                    } else {
+                        format!(
+                            "filter kind `{k}` is registered for model.sensor = \"p1\" only, and this spec's sensor is \"imu\""
+                        )
+                    }
+                })
+            };
+            parts.plan(&self.imu, &other, spec, c)
+        } else {
+            let other = |k: &str| {
+                self.imu
+                    .get(k)
+                    .map(|_| format!("filter kind `{k}` is registered for model.sensor = \"imu\" only, and this spec's sensor is \"p1\""))
+            };
+            parts.plan(&self.p1, &other, spec, c)
+        }
+    }
+}
+
+/// What a planar spec says besides its filters, the same for either sensor set.
+struct PlanarParts {
+    params: PlanarParams,
+    process_std: Vec<f64>,
+    measurement_std: Vec<f64>,
+    scenarios: Vec<PlanarScenarioDef>,
+    p0_std: Vector<6>,
+    layout: Layout,
+}
+
+impl PlanarParts {
+    /// Validates the `[model]` keys `m` (sensor set IMU when `imu`), the scenarios and the
+    /// initial estimate.
+    fn read(m: &ModelKeys, imu: bool, spec: &SystemSpec<'_>, c: &mut Checker) -> Self {
+        let params = physical_params(m, c);
         let nz = if imu { 4 } else { 3 };
         let process_std = c.vector(
             "model.process_noise_std",
@@ -230,102 +255,105 @@ impl System for PlanarSystem {
             positive,
             "a positive number",
         );
-        let layout = Layout {
-            quantities: PLANAR_STATES
-                .iter()
-                .zip(["m", "m/s", "m", "m/s", "rad", "rad/s"])
-                // θ is the seeds' unwrapped attitude (a roll passes ±π continuously), so its
-                // error is a plain difference.
-                .map(|(n, u)| match *n {
-                    // The vehicle moves in the vertical x–y plane: x to the right, y up.
-                    "x" => Quantity::position(*n, u, PositionAxis::X),
-                    "y" => Quantity::position(*n, u, PositionAxis::Y),
-                    _ => Quantity::new(*n, u),
-                })
-                .collect(),
-            inputs: vec!["u1".into(), "u2".into()],
-            measurements: if imu {
-                IMU_MEASUREMENTS.iter().map(|s| s.to_string()).collect()
-            } else {
-                P1_MEASUREMENTS.iter().map(|s| s.to_string()).collect()
-            },
-            world_states: Vec::new(),
-            dt_s: params.dt_s,
-        };
-        let p0 = Vector::<6>::from_column_slice(&p0_std);
-        let samples = scenarios
+        PlanarParts {
+            layout: layout(imu, params.dt_s),
+            p0_std: Vector::<6>::from_column_slice(&p0_std),
+            params,
+            process_std,
+            measurement_std,
+            scenarios,
+        }
+    }
+
+    /// The plan on the sensor set of `kinds` (`other` explains a kind registered for the other
+    /// set only), when the whole spec is clean.
+    fn plan<const NZ: usize>(
+        self,
+        kinds: &FilterKinds<6, 2, NZ, Planar<NZ>>,
+        other: &dyn Fn(&str) -> Option<String>,
+        spec: &SystemSpec<'_>,
+        c: &mut Checker,
+    ) -> Option<Arc<dyn SystemPlan>>
+    where
+        Planar<NZ>: Model<6, 2, NZ>,
+    {
+        let dt_s = self.params.dt_s;
+        let model = Planar::<NZ>::new(self.params);
+        let entries = kinds.configure_all(
+            spec.filters,
+            &FilterSetup::new(&model, KIND, &self.process_std, &self.measurement_std)
+                .explaining_unknown(other),
+            c,
+        );
+        let samples = self
+            .scenarios
             .iter()
-            .map(|s| s.steps(params.dt_s) + 1)
+            .map(|s| s.steps(dt_s) + 1)
             .max()
             .unwrap_or(0);
-        let expanded = |dt| scenarios.iter().map(|s| s.expand(dt)).collect::<Vec<_>>();
-        if imu {
-            let model = Planar::<4>::new(params);
-            let entries = self.imu.configure_all(
-                spec.filters,
-                &model,
-                KIND,
-                &process_std,
-                &measurement_std,
-                &|k| {
-                    self.p1.get(k).map(|_| {
-                        // Only the running mean's reason is known here; another P1 kind (a
-                        // user's) is named as what it is.
-                        if k == "running_mean" {
-                            format!("{k} reads y, θ, θ̇ directly and needs model.sensor = \"p1\"")
-                        } else {
-                            format!(
-                                "filter kind `{k}` is registered for model.sensor = \"p1\" only, and this spec's sensor is \"imu\""
-                            )
-                        }
-                    })
-                },
-                c,
-            );
-            if entries.len() == spec.filters.len() && samples > 0 {
-                check_scenarios(&entries, spec.filters, samples, c);
-            }
-            let noise = truth_noise::<4>(&process_std, &measurement_std);
-            (c.is_clean()).then(|| {
-                Arc::new(AdditivePlan::new(
-                    model,
-                    layout,
-                    expanded(params.dt_s),
-                    noise,
-                    p0,
-                    entries,
-                )) as Arc<dyn SystemPlan>
-            })
-        } else {
-            let model = Planar::<3>::new(params);
-            let entries = self.p1.configure_all(
-                spec.filters,
-                &model,
-                KIND,
-                &process_std,
-                &measurement_std,
-                &|k| {
-                    self.imu
-                        .get(k)
-                        .map(|_| format!("filter kind `{k}` is registered for model.sensor = \"imu\" only, and this spec's sensor is \"p1\""))
-                },
-                c,
-            );
-            if entries.len() == spec.filters.len() && samples > 0 {
-                check_scenarios(&entries, spec.filters, samples, c);
-            }
-            let noise = truth_noise::<3>(&process_std, &measurement_std);
-            (c.is_clean()).then(|| {
-                Arc::new(AdditivePlan::new(
-                    model,
-                    layout,
-                    expanded(params.dt_s),
-                    noise,
-                    p0,
-                    entries,
-                )) as Arc<dyn SystemPlan>
-            })
+        if entries.len() == spec.filters.len() && samples > 0 {
+            check_scenarios(&entries, spec.filters, samples, c);
         }
+        let noise = truth_noise::<NZ>(&self.process_std, &self.measurement_std);
+        (c.is_clean()).then(|| {
+            Arc::new(AdditivePlan::new(
+                model,
+                self.layout,
+                self.scenarios.iter().map(|s| s.expand(dt_s)).collect(),
+                noise,
+                self.p0_std,
+                entries,
+            )) as Arc<dyn SystemPlan>
+        })
+    }
+}
+
+/// The physical parameters of `[model]`, each a positive number (defaults: the seeds').
+fn physical_params(m: &ModelKeys, c: &mut Checker) -> PlanarParams {
+    let d = PlanarParams::default();
+    let mut param = |key: &str, v: Option<f64>, def: f64| {
+        let x = v.unwrap_or(def);
+        if !positive(x) {
+            c.err(
+                format!("model.{key}"),
+                format!("{x} is not a positive number"),
+            );
+        }
+        x
+    };
+    PlanarParams {
+        mass_kg: param("mass_kg", m.mass_kg, d.mass_kg),
+        arm_m: param("arm_m", m.arm_m, d.arm_m),
+        inertia_kg_m2: param("inertia_kg_m2", m.inertia_kg_m2, d.inertia_kg_m2),
+        gravity_m_s2: param("gravity_m_s2", m.gravity_m_s2, d.gravity_m_s2),
+        dt_s: param("dt_s", m.dt_s, d.dt_s),
+    }
+}
+
+/// The planar layout: the six states as quantities, with x and y the position in the vertical
+/// plane, and the measurements of sensor set P1 or (`imu`) the IMU set.
+fn layout(imu: bool, dt_s: f64) -> Layout {
+    Layout {
+        quantities: PLANAR_STATES
+            .iter()
+            .zip(["m", "m/s", "m", "m/s", "rad", "rad/s"])
+            // θ is the seeds' unwrapped attitude (a roll passes ±π continuously), so its
+            // error is a plain difference.
+            .map(|(n, u)| match *n {
+                // The vehicle moves in the vertical x–y plane: x to the right, y up.
+                "x" => Quantity::position(*n, u, PositionAxis::X),
+                "y" => Quantity::position(*n, u, PositionAxis::Y),
+                _ => Quantity::new(*n, u),
+            })
+            .collect(),
+        inputs: vec!["u1".into(), "u2".into()],
+        measurements: if imu {
+            IMU_MEASUREMENTS.iter().map(|s| s.to_string()).collect()
+        } else {
+            P1_MEASUREMENTS.iter().map(|s| s.to_string()).collect()
+        },
+        world_states: Vec::new(),
+        dt_s,
     }
 }
 

@@ -12,8 +12,8 @@ use kfmc::linalg::{Matrix, Vector};
 use kfmc::model::Model;
 use kfmc::output::table::read;
 use kfmc::prelude::{
-    AdditivePlan, Catalogue, Layout, Quantity, Realisation, ScenarioInfo, System, SystemPlan,
-    SystemSpec, TruthNoise, World, WorldKinds, WorldPlan, common_kinds,
+    AdditivePlan, Catalogue, FilterSetup, Layout, Quantity, Realisation, ScenarioInfo, System,
+    SystemPlan, SystemSpec, TruthNoise, World, WorldKinds, WorldPlan, common_kinds,
 };
 use kfmc::runner::NullObserver;
 use kfmc::scenario::Scenario;
@@ -143,11 +143,7 @@ impl System for CvAdditive {
     fn configure(&self, spec: &SystemSpec<'_>, c: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
         let entries = common_kinds().configure_all(
             spec.filters,
-            &Cv,
-            "cv_additive",
-            &[0.0, 0.0],
-            &[MEAS_STD],
-            &|_| None,
+            &FilterSetup::new(&Cv, "cv_additive", &[0.0, 0.0], &[MEAS_STD]),
             c,
         );
         c.is_clean().then(|| {
