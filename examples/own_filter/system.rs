@@ -180,7 +180,7 @@ impl System for TargetSystem {
         let q = model.q();
         let process_std: Vec<f64> = (0..4).map(|i| q[(i, i)].sqrt()).collect();
         let measurement_std = [range_std, bearing_std];
-        let entries = self.kinds.configure_all(
+        let entries = self.kinds.configure_entries(
             spec.filters,
             &FilterSetup::new(&model, KIND, &process_std, &measurement_std),
             c,

@@ -77,7 +77,7 @@ pub struct Trajectory<const NX: usize, const NZ: usize> {
 /// fewer directions than there are states), V·diag(√λ) from its symmetric eigenvalues.
 /// `None` when Q is not a finite, symmetric, positive semi-definite matrix: no Gaussian has
 /// it as covariance, and systems refuse such a model while validating
-/// ([`crate::system::additive::FilterKinds::configure_all`]).
+/// ([`crate::system::additive::FilterKinds::configure_entries`]).
 pub fn process_factor<const NX: usize>(q: &Matrix<NX, NX>) -> Option<Matrix<NX, NX>> {
     // A Cholesky factorisation reads one triangle only: symmetry is checked first. The
     // tolerance leaves room for the round-off of a discretised Q.

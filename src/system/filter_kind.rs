@@ -103,7 +103,7 @@ pub trait FilterEntry<const NX: usize, const NU: usize, const NZ: usize, M>:
 }
 
 /// Runs [`FilterEntry::check_scenarios`] on every entry; `entries` must be the system's
-/// filter tables `tables` in order (as [`FilterKinds::configure_all`] returns them when no
+/// filter tables `tables` in order (as [`FilterKinds::configure_entries`] returns them when no
 /// entry failed). Each problem is named at its table's key, the entry's place in the spec's
 /// list (which differs from its place in `tables` when external filters precede it).
 pub fn check_scenarios<const NX: usize, const NU: usize, const NZ: usize, M>(
@@ -151,7 +151,7 @@ pub trait FilterKind<const NX: usize, const NU: usize, const NZ: usize, M>: Send
 }
 
 /// What a system's `[[filters]]` entries are validated against
-/// ([`FilterKinds::configure_all`]): the model the filters assume, the system's `model.kind`
+/// ([`FilterKinds::configure_entries`]): the model the filters assume, the system's `model.kind`
 /// for messages, and the truth's noise standard deviations at scale 1, the defaults of
 /// `q_std` and `r_std`.
 #[derive(Clone, Copy)]
@@ -259,11 +259,38 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
             .collect()
     }
 
+    /// The entries of `filters` validated as [`FilterKinds::configure_entries`] does, with
+    /// the setup's parts as separate arguments.
+    #[deprecated(
+        note = "use configure_entries(filters, &FilterSetup::new(model, system, process_std, measurement_std), c)"
+    )]
+    #[allow(
+        clippy::too_many_arguments,
+        reason = "the signature of before FilterSetup, kept for one release"
+    )]
+    pub fn configure_all(
+        &self,
+        filters: &[super::FilterTable],
+        model: &M,
+        system: &str,
+        process_std: &[f64],
+        measurement_std: &[f64],
+        unknown: &dyn Fn(&str) -> Option<String>,
+        c: &mut Checker,
+    ) -> Vec<Arc<dyn FilterEntry<NX, NU, NZ, M>>>
+    where
+        M: Model<NX, NU, NZ>,
+    {
+        let setup = FilterSetup::new(model, system, process_std, measurement_std)
+            .explaining_unknown(unknown);
+        self.configure_entries(filters, &setup, c)
+    }
+
     /// Validates every entry of `filters` whose kind is in this set against `setup` (the
     /// model, and the truth's noise whose standard deviations are the defaults of `q_std` and
     /// `r_std`); an unknown kind is an error at `filters[i].kind` listing the tags, or the
     /// setup's explanation of it ([`FilterSetup::explaining_unknown`]).
-    pub fn configure_all(
+    pub fn configure_entries(
         &self,
         filters: &[super::FilterTable],
         setup: &FilterSetup<'_, M>,

@@ -482,7 +482,7 @@ mod tests {
             keys: toml::Table::new(),
         }];
         let mut c = Checker::new(std::path::Path::new("t.toml"), "");
-        let entries = kinds.configure_all(
+        let entries = kinds.configure_entries(
             &filters,
             &FilterSetup::new(&Walk(q), "walk", process_std, &[0.1]),
             &mut c,
@@ -505,6 +505,53 @@ mod tests {
         assert!(
             errors[0].contains("t.toml: model: the walk model's process-noise covariance Q"),
             "{errors:?}"
+        );
+    }
+
+    /// The deprecated `configure_all` (the setup as separate arguments) configures what
+    /// `configure_entries` does and reports the same problems, an unknown kind explained by
+    /// its `unknown` too.
+    #[test]
+    #[allow(deprecated)]
+    fn the_deprecated_configure_all_is_configure_entries() {
+        let kinds = common_kinds::<2, 1, 1, Walk>();
+        let table = |kind: &str| super::super::FilterTable {
+            key: "filters[0]".into(),
+            label: kind.into(),
+            kind: kind.into(),
+            keys: toml::from_str("r_std = 0.2").unwrap(),
+        };
+        let walk = Walk(Matrix::<2, 2>::identity());
+        let filters = [table("ekf"), table("ukf"), table("gimbal")];
+        let explain = |kind: &str| (kind == "gimbal").then(|| "only on the drone".to_string());
+        let mut old = Checker::new(std::path::Path::new("t.toml"), "");
+        let by_arguments = kinds.configure_all(
+            &filters,
+            &walk,
+            "walk",
+            &[0.1, 0.1],
+            &[0.1],
+            &explain,
+            &mut old,
+        );
+        let mut new = Checker::new(std::path::Path::new("t.toml"), "");
+        let setup =
+            FilterSetup::new(&walk, "walk", &[0.1, 0.1], &[0.1]).explaining_unknown(&explain);
+        let by_setup = kinds.configure_entries(&filters, &setup, &mut new);
+        let infos = |e: &[Arc<dyn FilterEntry<2, 1, 1, Walk>>]| -> Vec<(String, Vec<f64>)> {
+            e.iter()
+                .map(|e| (e.info().kind.clone(), e.assumed_std().1.to_vec()))
+                .collect()
+        };
+        assert_eq!(infos(&by_arguments), infos(&by_setup));
+        assert_eq!(by_setup.len(), 2);
+        let errors =
+            |c: Checker| -> Vec<String> { c.into_errors().iter().map(|e| e.to_string()).collect() };
+        let (old, new) = (errors(old), errors(new));
+        assert_eq!(old, new);
+        assert!(
+            old.len() == 1 && old[0].contains("only on the drone"),
+            "{old:?}"
         );
     }
 
@@ -532,7 +579,7 @@ mod tests {
         };
         let walk = Walk(Matrix::<2, 2>::identity());
         let mut c = Checker::new(std::path::Path::new("t.toml"), "");
-        let entries = kinds.configure_all(
+        let entries = kinds.configure_entries(
             &[table("r_std = 0.5"), table("r_stdd = 0.5")],
             &FilterSetup::new(&walk, "walk", &[0.1, 0.1], &[0.1]),
             &mut c,

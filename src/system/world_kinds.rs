@@ -84,7 +84,7 @@ where
             positive,
             "a positive number",
         );
-        let entries = self.kinds.configure_all(
+        let entries = self.kinds.configure_entries(
             spec.filters,
             &FilterSetup::new(
                 &*self.model,

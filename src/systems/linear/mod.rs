@@ -249,7 +249,7 @@ fn build<const NX: usize, const NZ: usize, const NA: usize, const NV: usize>(
 
     let kinds =
         linear_kinds::<NX, NU_MAX, NZ, LinearModel<NX, NU_MAX, NZ>>(detectable::<NX, NU_MAX, NZ>);
-    let entries = kinds.configure_all(
+    let entries = kinds.configure_entries(
         spec.filters,
         &FilterSetup::new(&model, KIND, &process_std, &measurement_std),
         c,

@@ -178,7 +178,7 @@ impl LinearQuadrotorSystem {
             "a non-negative number",
         );
         let scenarios = scenarios(spec.scenarios, dt_s, c);
-        let entries = kinds.configure_all(
+        let entries = kinds.configure_entries(
             spec.filters,
             &FilterSetup::new(&model, KIND, &process_std, &measurement_std),
             c,

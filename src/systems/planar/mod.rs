@@ -279,7 +279,7 @@ impl PlanarParts {
     {
         let dt_s = self.params.dt_s;
         let model = Planar::<NZ>::new(self.params);
-        let entries = kinds.configure_all(
+        let entries = kinds.configure_entries(
             spec.filters,
             &FilterSetup::new(&model, KIND, &self.process_std, &self.measurement_std)
                 .explaining_unknown(other),

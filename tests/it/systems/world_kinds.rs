@@ -141,7 +141,7 @@ impl System for CvAdditive {
         Catalogue::default()
     }
     fn configure(&self, spec: &SystemSpec<'_>, c: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
-        let entries = common_kinds().configure_all(
+        let entries = common_kinds().configure_entries(
             spec.filters,
             &FilterSetup::new(&Cv, "cv_additive", &[0.0, 0.0], &[MEAS_STD]),
             c,
