@@ -67,6 +67,14 @@ pub(super) struct Decided {
     pub(super) burn_in: Option<usize>,
 }
 
+/// `estimates.parquet` (`--export-estimates`) and what its rows of each filter variant
+/// write in its variant columns ([`Plan::export_variant_keys`]).
+pub(super) struct EstimatesTable {
+    pub(super) table: TableWriter,
+    /// Per filter variant: its values in the file's variant columns, in their order.
+    pub(super) variant_keys: Vec<Vec<Value<'static>>>,
+}
+
 pub(super) struct Aggregator<'a> {
     pub(super) plan: &'a Plan,
     pub(super) trial: &'a dyn Trial,
@@ -78,7 +86,7 @@ pub(super) struct Aggregator<'a> {
     pub(super) summary: TableWriter,
     pub(super) traces: Option<TableWriter>,
     /// `estimates.parquet` (`--export-estimates`): every run in the exchange format.
-    pub(super) estimates: Option<TableWriter>,
+    pub(super) estimates: Option<EstimatesTable>,
     pub(super) consistency: Option<TableWriter>,
     pub(super) sensors: Option<TableWriter>,
     pub(super) bands: BandCache,
@@ -254,7 +262,7 @@ impl Aggregator<'_> {
             .into_iter()
             .chain(self.run_steps.as_mut())
             .chain(self.traces.as_mut())
-            .chain(self.estimates.as_mut())
+            .chain(self.estimates.as_mut().map(|e| &mut e.table))
             .chain(self.consistency.as_mut())
             .chain(self.sensors.as_mut())
             .chain(self.sequential.as_mut().map(|q| &mut q.table))
@@ -636,7 +644,7 @@ fn sequential_values(d: &Decided, alpha: f64) -> [Value<'static>; 11] {
 /// Writes one run's rows of `estimates.parquet`: every kfmc filter (external ones are what
 /// is being scored, not exported), in the exchange format of [`crate::score`].
 pub(super) fn write_estimates(
-    w: &mut TableWriter,
+    w: &mut EstimatesTable,
     plan: &Plan,
     scenario: &str,
     noise: f64,
@@ -671,12 +679,13 @@ pub(super) fn write_estimates(
                 Value::I64(Some(k as i64)),
                 Value::Str(&f.label),
             ];
+            row.extend_from_slice(&w.variant_keys[fi]);
             row.extend(estimate(&tr.est[fi][k * nq..(k + 1) * nq]));
             row.extend(f64s(&tr.cov[fi][k * ntri..(k + 1) * ntri]));
             row.extend(f64s(&x.nu[k * nz..(k + 1) * nz]));
             row.extend(f64s(&x.s[k * ztri..(k + 1) * ztri]));
             row.extend(f64s(&x.a[k * nq * nq..(k + 1) * nq * nq]));
-            w.push(&row)?;
+            w.table.push(&row)?;
         }
     }
     Ok(())

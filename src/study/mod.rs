@@ -33,7 +33,7 @@ use crate::output::{TableWriter, Value, schema};
 use crate::runner::{Executor, RunObserver, execute_windowed, window_for};
 use crate::trial::{Trial, Unit};
 
-use fold::{Aggregator, SequentialState};
+use fold::{Aggregator, EstimatesTable, SequentialState};
 use resources::window_unit_bytes;
 use resume::{Checkpointer, checkpoint_identity, existing_checkpoint};
 
@@ -63,24 +63,6 @@ pub fn run_locked(
                 message: format!(
                     "`{}` is an external filter: its estimates come from a file. Run `kfmc simulate`, estimate from its tables, then `kfmc score DIR --estimates FILE` (or `kfmc check SPEC --estimates FILE`)",
                     f.label
-                ),
-            },
-        ])));
-    }
-    if plan.export_estimates
-        && let Some(f) = plan
-            .filters
-            .iter()
-            .enumerate()
-            .find(|(i, f)| plan.filters[..*i].iter().any(|g| g.label == f.label))
-    {
-        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-            crate::error::SpecError {
-                file: plan.spec_path.clone(),
-                key_path: "filters".into(),
-                message: format!(
-                    "--export-estimates needs one variant per label, but `{}` has several q_scale/r_scale variants (the estimates format keys a filter by its label alone)",
-                    f.1.label
                 ),
             },
         ])));
@@ -288,16 +270,10 @@ fn open_aggregator<'a>(
             "sensors",
             schema::sensors(),
         )?,
-        estimates: optional(
-            plan.export_estimates,
-            "estimates",
-            crate::score::estimate_columns_in(
-                &states,
-                &layout.measurement_names(),
-                &layout.rotations(),
-                plan.export_precision,
-            ),
-        )?,
+        estimates: match plan.export_estimates {
+            true => Some(open_estimates(plan, &states, opener)?),
+            false => None,
+        },
         bands: BandCache::new(plan.alpha),
         blocks,
         divergence,
@@ -317,6 +293,40 @@ fn open_aggregator<'a>(
             }),
             None => None,
         },
+    })
+}
+
+/// `estimates.parquet` of `--export-estimates`: the exchange format, with a variant column
+/// for each axis on which a label's rows must name their variant ([`Plan::export_variant_keys`];
+/// null in the rows of a filter that does not key that axis).
+fn open_estimates(
+    plan: &Plan,
+    states: &[&str],
+    opener: &TableOpener<'_>,
+) -> Result<EstimatesTable, OutputError> {
+    let layout = plan.layout();
+    let keys = plan.export_variant_keys();
+    let axes = [0, 1].map(|axis| keys.iter().any(|k| k[axis].is_some()));
+    let columns = schema::with_variant_columns(
+        crate::score::estimate_columns_in(
+            states,
+            &layout.measurement_names(),
+            &layout.rotations(),
+            plan.export_precision,
+        ),
+        axes,
+    );
+    Ok(EstimatesTable {
+        table: opener.open_plain("estimates", columns)?,
+        variant_keys: keys
+            .iter()
+            .map(|k| {
+                (0..2)
+                    .filter(|&axis| axes[axis])
+                    .map(|axis| Value::F64(k[axis]))
+                    .collect()
+            })
+            .collect(),
     })
 }
 
@@ -449,6 +459,6 @@ fn finish_tables(
     written.extend(consistency);
     written.extend(agg_sequential.map(|q| q.table));
     written.extend(traces);
-    written.extend(estimates);
+    written.extend(estimates.map(|e| e.table));
     written.into_iter().map(TableWriter::finish).collect()
 }
