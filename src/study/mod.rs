@@ -75,18 +75,15 @@ pub fn run_locked(
     let dir = part_dir.as_ref().unwrap_or(&plan.output);
     let folder = StudyFolder::open(dir, study_kind(plan), opts.force)?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
-    let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
-    let result = run_in(
-        plan,
-        opts,
-        observer,
+    let session = Session {
         dir,
-        &folder,
+        folder: &folder,
         n_cells,
-        cells,
+        cells: opts.shard.map_or(0..n_cells, |s| s.cells(n_cells)),
         started,
         started_unix_s,
-    );
+    };
+    let result = run_in(plan, opts, observer, session);
     if result.is_err()
         && opts.checkpoints.is_some()
         && matches!(crate::output::checkpoint::Index::read(dir), Ok(None))
@@ -98,19 +95,35 @@ pub fn run_locked(
     result.map(|report| (report, folder))
 }
 
+/// What [`run_locked`] settles before a study runs: the folder it holds, the cells this
+/// process runs there (every cell, or a shard's), and when it started.
+struct Session<'a> {
+    /// The folder written: the study's, or its part's.
+    dir: &'a std::path::Path,
+    folder: &'a StudyFolder,
+    /// The study's cells, of which this process runs `cells`.
+    n_cells: usize,
+    cells: std::ops::Range<usize>,
+    started: Instant,
+    /// The start as the manifest records it.
+    started_unix_s: u64,
+}
+
 /// [`run`] once the folder is held.
-#[allow(clippy::too_many_arguments)]
 fn run_in(
     plan: &Plan,
     opts: &ExecOptions,
     observer: &dyn RunObserver,
-    dir: &std::path::Path,
-    folder: &StudyFolder,
-    n_cells: usize,
-    cells: std::ops::Range<usize>,
-    started: Instant,
-    started_unix_s: u64,
+    session: Session<'_>,
 ) -> Result<StudyReport, KfmcError> {
+    let Session {
+        dir,
+        folder,
+        n_cells,
+        cells,
+        started,
+        started_unix_s,
+    } = session;
     let trial = plan.trial();
     let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
     let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
