@@ -281,51 +281,69 @@ impl Plan {
 
     /// The columns of an estimates file for this plan (`kfmc schema estimates`): those of
     /// [`crate::score::estimate_columns_with`], with `q_scale` and `r_scale` after `filter`
-    /// when an external filter declares variants on that axis.
+    /// when an external filter declares variants on that axis or the export keys kfmc's own
+    /// variants by it ([`Plan::export_variant_keys`]).
     pub fn estimate_schema(&self) -> Vec<crate::output::schema::ColumnDef> {
         let l = self.layout();
-        let mut cols = crate::score::estimate_columns_with(
+        let cols = crate::score::estimate_columns_with(
             &l.quantity_names(),
             &l.measurement_names(),
             &l.rotations(),
         );
-        let at = cols
-            .iter()
-            .position(|c| c.name == "filter")
-            .map_or(0, |i| i + 1);
-        let axes = [
+        let keys = self.export_variant_keys();
+        let axes = [0, 1].map(|axis| {
             self.filters
                 .iter()
-                .any(|f| f.external && f.declared.q_scale),
-            self.filters
-                .iter()
-                .any(|f| f.external && f.declared.r_scale),
-        ];
-        let variant: Vec<crate::output::schema::ColumnDef> = crate::score::VARIANT_COLUMNS
-            .iter()
-            .zip(axes)
-            .filter(|(_, declared)| *declared)
-            .map(|(name, _)| crate::output::schema::ColumnDef {
-                name: name.to_string(),
-                dtype: crate::output::schema::Dtype::F64,
-            })
-            .collect();
-        cols.splice(at..at, variant);
-        cols
+                .any(|f| f.external && [f.declared.q_scale, f.declared.r_scale][axis])
+                || keys.iter().any(|k| k[axis].is_some())
+        });
+        crate::output::schema::with_variant_columns(cols, axes)
     }
 
-    /// The variants of the external filters that declare them, as `kfmc schema estimates`
-    /// notes them: per axis, `` `mine` q_scale = 0.5, 1, 2 `` for each such label.
+    /// Per filter variant, what `kfmc run --export-estimates` writes in the estimates'
+    /// `q_scale` and `r_scale` columns. A label of kfmc's with several variants names each
+    /// row's variant on every axis where one of its variants is not 1: the axes its entry
+    /// lists when declared `kind = "external"` with the same variants, and so the columns the
+    /// reader then requires, and keys as this study did. A label with one variant names none
+    /// (its rows are read as an external filter's without variants), nor does an external
+    /// filter (its rows are scored, not exported).
+    pub fn export_variant_keys(&self) -> Vec<[Option<f64>; 2]> {
+        let axis_of = |f: &FilterPlan, axis: usize| [f.q_scale, f.r_scale][axis];
+        self.filters
+            .iter()
+            .map(|f| {
+                let same: Vec<&FilterPlan> =
+                    self.filters.iter().filter(|g| g.label == f.label).collect();
+                if f.external || same.len() < 2 {
+                    return [None, None];
+                }
+                [0, 1].map(|axis| {
+                    same.iter()
+                        .any(|g| axis_of(g, axis) != 1.0)
+                        .then_some(axis_of(f, axis))
+                })
+            })
+            .collect()
+    }
+
+    /// The variants the estimates' `q_scale` (or `r_scale`, as `axis` names) column names,
+    /// as `kfmc schema estimates` notes them: `` `mine` q_scale = 0.5, 1, 2 `` for each
+    /// external label declaring variants on that axis and each label of kfmc's whose export
+    /// keys them ([`Plan::export_variant_keys`]).
     pub fn external_variants_text(&self, axis: &str) -> Vec<String> {
+        let a = usize::from(axis != "q_scale");
+        let keys = self.export_variant_keys();
         let mut out: Vec<(String, Vec<f64>)> = Vec::new();
-        for f in self.filters.iter().filter(|f| f.external) {
-            let (declared, v) = match axis {
-                "q_scale" => (f.declared.q_scale, f.q_scale),
-                _ => (f.declared.r_scale, f.r_scale),
+        for (f, key) in self.filters.iter().zip(&keys) {
+            let declared = if f.external {
+                [f.declared.q_scale, f.declared.r_scale][a]
+            } else {
+                key[a].is_some()
             };
             if !declared {
                 continue;
             }
+            let v = [f.q_scale, f.r_scale][a];
             match out.iter_mut().find(|(l, _)| *l == f.label) {
                 Some((_, vs)) if !vs.contains(&v) => vs.push(v),
                 Some(_) => {}

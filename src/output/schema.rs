@@ -72,6 +72,23 @@ fn cell_keys() -> Vec<ColumnDef> {
     ]
 }
 
+/// An estimates file's columns `cols` with the variant columns after `filter`: `q_scale` and
+/// `r_scale`, each where `axes` says a filter's rows name their variant on that axis (an
+/// external filter declaring variants, or kfmc's own exported).
+pub fn with_variant_columns(mut cols: Vec<ColumnDef>, axes: [bool; 2]) -> Vec<ColumnDef> {
+    let at = cols
+        .iter()
+        .position(|c| c.name == "filter")
+        .map_or(0, |i| i + 1);
+    let variant = ["q_scale", "r_scale"]
+        .into_iter()
+        .zip(axes)
+        .filter(|(_, keyed)| *keyed)
+        .map(|(name, _)| col(name, Dtype::F64));
+    cols.splice(at..at, variant);
+    cols
+}
+
 /// The key columns of per-(scenario, filter variant) tables.
 fn filter_keys() -> Vec<ColumnDef> {
     vec![

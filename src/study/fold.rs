@@ -13,10 +13,10 @@ use crate::metrics::consistency::{
 use crate::metrics::credibility::{CredibilityFold, CredibilityStep, credible_reference};
 use crate::metrics::divergence::DivergenceTracker;
 use crate::metrics::spill::Spill;
-use crate::metrics::{RunStatus, StepAccumulator};
+use crate::metrics::{FilterRun, RunStatus, StepAccumulator};
 use crate::output::{TableWriter, Value};
 use crate::sequential::{Decision, Gate};
-use crate::trial::{Trial, Unit, UnitResult};
+use crate::trial::{RunTrace, Trial, Unit, UnitResult};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -67,6 +67,14 @@ pub(super) struct Decided {
     pub(super) burn_in: Option<usize>,
 }
 
+/// `estimates.parquet` (`--export-estimates`) and what its rows of each filter variant
+/// write in its variant columns ([`Plan::export_variant_keys`]).
+pub(super) struct EstimatesTable {
+    pub(super) table: TableWriter,
+    /// Per filter variant: its values in the file's variant columns, in their order.
+    pub(super) variant_keys: Vec<Vec<Value<'static>>>,
+}
+
 pub(super) struct Aggregator<'a> {
     pub(super) plan: &'a Plan,
     pub(super) trial: &'a dyn Trial,
@@ -78,7 +86,7 @@ pub(super) struct Aggregator<'a> {
     pub(super) summary: TableWriter,
     pub(super) traces: Option<TableWriter>,
     /// `estimates.parquet` (`--export-estimates`): every run in the exchange format.
-    pub(super) estimates: Option<TableWriter>,
+    pub(super) estimates: Option<EstimatesTable>,
     pub(super) consistency: Option<TableWriter>,
     pub(super) sensors: Option<TableWriter>,
     pub(super) bands: BandCache,
@@ -97,6 +105,9 @@ pub(super) struct Aggregator<'a> {
 }
 
 impl Aggregator<'_> {
+    /// Folds one unit's result: its rows of the runs, run_steps, estimates and traces
+    /// tables, and its filters into the cell's accumulators; the cell's last run (in a fixed
+    /// study) finishes the cell.
     pub(super) fn fold(&mut self, r: UnitResult) -> Result<(), OutputError> {
         let plan = self.plan;
         let Unit {
@@ -104,146 +115,193 @@ impl Aggregator<'_> {
             scale,
             run,
         } = r.unit;
-        let nx = self.states.len();
-        let nf = plan.filters.len();
         if self
             .cell
             .as_ref()
             .is_none_or(|(s, j, _)| (*s, *j) != (scenario, scale))
         {
-            let steps = self.trial.steps(scenario);
-            // The whole cell, then each subset: its first N runs.
-            let consistency_bounds: Vec<usize> = std::iter::once(usize::MAX)
-                .chain(
-                    plan.consistency
-                        .iter()
-                        .flat_map(|c| c.subsets.iter().map(|s| s.0)),
-                )
-                .collect();
-            self.cell = Some((
-                scenario,
-                scale,
-                CellState {
-                    // Every run of the cell comes here (shards split by cells).
-                    acc: (0..nf)
-                        .map(|_| {
-                            let mut a = StepAccumulator::with_exact_cap(
-                                nx,
-                                steps,
-                                crate::metrics::abs_err_exact_cap(nf, nx, steps + 1),
-                            );
-                            a.reserve_runs(plan.runs);
-                            a
-                        })
-                        .collect(),
-                    rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
-                    consistency: (0..nf)
-                        .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))
-                        .collect(),
-                    credibility: if plan.consistency.is_some() {
-                        (0..nf)
-                            .map(|_| {
-                                CredibilityFold::new(&self.scratch, nx, self.blocks.len(), steps)
-                            })
-                            .collect()
-                    } else {
-                        Vec::new()
-                    },
-                    failed: vec![0; nf],
-                    world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
-                    decisions: vec![None; nf],
-                },
-            ));
+            self.cell = Some((scenario, scale, self.new_cell(scenario)));
         }
         let sname = plan.scenarios[scenario].name.as_str();
         let noise = plan.noise_scales[scale];
-        let (_, _, cell) = self.cell.as_mut().expect("set above");
         if !r.world_metrics.is_empty() {
-            cell.world.push(&r.world_metrics)?;
+            self.open_cell().world.push(&r.world_metrics)?;
         }
         for (fi, fr) in r.filters.iter().enumerate() {
-            let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
-            let mut row = cell_key(sname, noise, &plan.filters[fi]).to_vec();
-            row.extend([
-                Value::I64(Some(run as i64)),
-                Value::U64(r.seed),
-                Value::Str(fr.status.label()),
-                Value::I64(fr.status.step().map(|s| s as i64)),
-                Value::Str(fr.status.detail().unwrap_or("")),
-            ]);
-            row.extend(fr.rmse.iter().map(|v| Value::F64((!failed).then_some(*v))));
-            row.extend([
-                Value::F64(fr.nees_mean),
-                Value::F64(fr.nis_mean),
-                Value::I64(Some(fr.covariance_repairs as i64)),
-            ]);
-            self.runs.push(&row)?;
-            if let Some(w) = self.run_steps.as_mut() {
-                write_run_steps(
-                    w,
-                    cell_key(sname, noise, &plan.filters[fi]),
-                    run,
-                    &fr.steps,
-                    plan.dt_s(),
-                )?;
-            }
-            cell.acc[fi].fold(&fr.steps);
-            if let Some(c) = &fr.consistency {
-                cell.consistency[fi].push(run, c)?;
-            }
-            if let Some(c) = cell.credibility.get_mut(fi) {
-                c.push(&fr.steps)?;
-            }
-            if failed {
-                cell.failed[fi] += 1;
-            } else {
-                cell.rmse[fi].push(&fr.rmse)?;
-            }
-            if let Some(thr) = &plan.rmse_thresholds {
-                let rmse: Vec<f64> = if failed {
-                    vec![f64::NAN; nx]
-                } else {
-                    fr.rmse.clone()
-                };
-                self.divergence[scenario * nf + fi].observe_run(run, scale, &rmse, thr)?;
-            }
+            let key = cell_key(sname, noise, &plan.filters[fi]);
+            self.write_run(key, run, r.seed, fr)?;
+            self.accumulate(scenario, scale, run, fi, fr)?;
         }
         if let (Some(tr), Some(w)) = (&r.trace, self.estimates.as_mut()) {
-            write_estimates(w, plan, sname, noise, run, tr, nx)?;
+            write_estimates(w, plan, sname, noise, run, tr, self.states.len())?;
         }
-        if let (Some(tr), Some(w), true) = (&r.trace, self.traces.as_mut(), run < plan.trace_runs) {
-            let layout = self.trial.layout();
-            let (nu, nz) = (layout.inputs.len(), layout.measurements.len());
-            let nw = layout.world_states.len();
-            let ntri = nx * (nx + 1) / 2;
-            let dt = plan.dt_s();
-            for (fi, f) in plan.filters.iter().enumerate() {
-                for k in 0..tr.truth.len() / nx {
-                    let mut row = cell_key(sname, noise, f).to_vec();
-                    row.extend([
-                        Value::I64(Some(run as i64)),
-                        Value::I64(Some(k as i64)),
-                        Value::F64(Some(k as f64 * dt)),
-                    ]);
-                    let f64s =
-                        |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
-                    row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
-                    row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
-                    row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
-                    row.extend(f64s(tr.world.get(k * nw..(k + 1) * nw).unwrap_or(&[])));
-                    row.extend(f64s(&tr.est[fi][k * nx..(k + 1) * nx]));
-                    let cov = &tr.cov[fi][k * ntri..(k + 1) * ntri];
-                    // var_<q> is the diagonal, kept for readers of the diagonal alone; the
-                    // P_<qi>_<qj> columns follow with the whole lower triangle.
-                    row.extend((0..nx).map(|i| Value::F64(Some(cov[i * (i + 1) / 2 + i]))));
-                    row.extend(f64s(cov));
-                    w.push(&row)?;
-                }
-            }
+        if let Some(tr) = r.trace.as_ref().filter(|_| run < plan.trace_runs) {
+            self.write_traces(sname, noise, run, tr)?;
         }
         if run + 1 == plan.runs && self.sequential.is_none() {
             self.finish_cell()?;
             self.cell_boundary(scenario * plan.noise_scales.len() + scale + 1)?;
+        }
+        Ok(())
+    }
+
+    /// The empty accumulators of a cell of `scenario`, for every filter.
+    fn new_cell(&self, scenario: usize) -> CellState {
+        let plan = self.plan;
+        let nx = self.states.len();
+        let nf = plan.filters.len();
+        let steps = self.trial.steps(scenario);
+        // The whole cell, then each subset: its first N runs.
+        let consistency_bounds: Vec<usize> = std::iter::once(usize::MAX)
+            .chain(
+                plan.consistency
+                    .iter()
+                    .flat_map(|c| c.subsets.iter().map(|s| s.0)),
+            )
+            .collect();
+        CellState {
+            // Every run of the cell comes here (shards split by cells).
+            acc: (0..nf)
+                .map(|_| {
+                    let mut a = StepAccumulator::with_exact_cap(
+                        nx,
+                        steps,
+                        crate::metrics::abs_err_exact_cap(nf, nx, steps + 1),
+                    );
+                    a.reserve_runs(plan.runs);
+                    a
+                })
+                .collect(),
+            rmse: (0..nf).map(|_| Spill::new(&self.scratch, nx)).collect(),
+            consistency: (0..nf)
+                .map(|_| ConsistencyFold::new(&self.scratch, nx, nx, &consistency_bounds))
+                .collect(),
+            credibility: if plan.consistency.is_some() {
+                (0..nf)
+                    .map(|_| CredibilityFold::new(&self.scratch, nx, self.blocks.len(), steps))
+                    .collect()
+            } else {
+                Vec::new()
+            },
+            failed: vec![0; nf],
+            world: Spill::new(&self.scratch, self.trial.world_metrics().len()),
+            decisions: vec![None; nf],
+        }
+    }
+
+    /// The cell being folded.
+    fn open_cell(&mut self) -> &mut CellState {
+        &mut self.cell.as_mut().expect("fold opens the cell").2
+    }
+
+    /// One filter's run: its row of `runs.parquet`, and its steps in `run_steps.parquet`
+    /// when the study keeps them.
+    fn write_run(
+        &mut self,
+        key: [Value<'_>; 5],
+        run: usize,
+        seed: u64,
+        fr: &FilterRun,
+    ) -> Result<(), OutputError> {
+        let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
+        let mut row = key.to_vec();
+        row.extend([
+            Value::I64(Some(run as i64)),
+            Value::U64(seed),
+            Value::Str(fr.status.label()),
+            Value::I64(fr.status.step().map(|s| s as i64)),
+            Value::Str(fr.status.detail().unwrap_or("")),
+        ]);
+        row.extend(fr.rmse.iter().map(|v| Value::F64((!failed).then_some(*v))));
+        row.extend([
+            Value::F64(fr.nees_mean),
+            Value::F64(fr.nis_mean),
+            Value::I64(Some(fr.covariance_repairs as i64)),
+        ]);
+        self.runs.push(&row)?;
+        if let Some(w) = self.run_steps.as_mut() {
+            write_run_steps(w, key, run, &fr.steps, self.plan.dt_s())?;
+        }
+        Ok(())
+    }
+
+    /// Filter `fi`'s run into the open cell's accumulators (steps, consistency, credibility,
+    /// RMSE or a failure) and its scenario's divergence tracker.
+    fn accumulate(
+        &mut self,
+        scenario: usize,
+        scale: usize,
+        run: usize,
+        fi: usize,
+        fr: &FilterRun,
+    ) -> Result<(), OutputError> {
+        let plan = self.plan;
+        let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
+        let (_, _, cell) = self.cell.as_mut().expect("fold opens the cell");
+        cell.acc[fi].fold(&fr.steps);
+        if let Some(c) = &fr.consistency {
+            cell.consistency[fi].push(run, c)?;
+        }
+        if let Some(c) = cell.credibility.get_mut(fi) {
+            c.push(&fr.steps)?;
+        }
+        if failed {
+            cell.failed[fi] += 1;
+        } else {
+            cell.rmse[fi].push(&fr.rmse)?;
+        }
+        if let Some(thr) = &plan.rmse_thresholds {
+            let rmse: Vec<f64> = if failed {
+                vec![f64::NAN; self.states.len()]
+            } else {
+                fr.rmse.clone()
+            };
+            self.divergence[scenario * plan.filters.len() + fi]
+                .observe_run(run, scale, &rmse, thr)?;
+        }
+        Ok(())
+    }
+
+    /// A traced run's rows of `traces.parquet`: per filter and step, the inputs, truth,
+    /// measurements, world states, estimate and covariance.
+    fn write_traces(
+        &mut self,
+        sname: &str,
+        noise: f64,
+        run: usize,
+        tr: &RunTrace,
+    ) -> Result<(), OutputError> {
+        let Some(w) = self.traces.as_mut() else {
+            return Ok(());
+        };
+        let plan = self.plan;
+        let layout = self.trial.layout();
+        let nx = self.states.len();
+        let (nu, nz) = (layout.inputs.len(), layout.measurements.len());
+        let nw = layout.world_states.len();
+        let ntri = nx * (nx + 1) / 2;
+        let dt = plan.dt_s();
+        for (fi, f) in plan.filters.iter().enumerate() {
+            for k in 0..tr.truth.len() / nx {
+                let mut row = cell_key(sname, noise, f).to_vec();
+                row.extend([
+                    Value::I64(Some(run as i64)),
+                    Value::I64(Some(k as i64)),
+                    Value::F64(Some(k as f64 * dt)),
+                ]);
+                let f64s = |v: &[f64]| v.iter().map(|x| Value::F64(Some(*x))).collect::<Vec<_>>();
+                row.extend(f64s(&tr.u[k * nu..(k + 1) * nu]));
+                row.extend(f64s(&tr.truth[k * nx..(k + 1) * nx]));
+                row.extend(f64s(&tr.z[k * nz..(k + 1) * nz]));
+                row.extend(f64s(tr.world.get(k * nw..(k + 1) * nw).unwrap_or(&[])));
+                row.extend(f64s(&tr.est[fi][k * nx..(k + 1) * nx]));
+                let cov = &tr.cov[fi][k * ntri..(k + 1) * ntri];
+                // var_<q> is the diagonal, kept for readers of the diagonal alone; the
+                // P_<qi>_<qj> columns follow with the whole lower triangle.
+                row.extend((0..nx).map(|i| Value::F64(Some(cov[i * (i + 1) / 2 + i]))));
+                row.extend(f64s(cov));
+                w.push(&row)?;
+            }
         }
         Ok(())
     }
@@ -254,7 +312,7 @@ impl Aggregator<'_> {
             .into_iter()
             .chain(self.run_steps.as_mut())
             .chain(self.traces.as_mut())
-            .chain(self.estimates.as_mut())
+            .chain(self.estimates.as_mut().map(|e| &mut e.table))
             .chain(self.consistency.as_mut())
             .chain(self.sensors.as_mut())
             .chain(self.sequential.as_mut().map(|q| &mut q.table))
@@ -636,12 +694,12 @@ fn sequential_values(d: &Decided, alpha: f64) -> [Value<'static>; 11] {
 /// Writes one run's rows of `estimates.parquet`: every kfmc filter (external ones are what
 /// is being scored, not exported), in the exchange format of [`crate::score`].
 pub(super) fn write_estimates(
-    w: &mut TableWriter,
+    w: &mut EstimatesTable,
     plan: &Plan,
     scenario: &str,
     noise: f64,
     run: usize,
-    tr: &crate::trial::RunTrace,
+    tr: &RunTrace,
     nq: usize,
 ) -> Result<(), OutputError> {
     let ntri = nq * (nq + 1) / 2;
@@ -671,12 +729,13 @@ pub(super) fn write_estimates(
                 Value::I64(Some(k as i64)),
                 Value::Str(&f.label),
             ];
+            row.extend_from_slice(&w.variant_keys[fi]);
             row.extend(estimate(&tr.est[fi][k * nq..(k + 1) * nq]));
             row.extend(f64s(&tr.cov[fi][k * ntri..(k + 1) * ntri]));
             row.extend(f64s(&x.nu[k * nz..(k + 1) * nz]));
             row.extend(f64s(&x.s[k * ztri..(k + 1) * ztri]));
             row.extend(f64s(&x.a[k * nq * nq..(k + 1) * nq * nq]));
-            w.push(&row)?;
+            w.table.push(&row)?;
         }
     }
     Ok(())

@@ -33,7 +33,7 @@ use crate::output::{TableWriter, Value, schema};
 use crate::runner::{Executor, RunObserver, execute_windowed, window_for};
 use crate::trial::{Trial, Unit};
 
-use fold::{Aggregator, SequentialState};
+use fold::{Aggregator, EstimatesTable, SequentialState};
 use resources::window_unit_bytes;
 use resume::{Checkpointer, checkpoint_identity, existing_checkpoint};
 
@@ -67,24 +67,6 @@ pub fn run_locked(
             },
         ])));
     }
-    if plan.export_estimates
-        && let Some(f) = plan
-            .filters
-            .iter()
-            .enumerate()
-            .find(|(i, f)| plan.filters[..*i].iter().any(|g| g.label == f.label))
-    {
-        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
-            crate::error::SpecError {
-                file: plan.spec_path.clone(),
-                key_path: "filters".into(),
-                message: format!(
-                    "--export-estimates needs one variant per label, but `{}` has several q_scale/r_scale variants (the estimates format keys a filter by its label alone)",
-                    f.1.label
-                ),
-            },
-        ])));
-    }
     let started = Instant::now();
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
@@ -93,18 +75,15 @@ pub fn run_locked(
     let dir = part_dir.as_ref().unwrap_or(&plan.output);
     let folder = StudyFolder::open(dir, study_kind(plan), opts.force)?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
-    let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
-    let result = run_in(
-        plan,
-        opts,
-        observer,
+    let session = Session {
         dir,
-        &folder,
+        folder: &folder,
         n_cells,
-        cells,
+        cells: opts.shard.map_or(0..n_cells, |s| s.cells(n_cells)),
         started,
         started_unix_s,
-    );
+    };
+    let result = run_in(plan, opts, observer, session);
     if result.is_err()
         && opts.checkpoints.is_some()
         && matches!(crate::output::checkpoint::Index::read(dir), Ok(None))
@@ -116,19 +95,35 @@ pub fn run_locked(
     result.map(|report| (report, folder))
 }
 
+/// What [`run_locked`] settles before a study runs: the folder it holds, the cells this
+/// process runs there (every cell, or a shard's), and when it started.
+struct Session<'a> {
+    /// The folder written: the study's, or its part's.
+    dir: &'a std::path::Path,
+    folder: &'a StudyFolder,
+    /// The study's cells, of which this process runs `cells`.
+    n_cells: usize,
+    cells: std::ops::Range<usize>,
+    started: Instant,
+    /// The start as the manifest records it.
+    started_unix_s: u64,
+}
+
 /// [`run`] once the folder is held.
-#[allow(clippy::too_many_arguments)]
 fn run_in(
     plan: &Plan,
     opts: &ExecOptions,
     observer: &dyn RunObserver,
-    dir: &std::path::Path,
-    folder: &StudyFolder,
-    n_cells: usize,
-    cells: std::ops::Range<usize>,
-    started: Instant,
-    started_unix_s: u64,
+    session: Session<'_>,
 ) -> Result<StudyReport, KfmcError> {
+    let Session {
+        dir,
+        folder,
+        n_cells,
+        cells,
+        started,
+        started_unix_s,
+    } = session;
     let trial = plan.trial();
     let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
     let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
@@ -288,16 +283,10 @@ fn open_aggregator<'a>(
             "sensors",
             schema::sensors(),
         )?,
-        estimates: optional(
-            plan.export_estimates,
-            "estimates",
-            crate::score::estimate_columns_in(
-                &states,
-                &layout.measurement_names(),
-                &layout.rotations(),
-                plan.export_precision,
-            ),
-        )?,
+        estimates: match plan.export_estimates {
+            true => Some(open_estimates(plan, &states, opener)?),
+            false => None,
+        },
         bands: BandCache::new(plan.alpha),
         blocks,
         divergence,
@@ -317,6 +306,40 @@ fn open_aggregator<'a>(
             }),
             None => None,
         },
+    })
+}
+
+/// `estimates.parquet` of `--export-estimates`: the exchange format, with a variant column
+/// for each axis on which a label's rows must name their variant ([`Plan::export_variant_keys`];
+/// null in the rows of a filter that does not key that axis).
+fn open_estimates(
+    plan: &Plan,
+    states: &[&str],
+    opener: &TableOpener<'_>,
+) -> Result<EstimatesTable, OutputError> {
+    let layout = plan.layout();
+    let keys = plan.export_variant_keys();
+    let axes = [0, 1].map(|axis| keys.iter().any(|k| k[axis].is_some()));
+    let columns = schema::with_variant_columns(
+        crate::score::estimate_columns_in(
+            states,
+            &layout.measurement_names(),
+            &layout.rotations(),
+            plan.export_precision,
+        ),
+        axes,
+    );
+    Ok(EstimatesTable {
+        table: opener.open_plain("estimates", columns)?,
+        variant_keys: keys
+            .iter()
+            .map(|k| {
+                (0..2)
+                    .filter(|&axis| axes[axis])
+                    .map(|axis| Value::F64(k[axis]))
+                    .collect()
+            })
+            .collect(),
     })
 }
 
@@ -449,6 +472,6 @@ fn finish_tables(
     written.extend(consistency);
     written.extend(agg_sequential.map(|q| q.table));
     written.extend(traces);
-    written.extend(estimates);
+    written.extend(estimates.map(|e| e.table));
     written.into_iter().map(TableWriter::finish).collect()
 }

@@ -584,7 +584,10 @@ fn tables_reference() -> String {
         ("divergence_runs", schema::divergence_runs()),
         ("traces", schema::traces(q, &["<u>"], &["<z>"], &["<w>"])),
         ("tuning", schema::tuning(q)),
-        ("estimates", kfmc::score::estimate_columns(q, &["<z>"])),
+        (
+            "estimates",
+            schema::with_variant_columns(kfmc::score::estimate_columns(q, &["<z>"]), [true; 2]),
+        ),
         ("truth", schema::truth(q, &["<w>"])),
         ("measurements", schema::measurements(&["<z>"], &["<u>"])),
         ("initial", schema::initial(q)),

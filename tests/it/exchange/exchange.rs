@@ -6,7 +6,9 @@
 //!   agrees to 1e-12 relative, because the exchange carries P's lower triangle only and the
 //!   seeds' P = (I − KH)P⁻ is not exactly symmetric (ρ's recursion sees the difference).
 //!   The UKF and CKF (kfmc's sigma-point filters, with S and their statistical-linearisation
-//!   A_k) round-trip the same way on L1.
+//!   A_k) round-trip the same way on L1, and so do the q_scale/r_scale variants of one label,
+//!   exported with a variant column per keyed axis and scored as that label's external
+//!   variants (the columns are absent for a label with one variant).
 //! * Bad files are refused naming the file, the column and the first offending key; trouble in
 //!   a row becomes that run's status and the batch completes.
 //! * FilterPy's KalmanFilter (examples/python/filterpy_estimates.py) equals kfmc's KF, and a
@@ -57,6 +59,8 @@ pub(crate) struct Study {
     ext_spec: PathBuf,
     /// The stamp of the run's estimates.parquet (its `kfmc.*` metadata).
     stamp: Vec<(String, String)>,
+    /// Whether the `kf` entry has several q_scale/r_scale variants (in both specs).
+    variants: bool,
 }
 
 impl Study {
@@ -115,11 +119,19 @@ fn study_of(kind: &str) -> Study {
 
 /// [`study_of`] with `runs` runs per cell.
 fn study_runs(kind: &str, runs: usize) -> Study {
+    study_variants(kind, runs, "")
+}
+
+/// [`study_runs`] with `variants` (`q_scale = [...]`, `r_scale = [...]` lines) in the `kf`
+/// entry of both specs: the run's and the external one's.
+fn study_variants(kind: &str, runs: usize, variants: &str) -> Study {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().to_path_buf();
     let run_spec = dir.join("run.toml");
     let ext_spec = dir.join("ext.toml");
-    let spec = RUN_SPEC.replace("runs = 12", &format!("runs = {runs}"));
+    let spec = RUN_SPEC
+        .replace("runs = 12", &format!("runs = {runs}"))
+        .replace("kind = \"KIND\"\n", &format!("kind = \"KIND\"\n{variants}"));
     fs::write(&run_spec, spec.replace("KIND", kind)).unwrap();
     fs::write(&ext_spec, spec.replace("KIND", "external")).unwrap();
     ok(kfmc()
@@ -127,6 +139,25 @@ fn study_runs(kind: &str, runs: usize) -> Study {
         .arg(dir.join("run"))
         .arg(&run_spec));
     let all = read(&dir.join("run/estimates.parquet"));
+    let names: Vec<&str> = all.get_column_names().iter().map(|n| n.as_str()).collect();
+    let at = names.iter().position(|n| *n == "filter").unwrap() + 1;
+    // The variant columns follow `filter`, one for each axis the `kf` variants are keyed on;
+    // a label with one variant (`sqrt`, and `kf` without variants) names none.
+    let keyed: Vec<&str> = ["q_scale", "r_scale"]
+        .into_iter()
+        .filter(|c| variants.contains(c))
+        .collect();
+    assert_eq!(names[at..at + keyed.len()], keyed[..], "{names:?}");
+    for c in ["q_scale", "r_scale"] {
+        assert_eq!(names.contains(&c), keyed.contains(&c), "{c} in {names:?}");
+    }
+    for c in &keyed {
+        let filter = all.column("filter").unwrap().str().unwrap();
+        let v = all.column(c).unwrap().f64().unwrap();
+        for (f, v) in filter.iter().zip(v.iter()) {
+            assert_eq!(f == Some("kf"), v.is_some(), "{c} of {f:?}: {v:?}");
+        }
+    }
     let kf = all
         .filter(&all.column("filter").unwrap().str().unwrap().equal("kf"))
         .unwrap();
@@ -141,6 +172,7 @@ fn study_runs(kind: &str, runs: usize) -> Study {
         dir,
         ext_spec,
         stamp,
+        variants: !variants.is_empty(),
     }
 }
 
@@ -171,7 +203,16 @@ fn scored_equals_run(s: &Study) {
             read(&s.dir.join(format!("run/{t}.parquet"))),
             read(&s.dir.join(format!("score/{t}.parquet"))),
         );
-        // An external filter carries no multipliers: its q_scale and r_scale are null, kfmc's
+        // An external filter with variants is keyed by the run's multipliers: every column
+        // is the run's.
+        if s.variants {
+            assert!(
+                a.equals_missing(&b),
+                "{t}.parquet differs between run and score"
+            );
+            continue;
+        }
+        // One without carries no multipliers: its q_scale and r_scale are null, kfmc's
         // own filter's are 1; every other column is the run's.
         let filter = b.column("filter").unwrap().str().unwrap().clone();
         for c in ["q_scale", "r_scale"] {
@@ -212,7 +253,12 @@ fn scored_equals_run(s: &Study) {
         }
     }
     assert!(worst < 1e-12, "consistency differs by {worst:e} (relative)");
-    for c in ["test", "pass", "direction"] {
+    let keys: &[&str] = if s.variants {
+        &["scenario", "noise_scale", "filter", "q_scale", "r_scale"]
+    } else {
+        &["scenario", "noise_scale", "filter"]
+    };
+    for c in keys.iter().chain(&["test", "pass", "direction"]) {
         assert!(
             a.column(c).unwrap().equals_missing(b.column(c).unwrap()),
             "{c} differs"
@@ -270,6 +316,42 @@ fn exported_sigma_point_filters_scored_as_external_give_the_run_tables() {
     // NIS, whiteness and calibrated NEES verdict survive the round trip.
     for kind in ["ukf", "ckf"] {
         scored_equals_run(&study_of(kind));
+    }
+}
+
+#[test]
+fn exported_variants_of_one_label_scored_as_external_variants_give_the_run_tables() {
+    // One label with several tunings exports its variants in `q_scale`/`r_scale` columns,
+    // which the same label declared external with the same variants reads back: on Q alone,
+    // on both axes, and on R with a Q multiplier other than 1 (which the rows then name too,
+    // as the external entry lists it).
+    for (variants, schema) in [
+        ("q_scale = [0.5, 1, 2]\n", &["q_scale = 0.5, 1, 2"][..]),
+        (
+            "q_scale = [0.5, 2]\nr_scale = [1, 4]\n",
+            &["q_scale = 0.5, 2", "r_scale = 1, 4"],
+        ),
+        (
+            "q_scale = 2\nr_scale = [0.5, 2]\n",
+            &["q_scale = 2", "r_scale = 0.5, 2"],
+        ),
+    ] {
+        let s = study_variants("ekf", 6, variants);
+        scored_equals_run(&s);
+        // `kfmc schema estimates` of the run's spec lists the variant columns its export has,
+        // with the values they name.
+        let o = ok(kfmc()
+            .args(["schema", "estimates"])
+            .arg(s.dir.join("run.toml")));
+        let text = String::from_utf8_lossy(&o.stdout);
+        let lines: Vec<&str> = text
+            .lines()
+            .filter(|l| l.starts_with("q_scale ") || l.starts_with("r_scale "))
+            .collect();
+        assert_eq!(lines.len(), schema.len(), "{text}");
+        for (line, want) in lines.iter().zip(schema) {
+            assert!(line.contains(&format!("`kf` {want}")), "{line}");
+        }
     }
 }
 
