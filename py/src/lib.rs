@@ -535,10 +535,31 @@ fn simulate<'py>(
     })
 }
 
-/// Reads one object with `__arrow_c_stream__` (a polars or pandas DataFrame, a pyarrow Table)
-/// into a table in memory, batch by batch, through the Arrow C stream interface: no copy of
-/// the values and no file. The estimates reader checks it as it checks a file's row groups.
-fn import_stream(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::InMemoryTable> {
+/// Reads one object with `__arrow_c_stream__` (a polars or pandas DataFrame, a pyarrow Table),
+/// or a list of them that are the consecutive parts of one table (a polars DataFrame's
+/// chunks, which the Python layer hands over one by one because polars' own export first
+/// copies a DataFrame of several chunks into one), into a table in memory, batch by batch,
+/// through the Arrow C stream interface: no copy of the values and no file. The estimates
+/// reader checks it as it checks a file's row groups.
+fn import_table(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::InMemoryTable> {
+    let mut batches = Vec::new();
+    if let Ok(parts) = obj.cast::<PyList>() {
+        for part in parts.iter() {
+            import_stream(&part, &name, &mut batches)?;
+        }
+    } else {
+        import_stream(obj, &name, &mut batches)?;
+    }
+    if batches.is_empty() {
+        return Err(EstimatesError::new_err(format!(
+            "{name}: an empty stream (no batch, so no columns)"
+        )));
+    }
+    Ok(kfmc::score::InMemoryTable { name, batches })
+}
+
+/// Appends the batches of one object's Arrow C stream to `batches`.
+fn import_stream(obj: &Bound<'_, PyAny>, name: &str, batches: &mut Vec<DataFrame>) -> PyResult<()> {
     let bad = |what: String| EstimatesError::new_err(format!("{name}: {what}"));
     let capsule = obj
         .call_method0("__arrow_c_stream__")?
@@ -562,7 +583,6 @@ fn import_stream(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::
     let mut reader =
         unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
             .map_err(|e| bad(format!("not an Arrow stream: {e}")))?;
-    let mut batches = Vec::new();
     loop {
         // SAFETY: as above, the producer fulfils the C data interface.
         let Some(chunk) = (unsafe { reader.next() }) else {
@@ -588,10 +608,7 @@ fn import_stream(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::
             .map_err(|e| bad(format!("cannot form a table: {e}")))?;
         batches.push(df);
     }
-    if batches.is_empty() {
-        return Err(bad("an empty stream (no batch, so no columns)".into()));
-    }
-    Ok(kfmc::score::InMemoryTable { name, batches })
+    Ok(())
 }
 
 /// Attaches estimates to `plan`, as EstimatesError on trouble: the files `paths`, then what
@@ -614,7 +631,7 @@ fn attach(
             if let Ok(path) = obj.extract::<String>() {
                 Ok(EstimatesSource::File(PathBuf::from(path)))
             } else {
-                import_stream(&obj, format!("<estimates {i}>")).map(EstimatesSource::Table)
+                import_table(&obj, format!("<estimates {i}>")).map(EstimatesSource::Table)
             }
         });
         match read {
