@@ -462,7 +462,10 @@ fn validate<'py>(
 /// `kfmc run`: returns the report as a dict (folder, runs, wall_s, cells_resumed, tables).
 #[pyfunction]
 #[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, resume=false, force=false, allow_large=false, checkpoint_every=10.0))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn run<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
@@ -507,7 +510,10 @@ fn run<'py>(
 /// `kfmc simulate`: returns the report as a dict.
 #[pyfunction]
 #[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn simulate<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
@@ -663,7 +669,10 @@ fn attach(
 /// objects with `__arrow_c_stream__`.
 #[pyfunction]
 #[pyo3(signature = (simulation, paths, streams, *, out=None, threads=None, quiet=false, force=false))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn score<'py>(
     py: Python<'py>,
     simulation: PathBuf,
@@ -697,7 +706,10 @@ fn score<'py>(
 /// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
 #[pyfunction]
 #[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn check<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
@@ -794,7 +806,10 @@ impl RunObserver for SharedObserver<'_> {
 /// `kfmc power`: returns the folder holding power.parquet.
 #[pyfunction]
 #[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn power(
     py: Python<'_>,
     spec: &Bound<'_, PyAny>,
