@@ -644,6 +644,9 @@ def _estimates(
                     f"{ours[0].get('kfmc.world_stamp')}, master seed {ours[0].get('kfmc.master_seed')}: "
                     "score them against the simulation they were made from"
                 )
+            if e.path is not None:
+                # A table streamed to a file is read from it, once complete.
+                return os.fspath(e.close())
             return _as_stream(e.to_polars())
         return _as_stream(e)
 
