@@ -595,7 +595,10 @@ impl EstimateSet {
                     reading.file(&path)?;
                     files.push(path);
                 }
-                EstimatesSource::Table(table) => reading.table(&table)?,
+                EstimatesSource::Table(table) => {
+                    reading.table(&table.name, table.batches.iter().cloned().map(Ok))?
+                }
+                EstimatesSource::Stream(stream) => reading.table(&stream.name, stream.batches)?,
             }
         }
         reading.finish(&files)
@@ -674,13 +677,35 @@ pub struct InMemoryTable {
     pub batches: Vec<DataFrame>,
 }
 
+/// A table in memory whose batches are taken one at a time (a Python user's table read
+/// through the Arrow C stream interface): each is read and let go before the next is asked
+/// for, as a file's row groups are, so a producer that makes its batches as they are asked
+/// for (a database query, a dataset scanner) is never held whole. No stamp, as
+/// [`InMemoryTable`].
+pub struct TableStream {
+    /// A name for messages (`<estimates 0>`).
+    pub name: String,
+    /// The batches, each with the same columns; an `Err` ends the reading with it.
+    pub batches: Box<dyn Iterator<Item = Result<DataFrame, OutputError>>>,
+}
+
+impl std::fmt::Debug for TableStream {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TableStream")
+            .field("name", &self.name)
+            .finish_non_exhaustive()
+    }
+}
+
 /// One source of estimates: a Parquet file or a table in memory.
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub enum EstimatesSource {
     /// A file (its world stamp is checked).
     File(PathBuf),
     /// A table in memory.
     Table(InMemoryTable),
+    /// A table in memory, batch by batch.
+    Stream(TableStream),
 }
 
 /// A study's keys as indexes: what every row of an estimates file is checked against.
@@ -1265,10 +1290,15 @@ impl<'a> Reading<'a> {
         Ok(())
     }
 
-    /// Reads a table already in memory, batch by batch, as a file's row groups.
-    fn table(&mut self, table: &InMemoryTable) -> Result<(), OutputError> {
-        let path = PathBuf::from(&table.name);
-        let Some(first) = table.batches.first() else {
+    /// Reads a table already in memory, batch by batch as they come, as a file's row groups.
+    fn table(
+        &mut self,
+        name: &str,
+        batches: impl IntoIterator<Item = Result<DataFrame, OutputError>>,
+    ) -> Result<(), OutputError> {
+        let path = PathBuf::from(name);
+        let mut batches = batches.into_iter();
+        let Some(first) = batches.next().transpose()? else {
             return Err(format_err(
                 &path,
                 "an empty table (no batch, so no columns)",
@@ -1287,9 +1317,12 @@ impl<'a> Reading<'a> {
             &study.measurements,
             &study.rotations,
         )?);
-        let mut offset = 0usize;
-        for df in &table.batches {
-            self.rows(&path, &columns, df, offset)?;
+        self.rows(&path, &columns, &first, 0)?;
+        let mut offset = first.height();
+        drop(first);
+        for df in batches {
+            let df = df?;
+            self.rows(&path, &columns, &df, offset)?;
             offset += df.height();
         }
         Ok(())

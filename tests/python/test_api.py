@@ -1,6 +1,7 @@
 """The Python API against the command: same tables, same errors, same exit codes."""
 
 import filecmp
+import math
 import os
 import pathlib
 import re
@@ -556,3 +557,29 @@ def test_trouble_past_the_first_block_is_named_at_its_row(l1_long_world, tmp_pat
         with pytest.raises(kfmc.EstimatesError) as e:
             kfmc.score(sim, bad.rechunk(), out=tmp_path / f"bad{i}", quiet=True)
         assert message in str(e.value), str(e.value)
+
+
+def test_a_stream_of_batches_is_read_one_batch_at_a_time(l1_long_world, tmp_path):
+    """A producer that makes its batches as they are asked for (a pyarrow RecordBatchReader,
+    as a dataset scanner or a database query gives) is read batch by batch, each let go before
+    the next is made: the rows never all sit in memory at once."""
+    import pyarrow as pa
+
+    sim, est, files = l1_long_world
+    table = est.to_arrow()
+    size = 500
+    held = []
+
+    def batches():
+        for at in range(0, table.num_rows, size):
+            held.append(pa.total_allocated_bytes())
+            # A fresh copy in pyarrow's memory pool, as a scanner makes each batch.
+            part = table.slice(at, size)
+            yield part.take(pa.array(range(part.num_rows))).combine_chunks().to_batches()[0]
+
+    reader = pa.RecordBatchReader.from_batches(table.schema, batches())
+    study = kfmc.score(sim, reader, out=tmp_path / "stream", quiet=True)
+    assert_same_tables(files, study.folder)
+    batch_bytes = table.slice(0, size).nbytes
+    assert len(held) == math.ceil(table.num_rows / size) > 3
+    assert max(held) - held[0] < 3 * batch_bytes, (held, batch_bytes)
