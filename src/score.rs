@@ -1151,19 +1151,19 @@ impl RowGroup {
         })
     }
 
-    /// Row `i`'s values (NaN where null), if the row gives its innovation and transition
-    /// as the format asks: finite where not null, and the transition whole or not at all.
-    /// `None` for a row [`FileColumns::values`] refuses.
-    fn checked_row(&self, columns: &FileColumns, i: usize) -> Option<&[f64]> {
-        let row = &self.table[i * columns.width..(i + 1) * columns.width];
+    /// Whether row `i` gives its innovation and transition as the format asks: finite
+    /// where not null, and the transition whole or not at all. A row that does not is one
+    /// [`FileColumns::values`] refuses.
+    fn row_is_clean(&self, columns: &FileColumns, i: usize) -> bool {
         if self.flagged[i] {
-            return None;
+            return false;
         }
         // No entry of the transition is a non-null NaN (the row is not flagged), so NaN
         // there is null.
+        let row = &self.table[i * columns.width..(i + 1) * columns.width];
         let a = &row[columns.transition.clone()];
         let given = a.iter().filter(|v| !v.is_nan()).count();
-        (given == 0 || given == a.len()).then_some(row)
+        given == 0 || given == a.len()
     }
 
     /// Whether row `i` has the same filter, variant, scenario and noise scale as row `j`.
@@ -1361,16 +1361,16 @@ impl<'a> Reading<'a> {
         let mut pending: Option<PendingRows> = None;
         // The last row whose filter and cell were looked up: a row with the same keys has
         // the same filter, external and cell (the lookups hash strings and compare columns).
-        let mut last: Option<(usize, usize, usize, (u64, usize))> = None;
+        let mut last: Option<(usize, usize, (u64, usize))> = None;
         let mut buf = Vec::with_capacity(width);
         for i in 0..rows.filter.len() {
             let (ext, cell) = match last {
-                Some((j, _, ext, cell)) if rows.same_cell_and_filter(i, j) => (ext, cell),
+                Some((j, ext, cell)) if rows.same_cell_and_filter(i, j) => (ext, cell),
                 _ => {
                     let fi = self.keys.filter(path, rows, i)?;
                     let ext = self.external(fi, path, &columns.columns)?;
                     let cell = self.keys.cell(path, rows, i)?;
-                    last = Some((i, fi, ext, cell));
+                    last = Some((i, ext, cell));
                     (ext, cell)
                 }
             };
@@ -1381,7 +1381,7 @@ impl<'a> Reading<'a> {
                 return Err(format_err(path, format!("duplicate row {}", rows.key(i))));
             }
             e.present[word] |= 1 << bit;
-            if rows.checked_row(columns, i).is_none() {
+            if !rows.row_is_clean(columns, i) {
                 // The exact check, for its message.
                 columns.values(path, rows, i, &mut buf)?;
             }
