@@ -595,7 +595,10 @@ impl EstimateSet {
                     reading.file(&path)?;
                     files.push(path);
                 }
-                EstimatesSource::Table(table) => reading.table(&table)?,
+                EstimatesSource::Table(table) => {
+                    reading.table(&table.name, table.batches.iter().cloned().map(Ok))?
+                }
+                EstimatesSource::Stream(stream) => reading.table(&stream.name, stream.batches)?,
             }
         }
         reading.finish(&files)
@@ -620,8 +623,11 @@ impl EstimateSet {
         let (base, samples) = self.cells[unit.scenario * self.n_scales + unit.scale];
         let first = base + (unit.run * samples) as u64;
         let width = e.columns.width();
-        let mut bytes = vec![0u8; samples * width * 8];
-        let read = e.spill.read_exact_at(&mut bytes, first * width as u64 * 8);
+        let mut values = vec![0f64; samples * width];
+        let read = e.spill.read_exact_at(
+            bytemuck::cast_slice_mut(&mut values),
+            first * width as u64 * 8,
+        );
         let present: Vec<bool> = (0..samples as u64)
             .map(|k| {
                 let row = first + k;
@@ -629,28 +635,22 @@ impl EstimateSet {
             })
             .collect();
         // A spill shorter than this run (its last rows never written) reads as absent rows.
-        let values = if read.is_ok() {
-            bytes
-                .chunks_exact(8)
-                .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
-                .collect()
-        } else {
-            let mut v = vec![f64::NAN; samples * width];
+        if read.is_err() {
+            values.fill(f64::NAN);
             for (k, p) in present.iter().enumerate() {
-                if *p {
-                    let mut row = vec![0u8; width * 8];
-                    if e.spill
-                        .read_exact_at(&mut row, (first + k as u64) * width as u64 * 8)
-                        .is_ok()
-                    {
-                        for (t, b) in row.chunks_exact(8).enumerate() {
-                            v[k * width + t] = f64::from_le_bytes(b.try_into().expect("8 bytes"));
-                        }
-                    }
+                let row = &mut values[k * width..(k + 1) * width];
+                if *p
+                    && e.spill
+                        .read_exact_at(
+                            bytemuck::cast_slice_mut(row),
+                            (first + k as u64) * width as u64 * 8,
+                        )
+                        .is_err()
+                {
+                    row.fill(f64::NAN);
                 }
             }
-            v
-        };
+        }
         Some(UnitRows {
             columns: &e.columns,
             values,
@@ -677,13 +677,35 @@ pub struct InMemoryTable {
     pub batches: Vec<DataFrame>,
 }
 
+/// A table in memory whose batches are taken one at a time (a Python user's table read
+/// through the Arrow C stream interface): each is read and let go before the next is asked
+/// for, as a file's row groups are, so a producer that makes its batches as they are asked
+/// for (a database query, a dataset scanner) is never held whole. No stamp, as
+/// [`InMemoryTable`].
+pub struct TableStream {
+    /// A name for messages (`<estimates 0>`).
+    pub name: String,
+    /// The batches, each with the same columns; an `Err` ends the reading with it.
+    pub batches: Box<dyn Iterator<Item = Result<DataFrame, OutputError>>>,
+}
+
+impl std::fmt::Debug for TableStream {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TableStream")
+            .field("name", &self.name)
+            .finish_non_exhaustive()
+    }
+}
+
 /// One source of estimates: a Parquet file or a table in memory.
-#[derive(Clone, Debug)]
+#[derive(Debug)]
 pub enum EstimatesSource {
     /// A file (its world stamp is checked).
     File(PathBuf),
     /// A table in memory.
     Table(InMemoryTable),
+    /// A table in memory, batch by batch.
+    Stream(TableStream),
 }
 
 /// A study's keys as indexes: what every row of an estimates file is checked against.
@@ -863,8 +885,9 @@ impl<'a> KeyIndex<'a> {
             .expect("the variants are every declared (q_scale, r_scale) pair"))
     }
 
-    /// The row index of row `i`'s (scenario, noise scale, run, step) among every cell's rows.
-    fn row(&self, path: &Path, rows: &RowGroup, i: usize) -> Result<u64, OutputError> {
+    /// The cell of row `i`'s (scenario, noise scale): its first row index and its samples
+    /// K + 1 per run.
+    fn cell(&self, path: &Path, rows: &RowGroup, i: usize) -> Result<(u64, usize), OutputError> {
         let si = rows
             .scenario
             .get(i)
@@ -885,7 +908,18 @@ impl<'a> KeyIndex<'a> {
             .ok_or_else(|| {
                 format_err(path, format!("column `noise_scale`: not a noise scale of this study (values must be the simulation's exactly) at {}", rows.key(i)))
             })?;
-        let (base, samples) = self.cells[si * self.study.noise_scales.len() + sj];
+        Ok(self.cells[si * self.study.noise_scales.len() + sj])
+    }
+
+    /// The row index of row `i`'s (run, step) among every cell's rows, in its `cell`
+    /// ([`KeyIndex::cell`]).
+    fn row(
+        &self,
+        path: &Path,
+        rows: &RowGroup,
+        i: usize,
+        (base, samples): (u64, usize),
+    ) -> Result<u64, OutputError> {
         let runs = self.study.runs;
         let r = rows
             .run
@@ -998,7 +1032,14 @@ impl FileColumns {
     }
 }
 
-/// One row group's key and value columns, typed.
+/// Rows the reader checks and spills at once: a file's row group or a table's batch is
+/// read in blocks of at most this many rows, so a table handed over as one batch of
+/// millions of rows costs no more memory than a file's row group (a block's values, row by
+/// row, are 4,096 × the row's width × 8 bytes: 2.4 MB for L1's 72 values).
+const BLOCK_ROWS: usize = 4096;
+
+/// One block of rows of a row group or batch: its key and value columns, typed, and the
+/// values row by row as the spill holds them.
 struct RowGroup {
     /// The file row of the group's first row (for messages).
     first_row: usize,
@@ -1011,6 +1052,11 @@ struct RowGroup {
     q_scale: Option<Float64Chunked>,
     r_scale: Option<Float64Chunked>,
     values: Vec<Float64Chunked>,
+    /// The values row by row (`width` per row, the spill's order), NaN where null.
+    table: Vec<f64>,
+    /// Rows with a non-null, non-finite innovation or transition entry: an error, whose
+    /// message [`FileColumns::values`] forms when the row is reached.
+    flagged: Vec<bool>,
 }
 
 impl RowGroup {
@@ -1064,6 +1110,32 @@ impl RowGroup {
                 from_quaternions.insert(format!("est_{}", cols.quantities[r.first + j]), e);
             }
         }
+        let values: Vec<Float64Chunked> = columns
+            .names
+            .iter()
+            .map(|n| from_quaternions.remove(n).map_or_else(|| floats(n), Ok))
+            .collect::<Result<_, _>>()?;
+        // Column by column into rows: one pass over each column's contiguous values, where
+        // reading row by row would look every value up through its chunk.
+        let (height, width) = (df.height(), columns.width);
+        let mut table = vec![f64::NAN; height * width];
+        let mut flagged = vec![false; height];
+        for (t, column) in values.iter().enumerate() {
+            let checked = columns.innovation.contains(&t) || columns.transition.contains(&t);
+            let mut i = 0;
+            for array in column.downcast_iter() {
+                let given = array.validity();
+                for (k, v) in array.values().iter().enumerate() {
+                    if given.is_none_or(|g| g.get_bit(k)) {
+                        table[(i + k) * width + t] = *v;
+                        if checked && !v.is_finite() {
+                            flagged[i + k] = true;
+                        }
+                    }
+                }
+                i += array.len();
+            }
+        }
         Ok(RowGroup {
             first_row,
             scenario: strs("scenario")?,
@@ -1073,12 +1145,40 @@ impl RowGroup {
             step: ints("step")?,
             q_scale: optional("q_scale")?,
             r_scale: optional("r_scale")?,
-            values: columns
-                .names
-                .iter()
-                .map(|n| from_quaternions.remove(n).map_or_else(|| floats(n), Ok))
-                .collect::<Result<_, _>>()?,
+            values,
+            table,
+            flagged,
         })
+    }
+
+    /// Whether row `i` gives its innovation and transition as the format asks: finite
+    /// where not null, and the transition whole or not at all. A row that does not is one
+    /// [`FileColumns::values`] refuses.
+    fn row_is_clean(&self, columns: &FileColumns, i: usize) -> bool {
+        if self.flagged[i] {
+            return false;
+        }
+        // No entry of the transition is a non-null NaN (the row is not flagged), so NaN
+        // there is null.
+        let row = &self.table[i * columns.width..(i + 1) * columns.width];
+        let a = &row[columns.transition.clone()];
+        let given = a.iter().filter(|v| !v.is_nan()).count();
+        given == 0 || given == a.len()
+    }
+
+    /// Whether row `i` has the same filter, variant, scenario and noise scale as row `j`.
+    fn same_cell_and_filter(&self, i: usize, j: usize) -> bool {
+        let bits = |c: &Float64Chunked, k: usize| c.get(k).map(f64::to_bits);
+        let variant =
+            |c: &Option<Float64Chunked>| c.as_ref().is_none_or(|c| bits(c, i) == bits(c, j));
+        self.filter.get(i).is_some()
+            && self.filter.get(i) == self.filter.get(j)
+            && self.scenario.get(i).is_some()
+            && self.scenario.get(i) == self.scenario.get(j)
+            && bits(&self.noise, i).is_some()
+            && bits(&self.noise, i) == bits(&self.noise, j)
+            && variant(&self.q_scale)
+            && variant(&self.r_scale)
     }
 
     /// Row `i`'s key, for messages.
@@ -1104,12 +1204,27 @@ impl RowGroup {
     }
 }
 
-/// Rows waiting to be written to one external filter's spill: consecutive rows of one filter
-/// usually land in consecutive spill rows, and are written in one call.
+/// Consecutive rows of a block waiting to be written to one external filter's spill, at
+/// consecutive spill rows.
 struct PendingRows {
     external: usize,
+    /// The spill row of the first.
     first_row: u64,
-    data: Vec<f64>,
+    /// The block row of the first.
+    block_row: usize,
+    rows: usize,
+}
+
+impl PendingRows {
+    fn write(
+        &self,
+        externals: &[External],
+        rows: &RowGroup,
+        width: usize,
+    ) -> Result<(), OutputError> {
+        let data = &rows.table[self.block_row * width..(self.block_row + self.rows) * width];
+        write_rows(&externals[self.external], self.first_row, data, width)
+    }
 }
 
 /// An estimate set being read, file by file.
@@ -1168,17 +1283,22 @@ impl<'a> Reading<'a> {
         )?);
         let mut offset = 0usize;
         crate::output::table::for_each_row_group(path, |df| {
-            let rows = RowGroup::new(path, &df, offset, &columns)?;
+            self.rows(path, &columns, &df, offset)?;
             offset += df.height();
-            self.row_group(path, &columns, &rows)
+            Ok(())
         })?;
         Ok(())
     }
 
-    /// Reads a table already in memory, batch by batch, as a file's row groups.
-    fn table(&mut self, table: &InMemoryTable) -> Result<(), OutputError> {
-        let path = PathBuf::from(&table.name);
-        let Some(first) = table.batches.first() else {
+    /// Reads a table already in memory, batch by batch as they come, as a file's row groups.
+    fn table(
+        &mut self,
+        name: &str,
+        batches: impl IntoIterator<Item = Result<DataFrame, OutputError>>,
+    ) -> Result<(), OutputError> {
+        let path = PathBuf::from(name);
+        let mut batches = batches.into_iter();
+        let Some(first) = batches.next().transpose()? else {
             return Err(format_err(
                 &path,
                 "an empty table (no batch, so no columns)",
@@ -1197,16 +1317,38 @@ impl<'a> Reading<'a> {
             &study.measurements,
             &study.rotations,
         )?);
-        let mut offset = 0usize;
-        for df in &table.batches {
-            let rows = RowGroup::new(&path, df, offset, &columns)?;
+        self.rows(&path, &columns, &first, 0)?;
+        let mut offset = first.height();
+        drop(first);
+        for df in batches {
+            let df = df?;
+            self.rows(&path, &columns, &df, offset)?;
             offset += df.height();
-            self.row_group(&path, &columns, &rows)?;
         }
         Ok(())
     }
 
-    /// Checks every row of a group against the study's keys and writes its values.
+    /// Reads one row group of a file or one batch of a table (whose first row is row
+    /// `first_row` of the file or table), block by block ([`BLOCK_ROWS`]).
+    fn rows(
+        &mut self,
+        path: &PathBuf,
+        columns: &FileColumns,
+        df: &DataFrame,
+        first_row: usize,
+    ) -> Result<(), OutputError> {
+        let mut at = 0;
+        while at < df.height() {
+            let n = BLOCK_ROWS.min(df.height() - at);
+            let block = df.slice(at as i64, n);
+            let rows = RowGroup::new(path, &block, first_row + at, columns)?;
+            self.row_group(path, columns, &rows)?;
+            at += n;
+        }
+        Ok(())
+    }
+
+    /// Checks every row of a block against the study's keys and writes its values.
     fn row_group(
         &mut self,
         path: &PathBuf,
@@ -1214,45 +1356,54 @@ impl<'a> Reading<'a> {
         rows: &RowGroup,
     ) -> Result<(), OutputError> {
         let width = columns.width;
+        // Consecutive rows of one filter usually land in consecutive spill rows: they are
+        // written in one call, straight from the block's rows.
         let mut pending: Option<PendingRows> = None;
+        // The last row whose filter and cell were looked up: a row with the same keys has
+        // the same filter, external and cell (the lookups hash strings and compare columns).
+        let mut last: Option<(usize, usize, (u64, usize))> = None;
         let mut buf = Vec::with_capacity(width);
         for i in 0..rows.filter.len() {
-            let fi = self.keys.filter(path, rows, i)?;
-            let ext = self.external(fi, path, &columns.columns)?;
-            let row = self.keys.row(path, rows, i)?;
+            let (ext, cell) = match last {
+                Some((j, ext, cell)) if rows.same_cell_and_filter(i, j) => (ext, cell),
+                _ => {
+                    let fi = self.keys.filter(path, rows, i)?;
+                    let ext = self.external(fi, path, &columns.columns)?;
+                    let cell = self.keys.cell(path, rows, i)?;
+                    last = Some((i, ext, cell));
+                    (ext, cell)
+                }
+            };
+            let row = self.keys.row(path, rows, i, cell)?;
             let e = &mut self.externals[ext];
             let (word, bit) = ((row / 64) as usize, row % 64);
             if e.present[word] & (1 << bit) != 0 {
                 return Err(format_err(path, format!("duplicate row {}", rows.key(i))));
             }
             e.present[word] |= 1 << bit;
-            columns.values(path, rows, i, &mut buf)?;
+            if !rows.row_is_clean(columns, i) {
+                // The exact check, for its message.
+                columns.values(path, rows, i, &mut buf)?;
+            }
             match &mut pending {
-                Some(p)
-                    if p.external == ext && p.first_row + (p.data.len() / width) as u64 == row =>
-                {
-                    p.data.extend_from_slice(&buf);
+                Some(p) if p.external == ext && p.first_row + p.rows as u64 == row => {
+                    p.rows += 1;
                 }
                 _ => {
                     if let Some(p) = pending.take() {
-                        write_rows(&self.externals[p.external], p.first_row, &p.data, width)?;
+                        p.write(&self.externals, rows, width)?;
                     }
                     pending = Some(PendingRows {
                         external: ext,
                         first_row: row,
-                        data: buf.clone(),
+                        block_row: i,
+                        rows: 1,
                     });
                 }
             }
-            if let Some(p) = &pending
-                && p.data.len() >= width * 4096
-            {
-                write_rows(&self.externals[p.external], p.first_row, &p.data, width)?;
-                pending = None;
-            }
         }
         if let Some(p) = pending.take() {
-            write_rows(&self.externals[p.external], p.first_row, &p.data, width)?;
+            p.write(&self.externals, rows, width)?;
         }
         Ok(())
     }
@@ -1332,10 +1483,11 @@ impl<'a> Reading<'a> {
     }
 }
 
+/// Writes rows to a spill. The spill lives and dies with this process, so its values are
+/// in the machine's byte order, written and read back without conversion.
 fn write_rows(e: &External, start: u64, data: &[f64], width: usize) -> Result<(), OutputError> {
-    let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
     e.spill
-        .write_all_at(&bytes, start * width as u64 * 8)
+        .write_all_at(bytemuck::cast_slice(data), start * width as u64 * 8)
         .map_err(|source| OutputError::Io {
             action: "cannot write the scratch file for",
             path: e.files.last().cloned().unwrap_or_default(),

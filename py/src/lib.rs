@@ -462,7 +462,10 @@ fn validate<'py>(
 /// `kfmc run`: returns the report as a dict (folder, runs, wall_s, cells_resumed, tables).
 #[pyfunction]
 #[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, resume=false, force=false, allow_large=false, checkpoint_every=10.0))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn run<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
@@ -507,7 +510,10 @@ fn run<'py>(
 /// `kfmc simulate`: returns the report as a dict.
 #[pyfunction]
 #[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn simulate<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
@@ -535,10 +541,37 @@ fn simulate<'py>(
     })
 }
 
-/// Reads one object with `__arrow_c_stream__` (a polars or pandas DataFrame, a pyarrow Table)
-/// into a table in memory, batch by batch, through the Arrow C stream interface: no copy of
-/// the values and no file. The estimates reader checks it as it checks a file's row groups.
-fn import_stream(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::InMemoryTable> {
+/// One object with `__arrow_c_stream__` (a polars or pandas DataFrame, a pyarrow Table, a
+/// RecordBatchReader, a DuckDB relation), or a list of them that are the consecutive parts of
+/// one table (a polars DataFrame's chunks, which the Python layer hands over one by one
+/// because polars' own export first copies a DataFrame of several chunks into one), as a
+/// table whose batches the estimates reader takes one at a time through the Arrow C stream
+/// interface, checking them as it checks a file's row groups: no copy of the values, no
+/// file, and each batch let go before the next is asked for.
+fn import_table(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::TableStream> {
+    let readers = if let Ok(parts) = obj.cast::<PyList>() {
+        parts
+            .iter()
+            .map(|part| open_stream(&part, &name))
+            .collect::<PyResult<Vec<_>>>()?
+    } else {
+        vec![open_stream(obj, &name)?]
+    };
+    Ok(kfmc::score::TableStream {
+        batches: Box::new(Batches {
+            name: PathBuf::from(&name),
+            readers: readers.into_iter(),
+            current: None,
+        }),
+        name,
+    })
+}
+
+type StreamReader =
+    polars_arrow::ffi::ArrowArrayStreamReader<Box<polars_arrow::ffi::ArrowArrayStream>>;
+
+/// Takes the Arrow C stream of one object with `__arrow_c_stream__`.
+fn open_stream(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<StreamReader> {
     let bad = |what: String| EstimatesError::new_err(format!("{name}: {what}"));
     let capsule = obj
         .call_method0("__arrow_c_stream__")?
@@ -559,39 +592,61 @@ fn import_stream(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::
         )
     };
     // SAFETY: a stream from the Arrow PyCapsule interface fulfils the C stream interface.
-    let mut reader =
-        unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
-            .map_err(|e| bad(format!("not an Arrow stream: {e}")))?;
-    let mut batches = Vec::new();
-    loop {
-        // SAFETY: as above, the producer fulfils the C data interface.
-        let Some(chunk) = (unsafe { reader.next() }) else {
-            break;
+    unsafe { polars_arrow::ffi::ArrowArrayStreamReader::try_new(Box::new(stream)) }
+        .map_err(|e| bad(format!("not an Arrow stream: {e}")))
+}
+
+/// The batches of a table's streams, in order, each made a DataFrame when asked for.
+struct Batches {
+    name: PathBuf,
+    readers: std::vec::IntoIter<StreamReader>,
+    current: Option<StreamReader>,
+}
+
+impl Iterator for Batches {
+    type Item = Result<DataFrame, kfmc::error::OutputError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let bad = |what: String| kfmc::error::OutputError::Format {
+            path: self.name.clone(),
+            message: what,
         };
-        let chunk = chunk.map_err(|e| bad(format!("cannot read a batch: {e}")))?;
-        let Some(batch) = chunk
-            .as_any()
-            .downcast_ref::<polars_arrow::array::StructArray>()
-        else {
-            return Err(bad(format!(
-                "a stream of {:?}, not of table rows (a struct per row)",
-                chunk.dtype()
-            )));
-        };
-        let mut columns = Vec::with_capacity(batch.fields().len());
-        for (field, values) in batch.fields().iter().zip(batch.values()) {
-            let s = Series::from_arrow(field.name.clone(), values.clone())
-                .map_err(|e| bad(format!("column `{}`: {e}", field.name)))?;
-            columns.push(s.into_column());
+        loop {
+            let reader = match self.current.as_mut() {
+                Some(r) => r,
+                None => self.current.insert(self.readers.next()?),
+            };
+            // SAFETY: as in `open_stream`, the producer fulfils the C data interface.
+            let Some(chunk) = (unsafe { reader.next() }) else {
+                self.current = None;
+                continue;
+            };
+            let chunk = match chunk {
+                Ok(c) => c,
+                Err(e) => return Some(Err(bad(format!("cannot read a batch: {e}")))),
+            };
+            let Some(batch) = chunk
+                .as_any()
+                .downcast_ref::<polars_arrow::array::StructArray>()
+            else {
+                return Some(Err(bad(format!(
+                    "a stream of {:?}, not of table rows (a struct per row)",
+                    chunk.dtype()
+                ))));
+            };
+            let mut columns = Vec::with_capacity(batch.fields().len());
+            for (field, values) in batch.fields().iter().zip(batch.values()) {
+                match Series::from_arrow(field.name.clone(), values.clone()) {
+                    Ok(s) => columns.push(s.into_column()),
+                    Err(e) => return Some(Err(bad(format!("column `{}`: {e}", field.name)))),
+                }
+            }
+            return Some(
+                DataFrame::new(batch.len(), columns)
+                    .map_err(|e| bad(format!("cannot form a table: {e}"))),
+            );
         }
-        let df = DataFrame::new(batch.len(), columns)
-            .map_err(|e| bad(format!("cannot form a table: {e}")))?;
-        batches.push(df);
     }
-    if batches.is_empty() {
-        return Err(bad("an empty stream (no batch, so no columns)".into()));
-    }
-    Ok(kfmc::score::InMemoryTable { name, batches })
 }
 
 /// Attaches estimates to `plan`, as EstimatesError on trouble: the files `paths`, then what
@@ -614,7 +669,7 @@ fn attach(
             if let Ok(path) = obj.extract::<String>() {
                 Ok(EstimatesSource::File(PathBuf::from(path)))
             } else {
-                import_stream(&obj, format!("<estimates {i}>")).map(EstimatesSource::Table)
+                import_table(&obj, format!("<estimates {i}>")).map(EstimatesSource::Stream)
             }
         });
         match read {
@@ -646,7 +701,10 @@ fn attach(
 /// objects with `__arrow_c_stream__`.
 #[pyfunction]
 #[pyo3(signature = (simulation, paths, streams, *, out=None, threads=None, quiet=false, force=false))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn score<'py>(
     py: Python<'py>,
     simulation: PathBuf,
@@ -680,7 +738,10 @@ fn score<'py>(
 /// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
 #[pyfunction]
 #[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn check<'py>(
     py: Python<'py>,
     spec: &Bound<'py, PyAny>,
@@ -777,7 +838,10 @@ impl RunObserver for SharedObserver<'_> {
 /// `kfmc power`: returns the folder holding power.parquet.
 #[pyfunction]
 #[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
-#[allow(clippy::too_many_arguments)]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
 fn power(
     py: Python<'_>,
     spec: &Bound<'_, PyAny>,

@@ -578,6 +578,8 @@ def _is_path(x: Any) -> bool:
 
 
 def _as_stream(x: Any) -> Any:
+    if isinstance(x, pl.DataFrame):
+        return _chunks(x)
     if hasattr(x, "__arrow_c_stream__"):
         return x
     if type(x).__module__.startswith("pandas"):
@@ -587,6 +589,28 @@ def _as_stream(x: Any) -> Any:
         f"estimates must be a polars or pandas DataFrame, a pyarrow Table (anything with "
         f"__arrow_c_stream__), an iterable of them, or a path; got {type(x).__name__}"
     )
+
+
+def _chunks(df: pl.DataFrame) -> Any:
+    """A polars DataFrame as a list of zero-copy slices, one per stretch of rows that every
+    column holds in one chunk, which the library reads as one table. polars'
+    ``__arrow_c_stream__`` first copies a DataFrame of several chunks into one (a second
+    copy of the whole table, made in place of the caller's chunks), while such a slice is
+    exported as it is. A frame of one chunk is passed whole."""
+    ends = set()
+    for c in df.get_columns():
+        at = 0
+        for n in c.chunk_lengths():
+            at += n
+            ends.add(at)
+    ends.discard(0)
+    if len(ends) < 2:
+        return df
+    parts, at = [], 0
+    for end in sorted(ends):
+        parts.append(df.slice(at, end - at))
+        at = end
+    return parts
 
 
 def _estimates(
@@ -620,7 +644,10 @@ def _estimates(
                     f"{ours[0].get('kfmc.world_stamp')}, master seed {ours[0].get('kfmc.master_seed')}: "
                     "score them against the simulation they were made from"
                 )
-            return e.to_polars()
+            if e.path is not None:
+                # A table streamed to a file is read from it, once complete.
+                return os.fspath(e.close())
+            return _as_stream(e.to_polars())
         return _as_stream(e)
 
     if not isinstance(estimates, (list, tuple)):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 import os
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple, Union
 
 import numpy as np
 import polars as pl
@@ -93,7 +93,10 @@ class Estimates:
         *,
         covariance: str = "lower",
         float32: bool = False,
+        path: Optional[_PathLike] = None,
     ) -> None:
+        # Set first: a constructor that raises leaves an object __del__ can look at.
+        self._writer: Optional[_StreamWriter] = None
         folder, layout = _layout_of_simulation(simulation)
         if covariance not in COVARIANCE_FORMS:
             raise EstimatesError(
@@ -134,17 +137,40 @@ class Estimates:
         # Fixed by the first run: whether innovations, A and quaternions are given.
         self._parts: Optional[Tuple[bool, bool, bool]] = None
         self._first: Optional[str] = None
-        self._runs: Dict[Tuple[str, float, int, Optional[float], Optional[float]], Dict[str, np.ndarray]] = {}
+        # The runs held in memory (all of them, or those not yet written to `path`), and the
+        # keys of every run added.
+        self._runs: Dict[_RunKey, Dict[str, np.ndarray]] = {}
+        self._added: Set[_RunKey] = set()
+        self._rows = 0
+        #: The file the table streams to (``path=``), or None for a table held in memory.
+        self.path: Optional[Path] = None if path is None else Path(path)
+        if self.path is not None:
+            self._writer = _StreamWriter(self.path)
 
     def __repr__(self) -> str:
+        where = "" if self.path is None else f", path={os.fspath(self.path)!r}"
         return (
-            f"kfmc.Estimates(label={self.label!r}, runs={len(self._runs)}, rows={len(self)}, "
-            f"covariance={self.covariance!r}, float32={self.float32})"
+            f"kfmc.Estimates(label={self.label!r}, runs={len(self._added)}, rows={len(self)}, "
+            f"covariance={self.covariance!r}, float32={self.float32}{where})"
         )
 
     def __len__(self) -> int:
         """The rows so far: steps 0..=K of every run added."""
-        return sum(len(v["step"]) for v in self._runs.values())
+        return self._rows
+
+    @property
+    def buffered_rows(self) -> int:
+        """The rows held in memory: every row of a table held in memory; with ``path=``,
+        those not yet written, fewer than :attr:`rows_per_group` plus one run's."""
+        return sum(len(v["step"]) for v in self._runs.values()) + (
+            0 if self._writer is None else self._writer.carried
+        )
+
+    @property
+    def rows_per_group(self) -> int:
+        """Rows per Parquet row group of the file :meth:`write` (or ``path=``) writes: 2²⁰
+        values per group over the columns, as kfmc's own export groups its estimates."""
+        return max(1, _GROUP_VALUES // len(self.columns))
 
     @property
     def metadata(self) -> Dict[str, str]:
@@ -243,7 +269,9 @@ class Estimates:
             )
         if not 0 <= key[2] < int(self._layout["runs"]) or key[2] != run:
             raise EstimatesError(f"run {run!r} is outside 0..{self._layout['runs']}")
-        if key in self._runs:
+        if self._writer is not None and self._writer.closed:
+            raise Error(f"the estimates were written to {self.path} and closed: add runs before close()")
+        if key in self._added:
             raise EstimatesError(f"{name} was added already")
         k1 = self._steps[key[0]] + 1
         n, m = len(self._q), len(self._z)
@@ -320,6 +348,11 @@ class Estimates:
         if self._parts is None:
             self._parts, self._first = parts, name
         self._runs[key] = cols
+        self._added.add(key)
+        self._rows += k1
+        if self._writer is not None and self.buffered_rows >= self.rows_per_group:
+            self._writer.write(self._frame(), self._arrow, self._options(), final=False)
+            self._runs.clear()
 
     def _variant(
         self, q_scale: Optional[float], r_scale: Optional[float]
@@ -482,9 +515,21 @@ class Estimates:
 
     def to_polars(self) -> pl.DataFrame:
         """The table: one row per run and step, in the order the runs were added, with the
-        columns of :attr:`columns` (null where a value is not given)."""
+        columns of :attr:`columns` (null where a value is not given). With ``path=`` the
+        table is the file's, once closed."""
+        if self._writer is not None:
+            if not self._writer.closed:
+                raise Error(
+                    f"the estimates stream to {self.path}: close() them first (the rows written "
+                    "are no longer in memory)"
+                )
+            return pl.read_parquet(self._writer.path)
         if not self._runs:
             raise EstimatesError("no runs added: an estimates table needs at least one run")
+        return self._frame()
+
+    def _frame(self) -> pl.DataFrame:
+        """The runs held in memory as the table's rows."""
         variant_keys = [a for a in _VARIANT_KEYS if a in self.variants]
         values = [c for c in self.columns if c not in _KEYS and c not in variant_keys]
         f32 = pl.Float32 if self.float32 else pl.Float64
@@ -507,7 +552,7 @@ class Estimates:
             pl.Series("noise_scale", np.concatenate(keys["noise_scale"]), dtype=pl.Float64),
             pl.Series("run", np.concatenate(keys["run"]), dtype=pl.Int64),
             pl.Series("step", np.concatenate(steps), dtype=pl.Int64),
-            pl.repeat(self.label, len(self), eager=True, dtype=pl.String).alias("filter"),
+            pl.repeat(self.label, sum(len(s) for s in steps), eager=True, dtype=pl.String).alias("filter"),
         ]
         for axis in variant_keys:
             series.append(pl.Series(axis, np.concatenate(keys[axis]), dtype=pl.Float64))
@@ -521,11 +566,35 @@ class Estimates:
         """The table through the Arrow C stream interface (what :meth:`to_polars` gives)."""
         return self.to_polars().__arrow_c_stream__(requested_schema)
 
-    def write(self, path: _PathLike) -> Path:
+    def _arrow(self, df: pl.DataFrame) -> Any:
+        """The rows as the pyarrow Table :meth:`write` writes: the stamp in its schema."""
+        table = df.to_arrow()
+        return table.replace_schema_metadata({**(table.schema.metadata or {}), **self.metadata})
+
+    def _options(self) -> Dict[str, Any]:
+        """pyarrow's writer options: byte-stream-split floats, zstd, dictionaries for the
+        two string keys only, row groups of :attr:`rows_per_group`."""
+        floats = [c for c in self.columns if c not in _KEYS and c not in _VARIANT_KEYS]
+        return dict(
+            compression="zstd",
+            use_dictionary=["scenario", "filter"],
+            use_byte_stream_split=floats,
+            row_group_size=self.rows_per_group,
+        )
+
+    def write(self, path: Optional[_PathLike] = None) -> Path:
         """Writes the table as Parquet carrying the simulation's stamp (:attr:`metadata`):
         what ``kfmc score SIM --estimates FILE`` and ``kfmc check`` read. With pyarrow
         installed the float columns are written byte-stream-split and zstd-compressed
-        without dictionaries (the smallest files measured); else polars writes them."""
+        without dictionaries (the smallest files measured), in row groups of
+        :attr:`rows_per_group`; else polars writes them. With ``path=`` given at the start,
+        ``write()`` is :meth:`close`."""
+        if self._writer is not None:
+            if path is not None and Path(path) != self.path:
+                raise Error(f"the estimates stream to {self.path}, not {path}")
+            return self.close()
+        if path is None:
+            raise TypeError("write() needs the file's path (or Estimates(..., path=…) at the start)")
         path = Path(path)
         df = self.to_polars()
         try:
@@ -533,16 +602,7 @@ class Estimates:
         except ImportError:
             pq = None
         if pq is not None:
-            table = df.to_arrow()
-            table = table.replace_schema_metadata({**(table.schema.metadata or {}), **self.metadata})
-            floats = [c for c in df.columns if c not in _KEYS and c not in _VARIANT_KEYS]
-            pq.write_table(
-                table,
-                path,
-                compression="zstd",
-                use_dictionary=["scenario", "filter"],
-                use_byte_stream_split=floats,
-            )
+            pq.write_table(self._arrow(df), path, **self._options())
         else:
             try:
                 df.write_parquet(path, compression="zstd", metadata=self.metadata)
@@ -552,6 +612,119 @@ class Estimates:
                     "metadata): pip install pyarrow"
                 ) from None
         return path
+
+    def close(self) -> Path:
+        """Ends a table that streams to ``path=``: writes the rows still held and moves the
+        file into place (until then it is written under a temporary name beside it, so the
+        path never holds part of a table). Returns the path. Closing twice is harmless."""
+        if self._writer is None:
+            raise Error("close() ends estimates made with path=…; write(path) writes these")
+        if not self._writer.closed:
+            if not self._rows:
+                self._writer.abort()
+                raise EstimatesError("no runs added: an estimates table needs at least one run")
+            frame = self._frame() if self._runs else None
+            self._writer.write(frame, self._arrow, self._options(), final=True)
+            self._runs.clear()
+            self._writer.commit()
+        assert self.path is not None
+        return self.path
+
+    def abort(self) -> None:
+        """Drops a table that streams to ``path=``: its temporary file is removed, and
+        nothing is written at the path. What leaving a ``with`` block by an exception does."""
+        if self._writer is not None:
+            self._writer.abort()
+
+    def __enter__(self) -> "Estimates":
+        return self
+
+    def __exit__(self, kind: Any, value: Any, traceback: Any) -> None:
+        if self._writer is None:
+            return
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+    def __del__(self) -> None:
+        # A loop abandoned without close() leaves no temporary file behind.
+        writer = getattr(self, "_writer", None)
+        if writer is not None and not writer.closed:
+            writer.abort()
+
+
+_RunKey = Tuple[str, float, int, Optional[float], Optional[float]]
+
+#: Values per row group (rows × columns), as kfmc's export (``ESTIMATES_GROUP_VALUES``).
+_GROUP_VALUES = 1 << 20
+
+
+class _StreamWriter:
+    """A Parquet file written row group by row group under a temporary name beside
+    ``path`` (``.<name>.partial``) and renamed to ``path`` on :meth:`commit`: the rows of
+    every group but the last are exactly ``rows_per_group``, as ``pq.write_table`` cuts the
+    whole table, so the file is the one :meth:`Estimates.write` writes."""
+
+    def __init__(self, path: Path) -> None:
+        try:
+            self._pq: Any = importlib.import_module("pyarrow.parquet")
+        except ImportError:
+            raise Error(
+                "Estimates(..., path=…) streams the rows through pyarrow's Parquet writer: "
+                "pip install pyarrow (or leave out path= and write(path) at the end)"
+            ) from None
+        self.path = path
+        self.tmp = path.with_name(f".{path.name}.partial")
+        self._writer: Any = None
+        # Rows of the last flush beyond a whole group, written with the next.
+        self._carry: Optional[pl.DataFrame] = None
+        self.closed = False
+
+    @property
+    def carried(self) -> int:
+        return 0 if self._carry is None else self._carry.height
+
+    def write(
+        self,
+        frame: Optional[pl.DataFrame],
+        arrow: Callable[[pl.DataFrame], Any],
+        options: Dict[str, Any],
+        *,
+        final: bool,
+    ) -> None:
+        """Writes whole groups of the carried rows and ``frame`` (and with ``final`` the
+        rest), carrying what is left."""
+        parts = [p for p in (self._carry, frame) if p is not None]
+        if not parts:
+            return
+        df = pl.concat(parts) if len(parts) > 1 else parts[0]
+        rows = int(options["row_group_size"])
+        at = 0
+        while df.height - at >= rows or (final and at < df.height):
+            group = arrow(df.slice(at, rows).rechunk())
+            if self._writer is None:
+                opts = {k: v for k, v in options.items() if k != "row_group_size"}
+                self._writer = self._pq.ParquetWriter(self.tmp, group.schema, **opts)
+            self._writer.write_table(group, row_group_size=rows)
+            at += rows
+        self._carry = df.slice(at) if at < df.height else None
+
+    def commit(self) -> None:
+        self._writer.close()
+        os.replace(self.tmp, self.path)
+        self.closed = True
+
+    def abort(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self._carry = None
+        try:
+            if self._writer is not None:
+                self._writer.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
 
 
 def _points(a: Any, name: str, rows: Optional[int] = None) -> np.ndarray:

@@ -1,6 +1,7 @@
 """The Python API against the command: same tables, same errors, same exit codes."""
 
 import filecmp
+import math
 import os
 import pathlib
 import re
@@ -488,3 +489,97 @@ def test_the_wheel_installs_and_runs_without_a_compiler(tmp_path):
     assert r.returncode == 0 and r.stdout.startswith("kfmc ")
     r = subprocess.run([str(venv / "bin" / "python"), "-c", "import kfmc; print(kfmc.__version__)"], env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+
+
+@pytest.fixture(scope="module")
+def l1_long_world(tmp_path_factory, script_kfmc):
+    """`l1_world` with 100 runs: 5,100 rows, more than the reader checks at once (4,096),
+    so a table of one batch is read in several blocks."""
+    base = tmp_path_factory.mktemp("l1_long")
+    spec = dict(l1_with_external(), runs=100)
+    sim = kfmc.simulate(spec, out=base / "sim", quiet=True)
+    own = base / "own.toml"
+    own.write_text(dict_to_toml(dict(L1, runs=100)))
+    subprocess.run(
+        [script_kfmc, "run", str(own), "--out", str(base / "own"), "--export-estimates", "-q"],
+        check=True,
+    )
+    est = pl.read_parquet(base / "own" / "estimates.parquet").with_columns(
+        pl.lit("mine").alias("filter")
+    )
+    table = est.to_arrow().replace_schema_metadata(kfmc.schema("estimates", spec)["metadata"])
+    import pyarrow.parquet as pq
+
+    pq.write_table(table, base / "mine.parquet")
+    files = kfmc.score(sim, base / "mine.parquet", out=base / "files", quiet=True)
+    return sim, pl.read_parquet(base / "mine.parquet").rechunk(), files.folder
+
+
+def test_a_chunked_dataframe_is_read_chunk_by_chunk_and_left_as_it_is(l1_long_world, tmp_path):
+    """A polars DataFrame of several chunks (what read_parquet gives, one per row group) is
+    handed over chunk by chunk: polars' own export would first copy it into one chunk (a
+    second copy of the caller's table, and the caller's frame rechunked in place)."""
+    sim, est, files = l1_long_world
+    assert est.height > 4096
+    chunked = pl.concat([est.slice(0, 1000), est.slice(1000, 3500), est.slice(4500)], rechunk=False)
+    assert chunked.n_chunks("all") == [3] * chunked.width
+    study = kfmc.score(sim, chunked, out=tmp_path / "chunked", quiet=True)
+    assert_same_tables(files, study.folder)
+    assert chunked.n_chunks("all") == [3] * chunked.width
+    # One batch of all the rows, read block by block, and a chunk of another layout.
+    assert est.n_chunks() == 1
+    assert_same_tables(files, kfmc.score(sim, est, out=tmp_path / "one", quiet=True).folder)
+    unaligned = chunked.with_columns(chunked.get_column("step").rechunk(), pl.lit("mine").alias("filter"))
+    assert unaligned.get_column("step").n_chunks() == 1
+    assert_same_tables(files, kfmc.score(sim, unaligned, out=tmp_path / "unaligned", quiet=True).folder)
+    assert unaligned.get_column("run").n_chunks() == 3
+
+
+def test_trouble_past_the_first_block_is_named_at_its_row(l1_long_world, tmp_path):
+    sim, est, files = l1_long_world
+    at = 4500
+    row = est.row(at, named=True)
+    key = (
+        f'scenario = "{row["scenario"]}", noise_scale = {row["noise_scale"]:g}, '
+        f'run = {row["run"]}, step = {row["step"]}, filter = "mine"'
+    )
+    idx = pl.int_range(pl.len())
+    cases = [
+        (est.with_columns(pl.when(idx == at).then(None).otherwise(pl.col("filter")).alias("filter")),
+         f"column `filter`: null at row {at}"),
+        (est.with_columns(pl.when(idx == at).then(float("nan")).otherwise(pl.col("nu_x")).alias("nu_x")),
+         f"column `nu_x`: NaN at {key} (null means not given"),
+        (est.with_columns(pl.when(idx == at).then(None).otherwise(pl.col("A_x_y")).alias("A_x_y")),
+         f"column `A_x_y`: null at {key} where the row gives 35 other A_ entries"),
+        (pl.concat([est, est.slice(at, 1)]), f"duplicate row {key}"),
+    ]
+    for i, (bad, message) in enumerate(cases):
+        with pytest.raises(kfmc.EstimatesError) as e:
+            kfmc.score(sim, bad.rechunk(), out=tmp_path / f"bad{i}", quiet=True)
+        assert message in str(e.value), str(e.value)
+
+
+def test_a_stream_of_batches_is_read_one_batch_at_a_time(l1_long_world, tmp_path):
+    """A producer that makes its batches as they are asked for (a pyarrow RecordBatchReader,
+    as a dataset scanner or a database query gives) is read batch by batch, each let go before
+    the next is made: the rows never all sit in memory at once."""
+    import pyarrow as pa
+
+    sim, est, files = l1_long_world
+    table = est.to_arrow()
+    size = 500
+    held = []
+
+    def batches():
+        for at in range(0, table.num_rows, size):
+            held.append(pa.total_allocated_bytes())
+            # A fresh copy in pyarrow's memory pool, as a scanner makes each batch.
+            part = table.slice(at, size)
+            yield part.take(pa.array(range(part.num_rows))).combine_chunks().to_batches()[0]
+
+    reader = pa.RecordBatchReader.from_batches(table.schema, batches())
+    study = kfmc.score(sim, reader, out=tmp_path / "stream", quiet=True)
+    assert_same_tables(files, study.folder)
+    batch_bytes = table.slice(0, size).nbytes
+    assert len(held) == math.ceil(table.num_rows / size) > 3
+    assert max(held) - held[0] < 3 * batch_bytes, (held, batch_bytes)

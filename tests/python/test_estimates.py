@@ -13,6 +13,8 @@
   π) gives the A_k kfmc's own UKF exports.
 """
 
+import contextlib
+import importlib
 import math
 import subprocess
 
@@ -593,3 +595,68 @@ def test_estimates_of_declared_variants_score_like_the_file_route(tmp_path, scri
     # Two of the three variants: the third is reported missing, as a missing filter is.
     with pytest.raises(kfmc.Error, match=r"no rows for the external filter `mine` \(q_scale = 1\)"):
         kfmc.score(sim, fresh, out=tmp_path / "partial", quiet=True)
+
+
+@pytest.mark.parametrize("options", [{}, {"covariance": "cholesky", "float32": True}])
+def test_estimates_streamed_to_a_path_are_the_file_write_writes(world, tmp_path, monkeypatch, options):
+    """With path= the rows go to the file a row group at a time: the file is the one
+    write() writes of the whole table, byte for byte; it appears at the path only when
+    complete; no more than a row group and a run are held."""
+    import filecmp
+
+    import pyarrow.parquet as pq
+
+    sim, own, runs, _ = world
+    # Small groups, so that these 32 runs make several.
+    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", 77 * 100)
+    whole = build(sim, runs, **options)
+    assert whole.buffered_rows == len(whole) == own.height
+    whole.write(tmp_path / "whole.parquet")
+    target = tmp_path / "streamed.parquet"
+    held = []
+    with kfmc.Estimates(sim, "mine", path=target, **options) as est:
+        for key, (x, P, nu, S, A) in runs:
+            est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A)
+            held.append(est.buffered_rows)
+            assert not target.exists()
+        assert est.rows_per_group == 100
+        assert len(est) == own.height
+    longest = max(len(a[0]) for _, a in runs)
+    assert 0 < max(held) < est.rows_per_group + longest, held
+    assert pq.ParquetFile(target).metadata.num_row_groups == math.ceil(own.height / 100)
+    assert filecmp.cmp(tmp_path / "whole.parquet", target, shallow=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["streamed.parquet", "whole.parquet"]
+    assert est.to_polars().equals(whole.to_polars())
+    assert est.write() == target  # closing again is harmless
+    with pytest.raises(kfmc.Error, match="closed"):
+        est.add_run(*runs[0][0], x=runs[0][1][0], P=runs[0][1][1])
+
+
+def test_a_streamed_table_scores_and_an_abandoned_one_leaves_no_file(world, tmp_path, monkeypatch):
+    import gc
+
+    sim, own, runs, _ = world
+    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", 77 * 100)
+    whole = build(sim, runs)
+    # Scoring a streamed table closes it and reads its file.
+    est = build(sim, runs, path=tmp_path / "s.parquet")
+    same_tables(
+        kfmc.score(sim, est, out=tmp_path / "streamed", quiet=True),
+        kfmc.score(sim, whole, out=tmp_path / "memory", quiet=True),
+    )
+    assert (tmp_path / "s.parquet").exists()
+    # A loop that fails leaves nothing at the path, nor its temporary file: in a with
+    # block, and without one once the object is let go.
+    for scoped in (True, False):
+        target = tmp_path / f"failed_{scoped}.parquet"
+        with pytest.raises(KeyError, match="the filter failed"):
+            est = kfmc.Estimates(sim, "mine", path=target)
+            with est if scoped else contextlib.nullcontext():
+                for i, (key, (x, P, nu, S, A)) in enumerate(runs):
+                    if i == len(runs) - 3:
+                        assert (tmp_path / f".{target.name}.partial").exists()
+                        raise KeyError("the filter failed")
+                    est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A)
+        del est
+        gc.collect()
+        assert sorted(p.name for p in tmp_path.iterdir() if p.suffix == ".parquet" or p.name.endswith(".partial")) == ["s.parquet"]
