@@ -717,7 +717,7 @@ fn score<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let registry = kfmc::systems::builtin();
-        let mut plan = kfmc::cli::score_plan(&simulation, out, &registry)
+        let mut plan = kfmc::simulate::scoring_plan(&simulation, out, &registry)
             .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
         attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
         let exec = kfmc::study::ExecOptions {
@@ -860,46 +860,34 @@ fn power(
     futility_rho: Option<f64>,
 ) -> PyResult<PathBuf> {
     guarded(|| {
-        if replications == 0 {
-            return Err(SpecError::new_err("replications: must be at least 1"));
-        }
         // As `kfmc power --sequential …`: the keywords alone (the spec's `[check]` gate is
         // kfmc check's).
         let settings = gate_overrides(sequential, looks, spending, futility, futility_rho)?
             .apply(None)
             .map_err(gate_override_error)?;
-        let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
-        kfmc::study::check_replications(&plan, replications, allow_large)
-            .map_err(|e| Failure::from(e).into_py())?;
+        let (plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
         let gate = settings
             .map(|s| s.gate(plan.runs, plan.alpha))
             .transpose()
             .map_err(|e| SpecError::new_err(format!("sequential gate: {e}")))?;
-        let out = out.unwrap_or_else(|| plan.output.join("power"));
-        plan.output = out.clone();
+        let request = kfmc::power::PowerRequest {
+            replications,
+            out,
+            allow_large,
+            gate,
+            target: None,
+        };
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
             force,
             shard: None,
             checkpoints: None,
         };
-        let report = run_study(py, quiet, move |obs| {
-            let extras = kfmc::power::PowerExtras {
-                gate: gate.as_ref(),
-                curve: Vec::new(),
-            };
-            kfmc::power::power_with(
-                &plan,
-                replications,
-                plan.master_seed,
-                &out,
-                &exec,
-                obs,
-                &extras,
-            )
-            .map_err(|e| Failure::from(e).context(format!("power of {}", path.display())))
+        let outcome = run_study(py, quiet, move |obs| {
+            kfmc::power::run(&plan, &request, &exec, obs)
+                .map_err(|e| Failure::from(e).context(format!("power of {}", path.display())))
         })?;
-        Ok(report.output)
+        Ok(outcome.report.output)
     })
 }
 
@@ -1282,7 +1270,7 @@ fn filter_model(spec: &Bound<'_, PyAny>) -> PyResult<FilterModel> {
 fn simulation_model(folder: PathBuf) -> PyResult<FilterModel> {
     guarded(|| {
         let registry = kfmc::systems::builtin();
-        let plan = kfmc::cli::score_plan(&folder, None, &registry)
+        let plan = kfmc::simulate::scoring_plan(&folder, None, &registry)
             .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
         FilterModel::new(&plan)
     })
@@ -1355,7 +1343,7 @@ fn estimates_layout<'py>(
         let registry = kfmc::systems::builtin();
         let plan = if simulation {
             let folder: PathBuf = source.extract()?;
-            kfmc::cli::score_plan(&folder, None, &registry)
+            kfmc::simulate::scoring_plan(&folder, None, &registry)
                 .map_err(|e| Failure::new(Kind::Study, e).into_py())?
         } else {
             load_spec(source, &registry)?.0

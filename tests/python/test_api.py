@@ -116,6 +116,10 @@ def test_power_with_a_sequential_gate_writes_what_the_command_writes(root, kfmc_
     with pytest.raises(ValueError, match="spending"):
         kfmc.power(spec, 2, runs=20, sequential=True, spending="haybittle", quiet=True,
                    out=tmp_path / "bad")
+    # The library checks the request before any replication, as the command does.
+    with pytest.raises(kfmc.SpecError, match="replications: must be at least 1"):
+        kfmc.power(spec, 0, runs=20, quiet=True, out=tmp_path / "none")
+    assert not (tmp_path / "none").exists()
 
 
 def test_validate_describe_schema(root):
