@@ -835,9 +835,10 @@ impl RunObserver for SharedObserver<'_> {
     }
 }
 
-/// `kfmc power`: returns the folder holding power.parquet.
+/// `kfmc power`: returns the folder holding power.parquet and, with `target_power` and
+/// `against`, the runs-needed text `kfmc power --target-power` prints.
 #[pyfunction]
-#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
+#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None, target_power=None, against=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -858,8 +859,27 @@ fn power(
     spending: Option<&str>,
     futility: Option<f64>,
     futility_rho: Option<f64>,
-) -> PyResult<PathBuf> {
+    target_power: Option<f64>,
+    against: Option<&str>,
+) -> PyResult<(PathBuf, Option<String>)> {
     guarded(|| {
+        let target = match (target_power, against) {
+            (None, None) => None,
+            (Some(power), Some(text)) => {
+                let against = text
+                    .parse()
+                    .map_err(|e| SpecError::new_err(format!("against: {e}")))?;
+                Some(
+                    kfmc::power::PowerTarget::new(power, against)
+                        .map_err(|e| SpecError::new_err(format!("target_power: {e}")))?,
+                )
+            }
+            _ => {
+                return Err(SpecError::new_err(
+                    "target_power and against go together: the power wanted against a variant, e.g. target_power=0.9, against=\"q_scale=0.9\"",
+                ));
+            }
+        };
         // As `kfmc power --sequential …`: the keywords alone (the spec's `[check]` gate is
         // kfmc check's).
         let settings = gate_overrides(sequential, looks, spending, futility, futility_rho)?
@@ -875,7 +895,7 @@ fn power(
             out,
             allow_large,
             gate,
-            target: None,
+            target,
         };
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
@@ -887,7 +907,8 @@ fn power(
             kfmc::power::run(&plan, &request, &exec, obs)
                 .map_err(|e| Failure::from(e).context(format!("power of {}", path.display())))
         })?;
-        Ok(outcome.report.output)
+        let answer = outcome.runs_needed.map(|r| r.to_string());
+        Ok((outcome.report.output, answer))
     })
 }
 

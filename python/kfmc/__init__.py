@@ -782,6 +782,8 @@ def power(
     spending: Optional[str] = None,
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
+    target_power: Optional[float] = None,
+    against: Optional[str] = None,
 ) -> pl.DataFrame:
     """Runs the study ``replications`` times with independent seeds (``kfmc power``) and
     returns power.parquet: per (cell, filter variant, test) the rejection rate with its 95 %
@@ -793,8 +795,14 @@ def power(
     looks (default 10) or the looks' run counts ending at the study's runs per cell;
     ``spending`` is ``"obrien-fleming"`` (the default) or ``"pocock"``; ``futility`` a β in
     (0, 1) for non-binding futility stopping, ``futility_rho`` its β-spending exponent
-    (default 2). Invalid settings raise :class:`SpecError` (a ``ValueError``)."""
-    folder = _kfmc.power(
+    (default 2). Invalid settings raise :class:`SpecError` (a ``ValueError``).
+
+    With ``target_power=P, against="q_scale=X[,r_scale=Y]"`` (together, as ``kfmc power
+    --target-power P --against …``) every test is also evaluated on the first N/10, 2N/10, …
+    runs of each cell (rows with those ``runs``), and unless ``quiet`` the smallest N whose
+    verdict reaches power P against that variant is printed, as the command prints it. A
+    variant no filter of the spec has raises :class:`SpecError` before any run."""
+    folder, answer = _kfmc.power(
         _spec(spec),
         replications,
         out=_path(out),
@@ -808,7 +816,11 @@ def power(
         spending=spending,
         futility=futility,
         futility_rho=futility_rho,
+        target_power=target_power,
+        against=against,
     )
+    if answer is not None and not quiet:
+        print(answer, end="")
     return pl.read_parquet(Path(folder) / "power.parquet")
 
 

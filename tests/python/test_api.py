@@ -122,6 +122,56 @@ def test_power_with_a_sequential_gate_writes_what_the_command_writes(root, kfmc_
     assert not (tmp_path / "none").exists()
 
 
+POWER_SPEC = """
+name = "power_target"
+master_seed = 5
+runs = 20
+[model]
+kind = "linear_quadrotor"
+sensor = "positions"
+[[scenarios]]
+name = "hover"
+x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]
+duration_s = 5.0
+[[filters]]
+label = "kf"
+kind = "ekf"
+q_scale = [1.0, 2.0]
+[initial_estimate]
+mode = "sampled"
+p0_std = 1.0
+[consistency]
+alpha = 0.05
+"""
+
+
+def test_power_with_a_target_prints_and_writes_what_the_command_does(kfmc_bin, tmp_path, capsys):
+    spec = tmp_path / "spec.toml"
+    spec.write_text(POWER_SPEC)
+    cli = subprocess.run(
+        [kfmc_bin, "power", str(spec), "--out", str(tmp_path / "cli"), "-q", "-R", "6",
+         "--target-power", "0.8", "--against", "q_scale=2"],
+        check=True, capture_output=True, text=True,
+    )
+    assert "smallest N with power" in cli.stdout or "is not reached" in cli.stdout
+    capsys.readouterr()
+    table = kfmc.power(spec, 6, out=tmp_path / "api", target_power=0.8, against="q_scale=2")
+    assert capsys.readouterr().out == cli.stdout
+    assert filecmp.cmp(tmp_path / "cli" / "power.parquet", tmp_path / "api" / "power.parquet",
+                       shallow=False)
+    assert sorted(set(table["runs"])) == [2, 4, 6, 8, 10, 12, 14, 16, 18, 20]
+    # Unanswerable requests are refused before anything runs.
+    for kwargs, message in [
+        ({"target_power": 0.8}, "go together"),
+        ({"target_power": 1.5, "against": "q_scale=2"}, "target_power: must lie in"),
+        ({"target_power": 0.8, "against": "q=2"}, "unknown key `q`"),
+        ({"target_power": 0.8, "against": "q_scale=3"}, "no filter variant has q_scale=3"),
+    ]:
+        with pytest.raises(kfmc.SpecError, match=message):
+            kfmc.power(spec, 6, out=tmp_path / "bad", quiet=True, **kwargs)
+        assert not (tmp_path / "bad").exists()
+
+
 def test_validate_describe_schema(root):
     spec = root / "experiments" / "linear_nees.toml"
     v = kfmc.validate(spec)
