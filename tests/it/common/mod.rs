@@ -131,6 +131,46 @@ pub fn read(path: &Path) -> polars::prelude::DataFrame {
         .unwrap()
 }
 
+/// Runs `cmd`, asserting it succeeds (its stderr in the message).
+pub fn ok(cmd: &mut std::process::Command) -> std::process::Output {
+    let o = cmd.output().unwrap();
+    assert!(
+        o.status.success(),
+        "{:?} failed: {}",
+        cmd,
+        String::from_utf8_lossy(&o.stderr)
+    );
+    o
+}
+
+/// The `kfmc.*` file metadata of a Parquet file (its world stamp), sorted by key.
+pub fn stamp_of(path: &Path) -> Vec<(String, String)> {
+    use polars::prelude::SerReader;
+    let mut r = polars::prelude::ParquetReader::new(std::fs::File::open(path).unwrap());
+    let meta = r.get_metadata().unwrap().clone();
+    let mut stamp: Vec<(String, String)> = meta
+        .key_value_metadata()
+        .iter()
+        .flatten()
+        .filter(|kv| kv.key.starts_with("kfmc."))
+        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
+        .collect();
+    stamp.sort();
+    stamp
+}
+
+/// Writes `df` to `path` with the file metadata `meta` (a stamp, as an outside writer that
+/// stamps its files would).
+pub fn write_with(df: &polars::prelude::DataFrame, path: &Path, meta: &[(String, String)]) {
+    let mut df = df.clone();
+    polars::prelude::ParquetWriter::new(std::fs::File::create(path).unwrap())
+        .with_key_value_metadata(Some(
+            polars::io::parquet::write::KeyValueMetadata::from_static(meta.to_vec()),
+        ))
+        .finish(&mut df)
+        .unwrap();
+}
+
 /// A column of `df` as floats (a float32 column widened), null as `None`.
 pub fn f64s(df: &polars::prelude::DataFrame, name: &str) -> Vec<Option<f64>> {
     df.column(name)

@@ -18,7 +18,7 @@
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use crate::common::{kfmc, read, repo};
+use crate::common::{kfmc, ok, read, repo, stamp_of, write_with};
 use polars::prelude::*;
 
 const RUN_SPEC: &str = r#"
@@ -68,42 +68,6 @@ impl Study {
     pub(crate) fn write(&self, df: &DataFrame, path: &Path) {
         write_with(df, path, &self.stamp);
     }
-}
-
-/// The `kfmc.*` file metadata of a Parquet file.
-fn stamp_of(path: &Path) -> Vec<(String, String)> {
-    let mut r = ParquetReader::new(fs::File::open(path).unwrap());
-    let meta = r.get_metadata().unwrap().clone();
-    let mut kv: Vec<(String, String)> = meta
-        .key_value_metadata()
-        .iter()
-        .flatten()
-        .filter(|kv| kv.key.starts_with("kfmc."))
-        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
-        .collect();
-    kv.sort();
-    kv
-}
-
-fn write_with(df: &DataFrame, path: &Path, meta: &[(String, String)]) {
-    let mut df = df.clone();
-    ParquetWriter::new(fs::File::create(path).unwrap())
-        .with_key_value_metadata(Some(
-            polars::io::parquet::write::KeyValueMetadata::from_static(meta.to_vec()),
-        ))
-        .finish(&mut df)
-        .unwrap();
-}
-
-fn ok(cmd: &mut std::process::Command) -> std::process::Output {
-    let o = cmd.output().unwrap();
-    assert!(
-        o.status.success(),
-        "{:?} failed: {}",
-        cmd,
-        String::from_utf8_lossy(&o.stderr)
-    );
-    o
 }
 
 /// Runs kfmc's KF with its estimates exported, keeps the KF's rows as an external filter's

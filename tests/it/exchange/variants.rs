@@ -12,7 +12,7 @@
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use crate::common::{kfmc, read};
+use crate::common::{kfmc, ok, read, stamp_of, write_with};
 use polars::prelude::*;
 
 const BASE: &str = r#"
@@ -62,38 +62,6 @@ fn spec(dir: &Path, name: &str, filters: &str) -> PathBuf {
     let p = dir.join(name);
     fs::write(&p, BASE.replace("FILTERS", filters)).unwrap();
     p
-}
-
-fn ok(cmd: &mut std::process::Command) -> std::process::Output {
-    let o = cmd.output().unwrap();
-    assert!(
-        o.status.success(),
-        "{:?} failed: {}",
-        cmd,
-        String::from_utf8_lossy(&o.stderr)
-    );
-    o
-}
-
-fn stamp_of(path: &Path) -> Vec<(String, String)> {
-    let mut r = ParquetReader::new(fs::File::open(path).unwrap());
-    let meta = r.get_metadata().unwrap().clone();
-    meta.key_value_metadata()
-        .iter()
-        .flatten()
-        .filter(|kv| kv.key.starts_with("kfmc."))
-        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
-        .collect()
-}
-
-fn write(df: &DataFrame, path: &Path, meta: &[(String, String)]) {
-    let mut df = df.clone();
-    ParquetWriter::new(fs::File::create(path).unwrap())
-        .with_key_value_metadata(Some(
-            polars::io::parquet::write::KeyValueMetadata::from_static(meta.to_vec()),
-        ))
-        .finish(&mut df)
-        .unwrap();
 }
 
 /// kfmc's KF at the three Q scales, exported under three labels: the rows of the outside
@@ -162,7 +130,7 @@ fn score(sim: &Path, out: &Path, files: &[&Path]) -> std::process::Output {
 fn declared_variants_score_as_separately_labelled_filters_value_for_value() {
     let s = setup();
     let file = s.dir.join("variants.parquet");
-    write(&s.rows, &file, &s.stamp);
+    write_with(&s.rows, &file, &s.stamp);
     let o = score(&s.dir.join("sim"), &s.dir.join("score"), &[&file]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 
@@ -192,7 +160,7 @@ fn declared_variants_score_as_separately_labelled_filters_value_for_value() {
         .with_column(relabelled.into_series().with_name("filter".into()).into())
         .unwrap();
     let separate_file = s.dir.join("separate.parquet");
-    write(&separate_rows, &separate_file, &s.stamp);
+    write_with(&separate_rows, &separate_file, &s.stamp);
     let o = score(
         &s.dir.join("sim_separate"),
         &s.dir.join("score_separate"),
@@ -270,7 +238,7 @@ fn declared_variants_score_as_separately_labelled_filters_value_for_value() {
 /// `kfmc score` and `kfmc check` of `rows`: (score's exit code and stderr, check's).
 fn judged(s: &Setup, name: &str, rows: &DataFrame) -> ((i32, String), (i32, String)) {
     let file = s.dir.join(format!("{name}.parquet"));
-    write(rows, &file, &s.stamp);
+    write_with(rows, &file, &s.stamp);
     let o = score(
         &s.dir.join("sim"),
         &s.dir.join(format!("score_{name}")),
@@ -382,7 +350,7 @@ fn a_missing_column_an_undeclared_variant_and_a_variant_without_rows_are_refused
         "[[filters]]\nlabel = \"mine\"\nkind = \"external\"\n",
     );
     let file = s.dir.join("plain.parquet");
-    write(&without_2, &file, &s.stamp);
+    write_with(&without_2, &file, &s.stamp);
     let o = kfmc()
         .args(["check", "-q"])
         .arg(&plain)

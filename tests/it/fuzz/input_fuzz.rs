@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use crate::common::{kfmc, read, table_bytes};
+use crate::common::{kfmc, read, stamp_of, table_bytes};
 use clap::CommandFactory;
 use polars::prelude::*;
 use rand::{RngExt, SeedableRng};
@@ -682,18 +682,6 @@ fn files_under(dir: &Path, filter: &dyn Fn(&Path) -> bool) -> Vec<PathBuf> {
     out.retain(|p| filter(p));
     out.sort();
     out
-}
-
-/// The `kfmc.*` file metadata of a Parquet file (its world stamp).
-fn stamp_of(path: &Path) -> Vec<(String, String)> {
-    let mut r = ParquetReader::new(std::fs::File::open(path).unwrap());
-    let meta = r.get_metadata().unwrap().clone();
-    meta.key_value_metadata()
-        .iter()
-        .flatten()
-        .filter(|kv| kv.key.starts_with("kfmc."))
-        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
-        .collect()
 }
 
 /// Writes `df` with the stamp `meta`, as a writer outside kfmc that stamps its files would:

@@ -12,7 +12,7 @@ use kfmc::runner::NullObserver;
 use kfmc::study::{ExecOptions, run};
 use polars::prelude::*;
 
-use crate::common::{f64s_or_nan, kfmc};
+use crate::common::{f64s_or_nan, kfmc, ok, stamp_of, write_with};
 
 /// The drone nose-up at pitch 89.9° with a roll swing about its upward body axis: the full
 /// world of `drone_principled` (specific force, biases, drifts, latency, delay), 10 s.
@@ -221,38 +221,6 @@ mode = "sampled"
 [consistency]
 alpha = 0.05
 "#;
-
-fn ok(cmd: &mut std::process::Command) {
-    let o = cmd.output().unwrap();
-    assert!(
-        o.status.success(),
-        "{:?}: {}",
-        cmd,
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
-
-/// `kfmc.*` metadata of a Parquet file.
-fn stamp_of(path: &Path) -> Vec<(String, String)> {
-    let mut r = ParquetReader::new(fs::File::open(path).unwrap());
-    let meta = r.get_metadata().unwrap().clone();
-    meta.key_value_metadata()
-        .iter()
-        .flatten()
-        .filter(|kv| kv.key.starts_with("kfmc."))
-        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
-        .collect()
-}
-
-fn write_with(df: &DataFrame, path: &Path, meta: &[(String, String)]) {
-    let mut df = df.clone();
-    ParquetWriter::new(fs::File::create(path).unwrap())
-        .with_key_value_metadata(Some(
-            polars::io::parquet::write::KeyValueMetadata::from_static(meta.to_vec()),
-        ))
-        .finish(&mut df)
-        .unwrap();
-}
 
 #[test]
 fn the_exchange_carries_a_rotation_as_a_quaternion_or_as_euler_angles() {
