@@ -538,6 +538,13 @@ pub enum GateError {
     Design(#[from] SequentialError),
 }
 
+/// Most looks a gate may take, as a count or as a list of run counts (`check.looks`,
+/// `--looks`, Python's `looks=`). The design's recursion costs time quadratic in the looks
+/// (100 looks take under a second, about 20 s with futility bounds, whose drift search
+/// repeats it), and a count is expanded into its looks' run counts before anything else:
+/// beyond this a gate is refused before it allocates or computes anything.
+pub const MAX_LOOKS: usize = 100;
+
 /// The default looks: `count` looks of N/count runs (rounded, distinct, at least 2 runs each).
 pub fn default_looks(runs: usize, count: usize) -> Vec<usize> {
     let mut looks: Vec<usize> = (1..=count)
@@ -726,6 +733,17 @@ impl Gate {
         let looks = match looks {
             Looks::Count(0) => {
                 return Err(GateError::Looks("the count of looks must be ≥ 1".into()));
+            }
+            Looks::Count(count) if *count > MAX_LOOKS => {
+                return Err(GateError::Looks(format!(
+                    "{count} looks are more than a gate may take (at most {MAX_LOOKS})"
+                )));
+            }
+            Looks::RunCounts(given) if given.len() > MAX_LOOKS => {
+                return Err(GateError::Looks(format!(
+                    "{} looks are more than a gate may take (at most {MAX_LOOKS})",
+                    given.len()
+                )));
             }
             Looks::Count(count) => default_looks(runs, *count),
             Looks::RunCounts(given) => {
@@ -1034,6 +1052,37 @@ mod tests {
             ),
             Err(SequentialError::Spending(_))
         ));
+    }
+
+    /// Beyond `MAX_LOOKS` a gate is refused before its looks are expanded: a count of 10¹²
+    /// looks would otherwise be a vector of 10¹² run counts.
+    #[test]
+    fn more_looks_than_the_limit_are_refused_before_they_are_expanded() {
+        let gate = |looks: Looks| {
+            Gate::for_study(1_010_000_000, 0.05, &looks, &Spending::OBrienFleming, None)
+        };
+        let started = std::time::Instant::now();
+        for (looks, n) in [
+            (Looks::Count(1_000_000_000_000), 1_000_000_000_000usize),
+            (Looks::Count(MAX_LOOKS + 1), MAX_LOOKS + 1),
+            (
+                // Increasing and ending at the study's runs: too many, nothing else wrong.
+                Looks::RunCounts((1..=MAX_LOOKS + 1).map(|k| k * 10_000_000).collect()),
+                MAX_LOOKS + 1,
+            ),
+        ] {
+            assert_eq!(
+                gate(looks),
+                Err(GateError::Looks(format!(
+                    "{n} looks are more than a gate may take (at most {MAX_LOOKS})"
+                )))
+            );
+        }
+        assert!(started.elapsed() < std::time::Duration::from_secs(1));
+        assert_eq!(
+            gate(Looks::Count(MAX_LOOKS)).unwrap().looks.len(),
+            MAX_LOOKS
+        );
     }
 
     #[test]

@@ -637,3 +637,22 @@ def test_a_stream_of_batches_is_read_one_batch_at_a_time(l1_long_world, tmp_path
     batch_bytes = table.slice(0, size).nbytes
     assert len(held) == math.ceil(table.num_rows / size) > 3
     assert max(held) - held[0] < 3 * batch_bytes, (held, batch_bytes)
+
+
+def test_more_looks_than_the_limit_raise_spec_error_at_once(root, tmp_path):
+    """A count of 10¹² looks is refused before it is expanded into 10¹² run counts, with the
+    message of the command and the spec's key; so is a list of 101 looks."""
+    spec = root / "experiments" / "ci_consistency.toml"
+    message = re.escape("1000000000000 looks are more than a gate may take (at most 100)")
+    started = time.time()
+    with pytest.raises(kfmc.SpecError, match=message):
+        kfmc.check(spec, runs=1000, out=tmp_path / "c", quiet=True, sequential=True, looks=10**12)
+    with pytest.raises(kfmc.SpecError, match=message):
+        kfmc.power(spec, 2, runs=1000, out=tmp_path / "p", quiet=True, sequential=True,
+                   looks=10**12)
+    with pytest.raises(kfmc.SpecError, match="101 looks are more than a gate may take"):
+        kfmc.check(spec, runs=1010, out=tmp_path / "c", quiet=True, sequential=True,
+                   looks=[10 * k for k in range(1, 102)])
+    assert time.time() - started < 30
+    assert not (tmp_path / "c").exists() and not (tmp_path / "p").exists()
+

@@ -275,3 +275,85 @@ fn the_gates_settings_are_checked_at_their_key_paths() {
         "{err}"
     );
 }
+
+/// A count of looks, or a list of run counts, beyond `MAX_LOOKS` is refused before the gate
+/// expands or designs anything: as the spec's key, `check --looks` and `power --looks`, each
+/// with the same message, within seconds and without memory to speak of.
+#[test]
+fn more_looks_than_the_limit_are_refused_at_once_everywhere() {
+    use kfmc::sequential::MAX_LOOKS;
+    let too_many = format!(
+        "{} looks are more than a gate may take (at most {MAX_LOOKS})",
+        1_000_000_000_000u64
+    );
+    let runs = 1_000_000;
+    let list: Vec<String> = (1..=MAX_LOOKS + 1)
+        .map(|k| (k * runs / (MAX_LOOKS + 1)).to_string())
+        .collect();
+    let list_too_long = format!("{} looks are more than a gate may take", MAX_LOOKS + 1);
+    let started = std::time::Instant::now();
+    // The spec's key: a count below its own cap of 10⁹, and a list.
+    for (looks, message) in [
+        (
+            "999999999".to_string(),
+            "999999999 looks are more than a gate may take".to_string(),
+        ),
+        (format!("[{}]", list.join(", ")), list_too_long.clone()),
+    ] {
+        let text = gate_spec(
+            runs,
+            TUNED,
+            &format!("[check]\nsequential = true\nlooks = {looks}\n\n{ASSERT}"),
+        );
+        let (_d, spec) = spec_in_tempdir(&text);
+        let (code, _, err) = run(&["validate", spec.to_str().unwrap()]);
+        assert_eq!(code, 2, "{err}");
+        assert!(
+            err.contains("check.looks") && err.contains(&message),
+            "{err}"
+        );
+    }
+    // The flags of check and power.
+    let text = gate_spec(runs, TUNED, ASSERT);
+    let (_d, spec) = spec_in_tempdir(&text);
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("o");
+    for command in ["check", "power"] {
+        for (looks, message) in [
+            ("1000000000000", too_many.as_str()),
+            (&list.join(",")[..], list_too_long.as_str()),
+        ] {
+            let mut args = vec![
+                command,
+                spec.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--quiet",
+                "--sequential",
+                "--looks",
+                looks,
+            ];
+            if command == "power" {
+                args.extend(["-R", "2"]);
+            }
+            let (code, _, err) = run(&args);
+            assert_eq!(code, 2, "{command} --looks {looks}: {err}");
+            // `check` judges its flags with the spec's `[check]` keys, `power` as flags.
+            let key = if command == "check" {
+                "check.looks"
+            } else {
+                "--looks"
+            };
+            assert!(
+                err.contains(key) && err.contains(message),
+                "{command}: {err}"
+            );
+        }
+    }
+    assert!(!out.exists(), "nothing was written");
+    assert!(
+        started.elapsed() < std::time::Duration::from_secs(60),
+        "{:?}",
+        started.elapsed()
+    );
+}
