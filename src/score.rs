@@ -557,6 +557,130 @@ fn detect_columns(
     Ok(cols)
 }
 
+/// What a column holds, as far as the estimates format is concerned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ColumnClass {
+    /// float64, float32.
+    Float,
+    /// Any integer width, signed or not.
+    Integer,
+    /// Strings.
+    Text,
+    /// No values at all (a column of nulls).
+    Null,
+    /// Anything else: bool, decimal, map, struct, list, dates, binary, dictionary, …
+    Other,
+}
+
+/// An Arrow type's class and its name for messages.
+fn arrow_class(dtype: &ArrowDataType) -> (ColumnClass, String) {
+    use ArrowDataType as A;
+    let class = match dtype {
+        A::Float32 | A::Float64 => ColumnClass::Float,
+        A::Int8 | A::Int16 | A::Int32 | A::Int64 | A::UInt8 | A::UInt16 | A::UInt32 | A::UInt64 => {
+            ColumnClass::Integer
+        }
+        A::Utf8 | A::LargeUtf8 | A::Utf8View => ColumnClass::Text,
+        A::Null => ColumnClass::Null,
+        _ => ColumnClass::Other,
+    };
+    let name = match dtype {
+        A::Boolean => "bool".to_string(),
+        A::Int8 => "int8".into(),
+        A::Int16 => "int16".into(),
+        A::Int32 => "int32".into(),
+        A::Int64 => "int64".into(),
+        A::UInt8 => "uint8".into(),
+        A::UInt16 => "uint16".into(),
+        A::UInt32 => "uint32".into(),
+        A::UInt64 => "uint64".into(),
+        A::Utf8 | A::LargeUtf8 | A::Utf8View => "string".into(),
+        A::Float16 => "float16".into(),
+        A::Float32 => "float32".into(),
+        A::Float64 => "float64".into(),
+        A::Decimal(p, s) | A::Decimal32(p, s) | A::Decimal64(p, s) | A::Decimal256(p, s) => {
+            format!("decimal({p}, {s})")
+        }
+        A::Map(..) => "map".into(),
+        A::Struct(_) => "struct".into(),
+        A::List(_) | A::LargeList(_) | A::FixedSizeList(..) => "list".into(),
+        A::Dictionary(..) => "dictionary (categorical)".into(),
+        A::Binary | A::LargeBinary | A::BinaryView | A::FixedSizeBinary(_) => "binary".into(),
+        A::Extension(e) => format!("extension `{}`", e.name),
+        other => format!("{other:?}").to_lowercase(),
+    };
+    (class, name)
+}
+
+/// A polars type's class and its name for messages.
+fn polars_class(dtype: &DataType) -> (ColumnClass, String) {
+    let class = if dtype.is_float() {
+        ColumnClass::Float
+    } else if dtype.is_integer() {
+        ColumnClass::Integer
+    } else if dtype.is_string() {
+        ColumnClass::Text
+    } else if dtype.is_null() {
+        ColumnClass::Null
+    } else {
+        ColumnClass::Other
+    };
+    (class, dtype.to_string())
+}
+
+/// Refuses a column whose type the estimates format does not take, naming the file, the
+/// column and its type. The keys keep their documented types (`scenario` and `filter`
+/// strings, `run` and `step` integers, `noise_scale`, `q_scale` and `r_scale` numbers); a
+/// value column is float64 or float32 (or all null): a bool, integer or string there is a
+/// writer's mistake that a conversion would hide (`True` scored as 1.0), and a decimal, map
+/// or other nested column is not a number at all.
+fn check_column_class(
+    path: &Path,
+    name: &str,
+    (class, type_name): (ColumnClass, String),
+) -> Result<(), OutputError> {
+    use ColumnClass::*;
+    let (ok, wanted) = match name {
+        "scenario" | "filter" => (matches!(class, Text | Null), "a string column"),
+        "run" | "step" => (matches!(class, Integer | Null), "an integer column"),
+        "noise_scale" | "q_scale" | "r_scale" => {
+            (matches!(class, Float | Integer | Null), "a float64 column")
+        }
+        _ => (
+            matches!(class, Float | Null),
+            "a value column: float64 or float32",
+        ),
+    };
+    if ok {
+        return Ok(());
+    }
+    Err(format_err(
+        path,
+        format!(
+            "column `{name}` holds {type_name} values; it must be {wanted} (kfmc converts no other type; `kfmc schema estimates SPEC` lists the columns and their types)"
+        ),
+    ))
+}
+
+/// Refuses an Arrow column (of a Parquet file's schema, or of a table handed over through
+/// the Arrow C stream interface) whose type the estimates format does not take, before any
+/// of its values is read: see [`check_column_class`]'s rules.
+pub fn check_arrow_column(
+    path: &Path,
+    name: &str,
+    dtype: &ArrowDataType,
+) -> Result<(), OutputError> {
+    check_column_class(path, name, arrow_class(dtype))
+}
+
+/// [`check_arrow_column`] for every column of a table already in memory.
+fn check_frame_columns(path: &Path, df: &DataFrame) -> Result<(), OutputError> {
+    for c in df.columns() {
+        check_column_class(path, c.name(), polars_class(c.dtype()))?;
+    }
+    Ok(())
+}
+
 impl EstimateSet {
     /// Reads `files` for the external filters of a study. File-level trouble (an undeclared
     /// label, a key outside the plan, a duplicate row, a wrong column, a foreign study) is an
@@ -1267,12 +1391,8 @@ impl<'a> Reading<'a> {
         if !check_metadata(path, &meta, self.keys.study)? {
             self.unstamped.push(path.clone());
         }
-        let names: Vec<String> = reader
-            .schema()
-            .map_err(|e| polars_err(path, e))?
-            .iter_names()
-            .map(|n| n.to_string())
-            .collect();
+        let schema = reader.schema().map_err(|e| polars_err(path, e))?;
+        let names: Vec<String> = schema.iter_names().map(|n| n.to_string()).collect();
         let study = self.keys.study;
         let columns = FileColumns::new(detect_columns(
             path,
@@ -1281,6 +1401,11 @@ impl<'a> Reading<'a> {
             &study.measurements,
             &study.rotations,
         )?);
+        // Before a row group is read: polars cannot hold some Arrow types (a decimal or a
+        // map column stops it outright), and would convert others.
+        for (name, field) in schema.iter() {
+            check_arrow_column(path, name, &field.dtype)?;
+        }
         let mut offset = 0usize;
         crate::output::table::for_each_row_group(path, |df| {
             self.rows(path, &columns, &df, offset)?;
@@ -1317,11 +1442,13 @@ impl<'a> Reading<'a> {
             &study.measurements,
             &study.rotations,
         )?);
+        check_frame_columns(&path, &first)?;
         self.rows(&path, &columns, &first, 0)?;
         let mut offset = first.height();
         drop(first);
         for df in batches {
             let df = df?;
+            check_frame_columns(&path, &df)?;
             self.rows(&path, &columns, &df, offset)?;
             offset += df.height();
         }

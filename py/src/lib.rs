@@ -636,6 +636,12 @@ impl Iterator for Batches {
             };
             let mut columns = Vec::with_capacity(batch.fields().len());
             for (field, values) in batch.fields().iter().zip(batch.values()) {
+                // Before polars sees it: a decimal or map column would stop it outright.
+                if let Err(e) =
+                    kfmc::score::check_arrow_column(&self.name, &field.name, &field.dtype)
+                {
+                    return Some(Err(e));
+                }
                 match Series::from_arrow(field.name.clone(), values.clone()) {
                     Ok(s) => columns.push(s.into_column()),
                     Err(e) => return Some(Err(bad(format!("column `{}`: {e}", field.name)))),

@@ -82,6 +82,7 @@ mod systems {
 
 /// The estimates exchange and the tables read by other tools.
 mod exchange {
+    mod column_types;
     mod compact;
     mod drone_export;
     #[allow(clippy::module_inception)]

@@ -656,3 +656,36 @@ def test_more_looks_than_the_limit_raise_spec_error_at_once(root, tmp_path):
     assert time.time() - started < 30
     assert not (tmp_path / "c").exists() and not (tmp_path / "p").exists()
 
+
+def test_estimates_of_other_types_raise_estimates_error_naming_the_column(l1_world, tmp_path, capfd):
+    """Decimal and map columns (which polars cannot hold) and bool, integer or string values
+    (which a conversion would score) are refused naming the column, never a Rust panic."""
+    import decimal
+
+    import pyarrow as pa
+
+    spec, sim, est, base = l1_world
+    n = est.height
+    table = est.to_arrow()
+
+    def replaced(column, values):
+        return table.set_column(table.schema.get_field_index(column), column, values)
+
+    cases = [
+        ("est_x", replaced("est_x", pa.array([decimal.Decimal("1.5")] * n, pa.decimal128(10, 3))),
+         "decimal(10, 3)"),
+        ("P_x_x", replaced("P_x_x", pa.array([[("a", 1.0)]] * n, pa.map_(pa.string(), pa.float64()))),
+         "map"),
+        ("noise_scale", replaced("noise_scale", pa.array([decimal.Decimal("1")] * n, pa.decimal128(5, 0))),
+         "decimal(5, 0)"),
+        ("est_y", est.with_columns(pl.lit(True).alias("est_y")), "bool"),
+        ("est_z", est.with_columns(pl.lit(1, dtype=pl.Int64).alias("est_z")), "int64"),
+        ("est_xdot", est.with_columns(pl.lit("0.5").alias("est_xdot")), "string"),
+    ]
+    for column, estimates, type_name in cases:
+        with pytest.raises(kfmc.EstimatesError) as e:
+            kfmc.score(sim, estimates, out=tmp_path / column, quiet=True)
+        assert f"column `{column}` holds " in str(e.value) and type_name in str(e.value), str(e.value)
+        assert not (tmp_path / column).exists()
+    assert "panicked" not in capfd.readouterr().err
+
