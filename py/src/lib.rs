@@ -278,14 +278,22 @@ fn run_study<T: Send + 'static>(
     }
 }
 
-/// A Python value as TOML: dicts are tables, lists and tuples arrays.
-fn to_toml(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
+/// A Python value as TOML: dicts are tables, lists and tuples arrays, at most
+/// [`MAX_SPEC_DEPTH`](kfmc::system::limits::MAX_SPEC_DEPTH) deep (`depth` is `v`'s).
+fn to_toml(v: &Bound<'_, PyAny>, key: &str, depth: usize) -> PyResult<toml::Value> {
+    use kfmc::system::limits::MAX_SPEC_DEPTH;
     let spec_err = |what: &str| {
         SpecError::new_err(format!(
             "<dict>: {}: {what}",
             if key.is_empty() { "(top level)" } else { key }
         ))
     };
+    // A dict or list that contains itself would recurse until the stack overflows.
+    if depth > MAX_SPEC_DEPTH {
+        return Err(spec_err(&format!(
+            "nested more than {MAX_SPEC_DEPTH} tables or arrays deep (a dict or list that contains itself?)"
+        )));
+    }
     if v.is_instance_of::<PyBool>() {
         return Ok(toml::Value::Boolean(v.extract()?));
     }
@@ -312,14 +320,14 @@ fn to_toml(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
             } else {
                 format!("{key}.{k}")
             };
-            table.insert(k, to_toml(&item, &path)?);
+            table.insert(k, to_toml(&item, &path, depth + 1)?);
         }
         return Ok(toml::Value::Table(table));
     }
     if v.is_instance_of::<PyList>() || v.is_instance_of::<PyTuple>() {
         let mut items = Vec::new();
         for (i, item) in v.try_iter()?.enumerate() {
-            items.push(to_toml(&item?, &format!("{key}[{i}]"))?);
+            items.push(to_toml(&item?, &format!("{key}[{i}]"), depth + 1)?);
         }
         return Ok(toml::Value::Array(items));
     }
@@ -338,7 +346,7 @@ fn to_toml(v: &Bound<'_, PyAny>, key: &str) -> PyResult<toml::Value> {
 /// validated.
 fn load_spec(spec: &Bound<'_, PyAny>, registry: &Registry) -> PyResult<(Plan, PathBuf)> {
     let loaded = if let Ok(d) = spec.cast::<PyDict>() {
-        let toml::Value::Table(table) = to_toml(d.as_any(), "")? else {
+        let toml::Value::Table(table) = to_toml(d.as_any(), "", 0)? else {
             unreachable!("a dict is a table");
         };
         let text = toml::to_string(&table)

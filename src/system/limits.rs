@@ -11,6 +11,10 @@ pub const MAX_SCALES: usize = 100_000;
 pub const MAX_ENTRIES: usize = 10_000;
 /// Spec file size in bytes.
 pub const MAX_SPEC_BYTES: u64 = 1 << 20;
+/// Tables and arrays nested in one another in a spec given as a Python dict: a spec needs a
+/// handful, and a dict that contains itself is refused here instead of recursing until the
+/// stack overflows.
+pub const MAX_SPEC_DEPTH: usize = 64;
 /// Characters of a scenario name or a filter label (they are parts of figure file names,
 /// which most file systems cap at 255 bytes).
 pub const MAX_NAME_CHARS: usize = 64;

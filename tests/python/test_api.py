@@ -657,6 +657,47 @@ def test_more_looks_than_the_limit_raise_spec_error_at_once(root, tmp_path):
     assert not (tmp_path / "c").exists() and not (tmp_path / "p").exists()
 
 
+DEEP_SCRIPT = textwrap.dedent(
+    """
+    import sys, kfmc
+    spec = {spec!r}
+    looped = dict(spec)
+    looped["model"] = dict(spec["model"])
+    looped["model"]["again"] = looped
+    deep = dict(spec)
+    cur = deep["nested"] = {{}}
+    for _ in range(20000):
+        cur["a"] = {{}}
+        cur = cur["a"]
+    listed = dict(spec)
+    lst = []
+    lst.append(lst)
+    listed["items"] = lst
+    for name, d in (("looped", looped), ("deep", deep), ("listed", listed)):
+        try:
+            kfmc.validate(d)
+            print(name, "accepted")
+        except kfmc.SpecError as e:
+            print(name, "SpecError", str(e)[:60], "…", str(e)[-80:])
+    """
+)
+
+
+def test_a_spec_dict_that_contains_itself_or_nests_deep_raises_spec_error(tmp_path):
+    """In a child process, as an unbounded recursion would overflow the stack and kill it."""
+    script = tmp_path / "deep.py"
+    script.write_text(DEEP_SCRIPT.format(spec=L1))
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    lines = dict(line.split(" ", 1) for line in p.stdout.splitlines())
+    depth = "nested more than 64 tables or arrays deep"
+    assert lines["looped"].startswith("SpecError <dict>: model.again.model.again."), lines
+    assert lines["deep"].startswith("SpecError <dict>: nested.a.a.a."), lines
+    assert lines["listed"].startswith("SpecError <dict>: items[0][0][0]"), lines
+    for line in lines.values():
+        assert depth in line, line
+
+
 def test_estimates_of_other_types_raise_estimates_error_naming_the_column(l1_world, tmp_path, capfd):
     """Decimal and map columns (which polars cannot hold) and bool, integer or string values
     (which a conversion would score) are refused naming the column, never a Rust panic."""
