@@ -1372,7 +1372,7 @@ impl<'a> Reading<'a> {
 
     /// Reads one file: its stamp and columns, then its row groups into the filters' spills.
     fn file(&mut self, path: &PathBuf) -> Result<(), OutputError> {
-        let file = File::open(path).map_err(|source| OutputError::Io {
+        let file = crate::output::atomic::open_input(path).map_err(|source| OutputError::Io {
             action: "cannot open",
             path: path.clone(),
             source,

@@ -1016,7 +1016,7 @@ fn toml_to_py<'py>(py: Python<'py>, v: &toml::Value) -> PyResult<Bound<'py, PyAn
 #[pyfunction]
 fn load_toml<'py>(py: Python<'py>, path: PathBuf) -> PyResult<Bound<'py, PyAny>> {
     guarded(|| {
-        let text = std::fs::read_to_string(&path)
+        let text = kfmc::output::atomic::read_input_to_string(&path)
             .map_err(|e| StudyError::new_err(format!("cannot read {}: {e}", path.display())))?;
         let table: toml::Table = toml::from_str(&text)
             .map_err(|e| StudyError::new_err(format!("{}: {e}", path.display())))?;

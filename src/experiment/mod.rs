@@ -38,7 +38,8 @@ pub fn load_with(path: &Path, registry: &Registry) -> Result<Plan, SpecErrors> {
             message,
         }])
     };
-    let file = std::fs::File::open(path).map_err(|e| one(format!("cannot read the spec: {e}")))?;
+    let file = crate::output::atomic::open_input(path)
+        .map_err(|e| one(format!("cannot read the spec: {e}")))?;
     // Read at most one byte past the cap, so `/dev/zero` or a huge file is refused, not read.
     let mut bytes = Vec::new();
     file.take(plan::limits::MAX_SPEC_BYTES + 1)

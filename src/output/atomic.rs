@@ -45,3 +45,40 @@ pub fn temp_beside(path: &Path) -> PathBuf {
         .unwrap_or_default();
     path.with_file_name(format!(".{name}.partial"))
 }
+
+/// Opens `path` for reading when it is a regular file (or a symlink to one), and refuses
+/// anything else before opening it: opening a FIFO blocks until a writer comes, reading one
+/// (or a terminal) blocks until it writes, and a device may never end. Every file kfmc reads
+/// (a spec, estimates, a study's tables, manifests and checkpoints) goes through here.
+pub fn open_input(path: &Path) -> std::io::Result<std::fs::File> {
+    use std::os::unix::fs::FileTypeExt;
+    let kind = std::fs::metadata(path)?.file_type();
+    let what = if kind.is_file() {
+        None
+    } else if kind.is_dir() {
+        Some("a folder")
+    } else if kind.is_fifo() {
+        Some("a FIFO (named pipe)")
+    } else if kind.is_socket() {
+        Some("a socket")
+    } else if kind.is_char_device() || kind.is_block_device() {
+        Some("a device")
+    } else {
+        Some("neither a file nor a folder")
+    };
+    if let Some(what) = what {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("it is {what}, not a regular file"),
+        ));
+    }
+    std::fs::File::open(path)
+}
+
+/// Reads the whole of the regular file at `path` as UTF-8 text ([`open_input`]).
+pub fn read_input_to_string(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut text = String::new();
+    open_input(path)?.read_to_string(&mut text)?;
+    Ok(text)
+}

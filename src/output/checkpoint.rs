@@ -120,7 +120,7 @@ impl Index {
     /// Reads the index of `output`'s checkpoint, if there is one.
     pub fn read(output: &Path) -> Result<Option<Index>, OutputError> {
         let path = dir(output).join(INDEX_FILE);
-        let text = match std::fs::read_to_string(&path) {
+        let text = match super::atomic::read_input_to_string(&path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(io("cannot read", &path)(e)),
@@ -643,7 +643,8 @@ pub fn replay(
     columns: &[ColumnDef],
     mut f: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
 ) -> Result<u64, OutputError> {
-    let file = File::open(path).map_err(io("cannot open the checkpoint journal", path))?;
+    let file = super::atomic::open_input(path)
+        .map_err(io("cannot open the checkpoint journal", path))?;
     let decoder = zstd::stream::read::Decoder::new(file.take(bytes))
         .map_err(io("cannot start decompressing", path))?;
     let mut records = Records {

@@ -36,6 +36,8 @@ pub struct FolderLock {
     path: PathBuf,
     // Holds the `flock`; closing it (on drop, or by the kernel at exit) releases it.
     _file: std::fs::File,
+    // A writer holding a folder stops cleanly on a signal (its partial files removed).
+    _stop: crate::runner::StopSection,
 }
 
 /// An output folder held exclusively by this process until dropped.
@@ -187,7 +189,11 @@ impl FolderLock {
             let _ = file
                 .set_len(0)
                 .and_then(|()| file.write_all(text.as_bytes()));
-            return Ok(FolderLock { path, _file: file });
+            return Ok(FolderLock {
+                path,
+                _file: file,
+                _stop: crate::runner::StopSection::open(),
+            });
         }
     }
 }
@@ -365,7 +371,7 @@ impl Drop for FinishedTable {
 
 /// FNV-1a 64 of a file's bytes, and its size.
 pub fn checksum_file(path: &Path) -> Result<(u64, String), OutputError> {
-    let mut f = std::fs::File::open(path).map_err(io("cannot open", path))?;
+    let mut f = super::atomic::open_input(path).map_err(io("cannot open", path))?;
     let mut buf = vec![0u8; 1 << 16];
     let mut h = crate::hash::Fnv1a::new();
     let mut n = 0u64;

@@ -314,11 +314,12 @@ impl Manifest {
     /// Reads `manifest.toml` from `dir`.
     pub fn read(dir: &Path) -> Result<Self, OutputError> {
         let path = dir.join("manifest.toml");
-        let text = std::fs::read_to_string(&path).map_err(|source| OutputError::Io {
-            action: "cannot read",
-            path: path.clone(),
-            source,
-        })?;
+        let text =
+            super::atomic::read_input_to_string(&path).map_err(|source| OutputError::Io {
+                action: "cannot read",
+                path: path.clone(),
+                source,
+            })?;
         toml::from_str(&text).map_err(|e| OutputError::Format {
             path,
             message: e.to_string(),

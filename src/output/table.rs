@@ -468,7 +468,7 @@ pub fn for_each_row_group(
     mut f: impl FnMut(DataFrame) -> Result<(), OutputError>,
 ) -> Result<polars::io::parquet::read::FileMetadata, OutputError> {
     let open = || {
-        File::open(path).map_err(|source| OutputError::Io {
+        super::atomic::open_input(path).map_err(|source| OutputError::Io {
             action: "cannot open",
             path: path.to_path_buf(),
             source,
@@ -506,7 +506,7 @@ pub fn starts_as_parquet(file: &File) -> bool {
 /// Reads a whole Parquet table, refusing one with two rows of one key
 /// ([`unique_keys`]).
 pub fn read(path: &Path) -> Result<DataFrame, OutputError> {
-    let file = File::open(path).map_err(|source| OutputError::Io {
+    let file = super::atomic::open_input(path).map_err(|source| OutputError::Io {
         action: "cannot open",
         path: path.to_path_buf(),
         source,

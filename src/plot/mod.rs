@@ -17,7 +17,6 @@ pub mod report;
 pub mod rmse;
 pub mod trajectory;
 
-use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use polars::prelude::*;
@@ -384,10 +383,12 @@ impl Table {
             source,
         };
         let open = || {
-            File::open(&path).map_err(|source| crate::error::OutputError::Io {
-                action: "cannot open",
-                path: path.clone(),
-                source,
+            crate::output::atomic::open_input(&path).map_err(|source| {
+                crate::error::OutputError::Io {
+                    action: "cannot open",
+                    path: path.clone(),
+                    source,
+                }
             })
         };
         let names: Vec<String> = ParquetReader::new(open()?)

@@ -52,15 +52,86 @@ impl RunObserver for NullObserver {}
 static INTERRUPTED: std::sync::OnceLock<std::sync::Arc<std::sync::atomic::AtomicBool>> =
     std::sync::OnceLock::new();
 
-/// Makes SIGINT and SIGTERM request a clean stop: the executor finishes the window in flight,
-/// returns [`crate::error::OutputError::Interrupted`], and every partial file is removed as
-/// the study unwinds. A second signal while stopping still stops the process at once (the
-/// default action is restored after the first).
+/// Whether no [`StopSection`] is open: a signal then ends the process at once.
+fn outside_sections() -> &'static std::sync::Arc<std::sync::atomic::AtomicBool> {
+    static OUTSIDE: std::sync::OnceLock<std::sync::Arc<std::sync::atomic::AtomicBool>> =
+        std::sync::OnceLock::new();
+    OUTSIDE.get_or_init(|| std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true)))
+}
+
+/// The open [`StopSection`]s.
+static SECTIONS: std::sync::Mutex<usize> = std::sync::Mutex::new(0);
+
+/// Makes SIGINT and SIGTERM request a clean stop while a [`StopSection`] is open (a command
+/// writing into a folder it holds): the executor finishes the window in flight, returns
+/// [`crate::error::OutputError::Interrupted`], and every partial file is removed as the
+/// study unwinds. With no section open (reading a spec or estimates, designing a gate,
+/// drawing figures) the loops that would see the request are not running and there is
+/// nothing to clean up: the process exits at once with status 130, so that no wait, however
+/// long or blocked, makes it deaf. A second signal while stopping also exits at once.
+///
+/// The signals are taken by a thread of their own (not in a signal handler), which may
+/// print and exit safely.
 pub fn stop_on_signals() {
-    let flag = INTERRUPTED.get_or_init(Default::default);
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        let _ = signal_hook::flag::register_conditional_default(sig, flag.clone());
-        let _ = signal_hook::flag::register(sig, flag.clone());
+    static WATCHING: std::sync::Once = std::sync::Once::new();
+    WATCHING.call_once(|| {
+        let flag = INTERRUPTED.get_or_init(Default::default).clone();
+        let sigs = [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM];
+        let watcher = signal_hook::iterator::Signals::new(sigs).and_then(|mut signals| {
+            std::thread::Builder::new()
+                .name("kfmc-signals".into())
+                .spawn(move || {
+                    for _ in signals.forever() {
+                        let again = flag.swap(true, std::sync::atomic::Ordering::SeqCst);
+                        if again || outside_sections().load(std::sync::atomic::Ordering::SeqCst) {
+                            eprintln!(
+                                "error: interrupted{}",
+                                if again {
+                                    " again while stopping; exiting at once"
+                                } else {
+                                    " (no output folder was being written)"
+                                }
+                            );
+                            std::process::exit(130);
+                        }
+                    }
+                })
+        });
+        if watcher.is_err() {
+            // No thread: the flag alone, and a second signal's default action.
+            let flag = INTERRUPTED.get_or_init(Default::default);
+            for sig in sigs {
+                let _ = signal_hook::flag::register_conditional_default(sig, flag.clone());
+                let _ = signal_hook::flag::register(sig, flag.clone());
+            }
+        }
+    });
+}
+
+/// While one is held, a signal asks for a clean stop ([`stop_on_signals`]); the holder
+/// must then see [`interrupted`] within moments (the executor does between windows).
+/// Sections nest; the last one dropped makes signals end the process at once again.
+#[must_use = "the section ends when this is dropped"]
+#[derive(Debug)]
+pub struct StopSection(());
+
+impl StopSection {
+    /// Opens a section.
+    pub fn open() -> StopSection {
+        let mut open = SECTIONS.lock().unwrap_or_else(|e| e.into_inner());
+        *open += 1;
+        outside_sections().store(false, std::sync::atomic::Ordering::SeqCst);
+        StopSection(())
+    }
+}
+
+impl Drop for StopSection {
+    fn drop(&mut self) {
+        let mut open = SECTIONS.lock().unwrap_or_else(|e| e.into_inner());
+        *open = open.saturating_sub(1);
+        if *open == 0 {
+            outside_sections().store(true, std::sync::atomic::Ordering::SeqCst);
+        }
     }
 }
 

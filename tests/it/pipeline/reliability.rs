@@ -389,3 +389,178 @@ fn a_closed_stdout_pipe_is_not_a_panic() {
         assert_eq!(o.status.code(), Some(0), "{args:?}: {err}");
     }
 }
+
+/// A spec with one outside filter, small enough to simulate at once.
+const EXTERNAL_SPEC: &str = r#"
+name = "inputs"
+master_seed = 7
+runs = 3
+[model]
+kind = "linear_quadrotor"
+sensor = "positions"
+[[scenarios]]
+name = "hover"
+x0 = [1.0, 0.0, 1.0, 0.0, 1.0, 0.0]
+duration_s = 1.0
+[noise]
+scales = [1.0]
+[[filters]]
+label = "ext"
+kind = "external"
+[consistency]
+alpha = 0.05
+[[check.assert]]
+kind = "consistent"
+filter = "ext"
+"#;
+
+/// Runs kfmc with `args` for at most 20 s: (exit code, stderr), or a failure naming the hang.
+fn limited(args: &[&str]) -> (i32, String) {
+    let mut child = kfmc()
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let code = wait_with_timeout(&mut child, Duration::from_secs(20));
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+    (
+        code.unwrap_or_else(|| panic!("kfmc {args:?} hangs: {err}")),
+        err,
+    )
+}
+
+/// A FIFO (which blocks whoever opens it until a writer comes), a device or a folder given
+/// where kfmc reads a file is refused before it is opened, naming it: a spec, estimates, a
+/// study's table.
+#[test]
+fn inputs_that_are_not_regular_files_are_refused_at_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let fifo = tmp.path().join("fifo.parquet");
+    assert!(
+        Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let f = fifo.to_str().unwrap();
+    let spec = tmp.path().join("s.toml");
+    std::fs::write(&spec, EXTERNAL_SPEC).unwrap();
+    let s = spec.to_str().unwrap();
+    let sim = tmp.path().join("sim");
+    let (code, err) = limited(&["simulate", s, "-q", "--out", sim.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let sim = sim.to_str().unwrap();
+    let out = tmp.path().join("out");
+    let o = out.to_str().unwrap();
+    let folder = tmp.path().to_str().unwrap();
+    for (args, code, named, what) in [
+        (vec!["validate", f], 2, f, "a FIFO"),
+        (
+            vec!["score", sim, "--estimates", f, "--out", o],
+            1,
+            f,
+            "a FIFO",
+        ),
+        (
+            vec!["check", s, "--estimates", f, "--out", o],
+            1,
+            f,
+            "a FIFO",
+        ),
+        (
+            vec!["score", sim, "--estimates", "/dev/zero", "--out", o],
+            1,
+            "/dev/zero",
+            "a device",
+        ),
+        (
+            vec!["score", sim, "--estimates", folder, "--out", o],
+            1,
+            folder,
+            "a folder",
+        ),
+    ] {
+        let (got, err) = limited(&args);
+        assert_eq!(got, code, "{args:?}: {err}");
+        assert!(
+            err.contains(named)
+                && err.contains(&format!("it is {what}"))
+                && err.contains("not a regular file"),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!out.exists(), "nothing was written");
+    // A study's table replaced by a FIFO.
+    let study = tmp.path().join("study");
+    assert_eq!(output(&mut quick_run(&study, 3)).0, 0);
+    let summary = study.join("summary.parquet");
+    std::fs::remove_file(&summary).unwrap();
+    assert!(
+        Command::new("mkfifo")
+            .arg(&summary)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let (code, err) = limited(&["summary", study.to_str().unwrap()]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("summary.parquet") && err.contains("not a regular file"),
+        "{err}"
+    );
+}
+
+/// Outside a study (here: designing a sequential gate of 100 looks with futility bounds,
+/// which takes many seconds) the first SIGTERM or SIGINT ends kfmc at once, exit 130, with a
+/// word on stderr: no wait is deaf to it.
+#[test]
+fn the_first_signal_ends_a_long_wait_outside_a_study_at_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = tmp.path().join("s.toml");
+    std::fs::write(
+        &spec,
+        EXTERNAL_SPEC.replace("runs = 3", "runs = 1000").replace(
+            "label = \"ext\"\nkind = \"external\"",
+            "label = \"ext\"\nkind = \"ekf\"",
+        ),
+    )
+    .unwrap();
+    for signal in ["-TERM", "-INT"] {
+        let out = tmp.path().join(format!("o{signal}"));
+        let mut child = kfmc()
+            .args(["check", spec.to_str().unwrap(), "-q", "--out"])
+            .arg(&out)
+            .args(["--sequential", "--looks", "100", "--futility", "0.2"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(1000));
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the design ended within a second"
+        );
+        let sent = Instant::now();
+        assert!(
+            Command::new("kill")
+                .args([signal, &child.id().to_string()])
+                .status()
+                .unwrap()
+                .success()
+        );
+        let code = wait_with_timeout(&mut child, Duration::from_secs(5));
+        let mut err = String::new();
+        std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+        assert_eq!(
+            code,
+            Some(130),
+            "{signal}: {err} after {:?}",
+            sent.elapsed()
+        );
+        assert!(err.contains("interrupted"), "{err}");
+        assert!(!out.exists(), "nothing was written");
+    }
+}
