@@ -161,13 +161,20 @@ fn parts(dir: &Path, lock: bool) -> Result<(Vec<Part>, Vec<Problem>), OutputErro
 /// A human-readable list of a sharded study's parts: complete, missing or broken.
 pub fn status(dir: &Path) -> Result<String, OutputError> {
     let progress = |d: &Path| -> Result<Option<String>, OutputError> {
-        Ok(crate::output::checkpoint::Index::read(d)?.map(|i| {
-            format!(
-                "{} of {} cells checkpointed (continue with `kfmc run SPEC --resume`)",
-                i.cells_done,
-                i.end_cell - i.first_cell
-            )
-        }))
+        Ok(match crate::output::checkpoint::Index::read(d) {
+            Ok(index) => index.map(|i| {
+                format!(
+                    "{} of {} cells checkpointed (continue with `kfmc run SPEC --resume`)",
+                    i.cells_done,
+                    i.end_cell.saturating_sub(i.first_cell)
+                )
+            }),
+            // Status reports what it finds; a checkpoint that cannot be read is one thing.
+            Err(e) => Some(match std::error::Error::source(&e) {
+                Some(cause) => format!("a checkpoint that cannot be read: {e}: {cause}"),
+                None => format!("a checkpoint that cannot be read: {e}"),
+            }),
+        })
     };
     if !dir.join("parts").is_dir()
         && let Some(p) = progress(dir)?

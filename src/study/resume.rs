@@ -57,12 +57,30 @@ pub(super) fn existing_checkpoint(
     let Some(c) = &opts.checkpoints else {
         return Ok(None);
     };
-    let Some(found) = checkpoint::Index::read(dir)? else {
+    if c.existing == ExistingCheckpoint::Discard {
+        // Whatever is there, readable or not, is discarded unread.
+        checkpoint::remove(dir)?;
         return Ok(None);
+    }
+    let found = match checkpoint::Index::read(dir) {
+        Ok(None) => return Ok(None),
+        Ok(Some(found)) => found,
+        // An index that does not parse vouches for nothing a resume could continue: a
+        // plain run starts over, `--resume` is told to.
+        Err(OutputError::Format { .. }) if c.existing == ExistingCheckpoint::Refuse => {
+            checkpoint::remove(dir)?;
+            return Ok(None);
+        }
+        Err(e) => return Err(e),
     };
     let change = found.change_from(&checkpoint_identity(plan, n_cells, cells));
     let at = checkpoint::dir(dir);
     match (c.existing, change) {
+        // Likewise an index whose counts contradict themselves.
+        (ExistingCheckpoint::Refuse, None) if found.check(dir).is_err() => {
+            checkpoint::remove(dir)?;
+            Ok(None)
+        }
         (ExistingCheckpoint::Resume, None) => {
             // The identity matched; the counts must be coherent before anything is replayed.
             found.check(dir)?;

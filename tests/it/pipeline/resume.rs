@@ -592,3 +592,51 @@ fn a_checkpoint_of_the_earlier_format_is_refused_with_the_restart_advice() {
     );
     assert!(!out.join("manifest.toml").exists());
 }
+
+/// An index that is empty or not a checkpoint index vouches for nothing: `--resume` is
+/// refused advising `--restart`, and `--restart` and a plain run start over to the
+/// uninterrupted tables, leaving no checkpoint.
+#[test]
+fn an_empty_or_garbage_index_is_started_over_by_restart_and_a_plain_run() {
+    let s = Study::new();
+    let out = s.out("o");
+    let mut child = s.start(&out, &[]);
+    kill_after_checkpoint(&mut child, &out, 1);
+    assert!(checkpointed(&out) >= 1, "the run ended before the kill");
+    let single = s.out("single");
+    assert_eq!(
+        run(&["run", s.spec(), "-q", "--out", single.to_str().unwrap()]).0,
+        0
+    );
+    for (k, garbage) in ["", "\u{0}\u{1} not toml [[[", "cells_done = 3\n"]
+        .into_iter()
+        .enumerate()
+    {
+        for mode in ["--resume", "--restart", "plain"] {
+            let copy = s.out(&format!("garbage{k}{mode}"));
+            copy_dir(&out, &copy);
+            std::fs::write(copy.join(".checkpoint/index.toml"), garbage).unwrap();
+            let c = copy.to_str().unwrap();
+            let mut args = vec!["run", s.spec(), "-q", "--out", c];
+            if mode != "plain" {
+                args.push(mode);
+            }
+            let (code, _, err) = run(&args);
+            if mode == "--resume" {
+                assert_eq!(code, 1, "{garbage:?} {mode}: {err}");
+                assert!(
+                    err.contains("not a kfmc checkpoint index") && err.contains("--restart"),
+                    "{err}"
+                );
+                assert!(!copy.join("manifest.toml").exists());
+                // What it advises works.
+                let (code, _, err) = run(&["run", s.spec(), "-q", "--restart", "--out", c]);
+                assert_eq!(code, 0, "{garbage:?} then --restart: {err}");
+            } else {
+                assert_eq!(code, 0, "{garbage:?} {mode}: {err}");
+            }
+            assert_eq!(tables(&copy), tables(&single), "{garbage:?} {mode}");
+            assert!(!copy.join(".checkpoint").exists(), "{garbage:?} {mode}");
+        }
+    }
+}
