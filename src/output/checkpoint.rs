@@ -36,15 +36,20 @@ const INDEX_FILE: &str = "index.toml";
 /// Each journal's write buffer: rows reach the file in blocks this large.
 pub const JOURNAL_BUFFER_BYTES: usize = 1 << 20;
 
-/// The journals' format: zstd frames of checksummed row and cell-end records (format 1 had
+/// The journals' format: zstd frames of checksummed records, the first naming the study
+/// that wrote the journal, then rows and cell ends (format 2 had no study record, format 1
 /// bare rows). An index of another format is refused.
-pub const JOURNAL_FORMAT: u32 = 2;
+pub const JOURNAL_FORMAT: u32 = 3;
 
 /// A journal record's first byte: a table row follows.
 const TAG_ROW: u8 = 0;
 
 /// A journal record's first byte: the end of a cell follows (cells complete, rows before it).
 const TAG_CELL_END: u8 = 1;
+
+/// A journal record's first byte: the identity of the study that writes the journal follows
+/// ([`Index::identity_text`]); it is the journal's first record, and only there.
+const TAG_STUDY: u8 = 2;
 
 /// zstd's level for the journals: its fastest regular level, as the journal is written once
 /// and read only by a resume.
@@ -91,6 +96,10 @@ pub struct Index {
     pub spec_hash: String,
     /// Master seed (after `--seed`).
     pub master_seed: u64,
+    /// The simulated world's stamp (`Plan::world_stamp`: the world's definition and the
+    /// master seed).
+    #[serde(default)]
+    pub world_stamp: String,
     /// Runs per cell (after `--runs`).
     pub runs_per_cell: u64,
     /// Cells of the whole plan.
@@ -184,6 +193,17 @@ impl Index {
         Ok(())
     }
 
+    /// The study's identity as its journals begin with it: this index without its progress
+    /// (`cells_done`, `tables`), as TOML.
+    pub fn identity_text(&self) -> String {
+        let identity = Index {
+            cells_done: 0,
+            tables: Vec::new(),
+            ..self.clone()
+        };
+        toml::to_string(&identity).expect("an index is plain TOML")
+    }
+
     /// What differs between this checkpoint's study and `other`'s, first difference first;
     /// `None` when a resume may continue it.
     pub fn change_from(&self, other: &Index) -> Option<String> {
@@ -210,6 +230,12 @@ impl Index {
                 format!(
                     "the master seed changed ({} → {})",
                     self.master_seed, other.master_seed
+                )
+            }),
+            (self.world_stamp != other.world_stamp).then(|| {
+                format!(
+                    "the simulated world changed (stamp {} → {})",
+                    self.world_stamp, other.world_stamp
                 )
             }),
             (self.runs_per_cell != other.runs_per_cell).then(|| {
@@ -304,13 +330,25 @@ pub struct Journal {
 }
 
 impl Journal {
-    /// Starts an empty journal at `path`, replacing any file there.
-    pub fn create(path: &Path) -> Result<Self, OutputError> {
+    /// Starts a journal of `study`'s rows at `path`, replacing any file there: its first
+    /// record (a frame of its own) names the study, so that a resume can tell its cells from
+    /// another study's whatever its index says.
+    pub fn create(path: &Path, study: &Index) -> Result<Self, OutputError> {
         if let Some(d) = path.parent() {
             std::fs::create_dir_all(d).map_err(io("cannot create the checkpoint folder", d))?;
         }
         let file = File::create(path).map_err(io("cannot create", path))?;
-        Ok(Journal::around(file, path, 0, 0))
+        let mut journal = Journal::around(file, path, 0, 0);
+        let text = study.identity_text();
+        journal.scratch.clear();
+        journal.scratch.push(TAG_STUDY);
+        journal
+            .scratch
+            .extend_from_slice(&(text.len() as u32).to_le_bytes());
+        journal.scratch.extend_from_slice(text.as_bytes());
+        journal.append()?;
+        journal.end_frame()?;
+        Ok(journal)
     }
 
     /// Continues the journal at `path` after its first `bytes` bytes (`rows` rows), dropping
@@ -530,6 +568,38 @@ impl<R: Read> Records<'_, R> {
         Ok(cell)
     }
 
+    /// The rest of a study record: the identity it names, which must be `study`'s.
+    fn study(&mut self, record: u64, study: &Index) -> Result<(), OutputError> {
+        let at = self.read_exact(4)?;
+        let n = u32::from_le_bytes(self.raw[at..at + 4].try_into().unwrap()) as usize;
+        // Read as it comes, as a string column is: a damaged length reserves nothing.
+        let at = self.raw.len();
+        let got = (&mut self.r)
+            .take(n as u64)
+            .read_to_end(&mut self.raw)
+            .map_err(|e| self.undecodable(e))?;
+        if got < n {
+            return Err(self.truncated());
+        }
+        self.verify_checksum(record)?;
+        let text = std::str::from_utf8(&self.raw[at..at + n]).unwrap_or_default();
+        let written: Index = toml::from_str(text).map_err(|e| {
+            damaged(
+                self.path,
+                format!("names its study in a form this kfmc cannot read ({e})"),
+            )
+        })?;
+        match written.change_from(study) {
+            None => Ok(()),
+            Some(why) => Err(OutputError::Mismatch {
+                path: self.path.to_path_buf(),
+                why: format!(
+                    "holds another study's cells than its checkpoint index and this run describe: {why}; start over with `kfmc run SPEC --restart`"
+                ),
+            }),
+        }
+    }
+
     /// The rest of a row record, decoded into `row`.
     fn row(
         &mut self,
@@ -632,19 +702,21 @@ impl RowBuffer {
 }
 
 /// Replays the first `bytes` bytes of the journal at `path`, whose rows have `columns`,
-/// calling `f` with each row in order, after verifying its checksum. The bytes must end with
-/// the end of cell `cells` (none when `cells` is 0), every cell's end in order before it:
-/// an index that does not describe its journal is refused, not followed. Returns the rows
-/// replayed.
+/// calling `f` with each row in order, after verifying its checksum. The bytes must begin
+/// with `study`'s identity (unless there are none) and end with the end of cell `cells`
+/// (none when `cells` is 0), every cell's end in order before it: an index that does not
+/// describe its journal, or a journal of another study, is refused, not followed. Returns
+/// the rows replayed.
 pub fn replay(
     path: &Path,
     bytes: u64,
     cells: u64,
     columns: &[ColumnDef],
+    study: &Index,
     mut f: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
 ) -> Result<u64, OutputError> {
-    let file = super::atomic::open_input(path)
-        .map_err(io("cannot open the checkpoint journal", path))?;
+    let file =
+        super::atomic::open_input(path).map_err(io("cannot open the checkpoint journal", path))?;
     let decoder = zstd::stream::read::Decoder::new(file.take(bytes))
         .map_err(io("cannot start decompressing", path))?;
     let mut records = Records {
@@ -668,6 +740,13 @@ pub fn replay(
         records.raw.clear();
         let at = records.read_exact(1)?;
         match records.raw[at] {
+            TAG_STUDY if record == 1 => records.study(record, study)?,
+            _ if record == 1 => {
+                return Err(damaged(
+                    path,
+                    "does not begin with the identity of its study".into(),
+                ));
+            }
             TAG_CELL_END => {
                 cells_seen = records.cell_end(record, cells_seen, done)?;
                 at_cell_end = true;
@@ -754,7 +833,7 @@ mod tests {
     fn rows_replay_exactly_and_a_reopened_journal_drops_the_unsynced_tail() {
         let d = tempfile::tempdir().unwrap();
         let path = d.path().join("t.journal");
-        let mut j = Journal::create(&path).unwrap();
+        let mut j = Journal::create(&path, &study()).unwrap();
         for r in rows() {
             j.record(&r).unwrap();
         }
@@ -773,7 +852,7 @@ mod tests {
         drop(j);
 
         let mut back: Vec<String> = Vec::new();
-        let n = replay(&path, bytes, 1, &cols(), |r| {
+        let n = replay(&path, bytes, 1, &cols(), &study(), |r| {
             back.push(format!("{r:?}"));
             Ok(())
         })
@@ -782,7 +861,7 @@ mod tests {
         let want: Vec<String> = rows().iter().map(|r| format!("{r:?}")).collect();
         assert_eq!(back, want);
         let mut neg_zero = None;
-        replay(&path, bytes, 1, &cols(), |r| {
+        replay(&path, bytes, 1, &cols(), &study(), |r| {
             if let Value::F64(Some(x)) = r[1] {
                 neg_zero.get_or_insert(x.to_bits());
             }
@@ -799,7 +878,7 @@ mod tests {
         assert_eq!(r2, 4);
         let mut last = String::new();
         assert_eq!(
-            replay(&path, b2, 2, &cols(), |r| {
+            replay(&path, b2, 2, &cols(), &study(), |r| {
                 last = format!("{r:?}");
                 Ok(())
             })
@@ -813,7 +892,7 @@ mod tests {
     fn a_journal_shorter_than_its_checkpoint_is_refused_as_damaged() {
         let d = tempfile::tempdir().unwrap();
         let path = d.path().join("t.journal");
-        let mut j = Journal::create(&path).unwrap();
+        let mut j = Journal::create(&path, &study()).unwrap();
         j.record(&rows()[0]).unwrap();
         let (bytes, _) = j.end_cell(1).unwrap();
         j.sync().unwrap();
@@ -830,11 +909,90 @@ mod tests {
             .unwrap()
             .set_len(bytes - 3)
             .unwrap();
-        let err = replay(&path, bytes, 1, &cols(), |_| Ok(()))
+        let err = replay(&path, bytes, 1, &cols(), &study(), |_| Ok(()))
             .err()
             .unwrap()
             .to_string();
         assert!(err.contains("damaged checkpoint journal"), "{err}");
+    }
+
+    /// The identity of the test journals' study.
+    fn study() -> Index {
+        Index {
+            kfmc_version: "x".into(),
+            spec_hash: "h".into(),
+            master_seed: 7,
+            world_stamp: "w7".into(),
+            runs_per_cell: 2,
+            cells: 6,
+            first_cell: 0,
+            end_cell: 6,
+            trace_runs: 0,
+            export_estimates: false,
+            export_f32: false,
+            journal_format: JOURNAL_FORMAT,
+            cells_done: 0,
+            tables: Vec::new(),
+        }
+    }
+
+    /// A journal names the study that wrote it: replayed for a study of another seed (an
+    /// index whose `master_seed` was edited, resumed with that seed), another world or spec,
+    /// it is refused naming the difference; its own study's progress does not matter.
+    #[test]
+    fn a_journal_of_another_study_is_refused_whatever_its_index_says() {
+        let (_d, path, ends) = journal_of(2);
+        let (bytes, _) = ends[1];
+        let mut own = study();
+        own.cells_done = 2;
+        assert_eq!(
+            replay(&path, bytes, 2, &cols(), &own, |_| Ok(())).unwrap(),
+            6
+        );
+        let mut seed = study();
+        seed.master_seed = 8;
+        let mut world = study();
+        world.world_stamp = "w8".into();
+        let mut spec = study();
+        spec.spec_hash = "other".into();
+        for (other, why) in [
+            (seed, "the master seed changed (7 → 8)"),
+            (world, "the simulated world changed (stamp w7 → w8)"),
+            (spec, "the spec changed"),
+        ] {
+            let e = replay(&path, bytes, 2, &cols(), &other, |_| {
+                panic!("no row of another study is replayed")
+            })
+            .unwrap_err()
+            .to_string();
+            assert!(
+                e.contains("holds another study's cells")
+                    && e.contains(why)
+                    && e.contains("--restart"),
+                "{e}"
+            );
+        }
+        // A journal that does not begin with its study (format 2's) is refused too.
+        let original = std::fs::read(&path).unwrap();
+        let header = ends[0].0 as usize;
+        let (_d2, bare, _) = journal_of(0);
+        let header_len = std::fs::metadata(&bare).unwrap().len() as usize;
+        assert!(header_len > 0 && header_len < header);
+        std::fs::write(&path, &original[header_len..]).unwrap();
+        let e = replay(
+            &path,
+            bytes - header_len as u64,
+            2,
+            &cols(),
+            &study(),
+            |_| Ok(()),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("does not begin with the identity of its study"),
+            "{e}"
+        );
     }
 
     /// A journal of `cells` cells of the test rows; returns its path's folder, the path, and
@@ -842,7 +1000,7 @@ mod tests {
     fn journal_of(cells: u64) -> (tempfile::TempDir, PathBuf, Vec<(u64, u64)>) {
         let d = tempfile::tempdir().unwrap();
         let path = d.path().join("t.journal");
-        let mut j = Journal::create(&path).unwrap();
+        let mut j = Journal::create(&path, &study()).unwrap();
         let mut ends = Vec::new();
         for c in 1..=cells {
             for r in rows() {
@@ -856,7 +1014,7 @@ mod tests {
 
     fn replayed(path: &Path, bytes: u64, cells: u64) -> Result<Vec<String>, String> {
         let mut back = Vec::new();
-        replay(path, bytes, cells, &cols(), |r| {
+        replay(path, bytes, cells, &cols(), &study(), |r| {
             back.push(format!("{r:?}"));
             Ok(())
         })
@@ -929,6 +1087,7 @@ mod tests {
             kfmc_version: "x".into(),
             spec_hash: "h".into(),
             master_seed: 1,
+            world_stamp: "w".into(),
             runs_per_cell: 2,
             cells: 6,
             first_cell: 2,

@@ -150,30 +150,36 @@ impl TableWriter {
         })
     }
 
-    /// Starts the table as [`TableWriter::create`] does, journaling every row into
-    /// `journal` from now on. With `resume_from = Some((bytes, rows, cells))`, the journal's
-    /// first `bytes` bytes, which must hold `cells` complete cells, are first replayed (and
-    /// verified) into the table, each row also handed to `on_row`, and
-    /// the journal continues after them: the table receives exactly the rows, in the order,
-    /// of the run that wrote the journal.
+    /// Starts the table as [`TableWriter::create`] does, journaling every row of `study`
+    /// into `journal` from now on. With `resume_from = Some((bytes, rows, cells))`, the
+    /// journal's first `bytes` bytes, which must be `study`'s and hold `cells` complete
+    /// cells, are first replayed (and verified) into the table, each row also handed to
+    /// `on_row`, and the journal continues after them: the table receives exactly the rows,
+    /// in the order, of the run that wrote the journal.
+    #[allow(
+        clippy::too_many_arguments,
+        reason = "the table's own arguments, then its journal's: where, whose, and from where"
+    )]
     pub(crate) fn journaled(
         dir: &Path,
         name: &str,
         columns: Vec<ColumnDef>,
         metadata: &[(String, String)],
         journal: &Path,
+        study: &super::checkpoint::Index,
         resume_from: Option<(u64, u64, u64)>,
         mut on_row: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
     ) -> Result<Self, OutputError> {
         let mut w = TableWriter::create_with_metadata(dir, name, columns, metadata)?;
         w.journal = Some(match resume_from {
-            None => super::checkpoint::Journal::create(journal)?,
+            None => super::checkpoint::Journal::create(journal, study)?,
             Some((bytes, rows, cells)) => {
                 let columns = w.columns.clone();
-                let replayed = super::checkpoint::replay(journal, bytes, cells, &columns, |row| {
-                    w.push(row)?;
-                    on_row(row)
-                })?;
+                let replayed =
+                    super::checkpoint::replay(journal, bytes, cells, &columns, study, |row| {
+                        w.push(row)?;
+                        on_row(row)
+                    })?;
                 if replayed != rows {
                     return Err(OutputError::Mismatch {
                         path: journal.to_path_buf(),
@@ -182,7 +188,12 @@ impl TableWriter {
                         ),
                     });
                 }
-                super::checkpoint::Journal::reopen(journal, bytes, rows)?
+                if bytes == 0 {
+                    // Nothing was vouched for, not even the study's record: begin anew.
+                    super::checkpoint::Journal::create(journal, study)?
+                } else {
+                    super::checkpoint::Journal::reopen(journal, bytes, rows)?
+                }
             }
         });
         Ok(w)

@@ -127,19 +127,19 @@ fn run_in(
     let trial = plan.trial();
     let resume = existing_checkpoint(plan, opts, dir, n_cells, &cells)?;
     let cells_resumed = resume.as_ref().map_or(0, |i| i.cells_done as usize);
+    let identity = checkpoint_identity(plan, n_cells, &cells);
     let opener = TableOpener {
         plan,
         dir,
         journaling: opts.checkpoints.is_some(),
+        identity: &identity,
         resume: resume.as_ref(),
     };
     let checkpoint = opts.checkpoints.as_ref().map(|c| Checkpointer {
         dir: dir.to_path_buf(),
         every: c.every,
         last: Instant::now(),
-        index: resume
-            .clone()
-            .unwrap_or_else(|| checkpoint_identity(plan, n_cells, &cells)),
+        index: resume.clone().unwrap_or_else(|| identity.clone()),
         boundary: None,
         first_cell: cells.start,
     });
@@ -168,6 +168,8 @@ struct TableOpener<'a> {
     plan: &'a Plan,
     dir: &'a std::path::Path,
     journaling: bool,
+    /// The study's identity, which every journal begins with and a resumed one must name.
+    identity: &'a crate::output::checkpoint::Index,
     resume: Option<&'a crate::output::checkpoint::Index>,
 }
 
@@ -202,7 +204,16 @@ impl TableOpener<'_> {
                     })?,
             ),
         };
-        TableWriter::journaled(dir, name, columns, &metadata, &journal, from, on_row)
+        TableWriter::journaled(
+            dir,
+            name,
+            columns,
+            &metadata,
+            &journal,
+            self.identity,
+            from,
+            on_row,
+        )
     }
 
     /// Opens a table whose replayed rows need no other use.

@@ -31,6 +31,7 @@ pub(super) fn checkpoint_identity(
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
         spec_hash: plan.spec_hash.clone(),
         master_seed: plan.master_seed,
+        world_stamp: plan.world_stamp(),
         runs_per_cell: plan.runs as u64,
         cells: n_cells as u64,
         first_cell: cells.start as u64,

@@ -571,10 +571,10 @@ fn a_checkpoint_of_the_earlier_format_is_refused_with_the_restart_advice() {
     kill_after_checkpoint(&mut child, &out, 2);
     let path = out.join(".checkpoint/index.toml");
     let text = std::fs::read_to_string(&path).unwrap();
-    assert!(text.contains("journal_format = 2"), "{text}");
+    assert!(text.contains("journal_format = 3"), "{text}");
     std::fs::write(
         &path,
-        text.replace("journal_format = 2", "journal_format = 1"),
+        text.replace("journal_format = 3", "journal_format = 1"),
     )
     .unwrap();
     let (code, _, err) = run(&[
@@ -638,5 +638,67 @@ fn an_empty_or_garbage_index_is_started_over_by_restart_and_a_plain_run() {
             assert_eq!(tables(&copy), tables(&single), "{garbage:?} {mode}");
             assert!(!copy.join(".checkpoint").exists(), "{garbage:?} {mode}");
         }
+    }
+}
+
+/// A checkpoint index edited to another master seed, resumed with that seed, would splice
+/// one seed's cells into the other's study: refused, whether the edit left the index's world
+/// stamp (the index contradicts the plan) or changed it too (the journals still name the
+/// study that wrote them), and nothing is committed.
+#[test]
+fn an_index_edited_to_another_seed_is_refused_on_resume() {
+    let s = Study::new();
+    let out = s.out("o");
+    let mut child = s.start(&out, &[]);
+    kill_after_checkpoint(&mut child, &out, 2);
+    assert!(
+        (2..CELLS).contains(&checkpointed(&out)),
+        "the run ended before the kill"
+    );
+    let text = std::fs::read_to_string(out.join(".checkpoint/index.toml")).unwrap();
+    let stamp = |seed: u64| {
+        let registry = kfmc::systems::builtin();
+        let mut plan = kfmc::experiment::load_with(&s.spec, &registry).unwrap();
+        plan.apply(&kfmc::experiment::Overrides {
+            master_seed: Some(seed),
+            ..Default::default()
+        })
+        .unwrap();
+        plan.world_stamp()
+    };
+    let (nine, ten) = (stamp(9), stamp(10));
+    assert!(text.contains("master_seed = 9\n"), "{text}");
+    assert!(
+        text.contains(&format!("world_stamp = \"{nine}\"")),
+        "{text}"
+    );
+    let seed_only = text.replace("master_seed = 9\n", "master_seed = 10\n");
+    let both = seed_only.replace(&nine, &ten);
+    for (k, (edited, why)) in [
+        (seed_only, "the simulated world changed"),
+        (both, "holds another study's cells"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let copy = s.out(&format!("edited{k}"));
+        copy_dir(&out, &copy);
+        std::fs::write(copy.join(".checkpoint/index.toml"), &edited).unwrap();
+        let (code, _, err) = run(&[
+            "run",
+            s.spec(),
+            "-q",
+            "--seed",
+            "10",
+            "--resume",
+            "--out",
+            copy.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 1, "{err}");
+        assert!(err.contains(why) && err.contains("--restart"), "{err}");
+        assert!(
+            !copy.join("manifest.toml").exists() && tables(&copy).is_empty(),
+            "something was committed"
+        );
     }
 }
