@@ -362,6 +362,17 @@ fn parts_in_order<'p>(dir: &Path, found: &'p [Part]) -> Result<Vec<&'p Part>, Kf
     let n = m0.shard.as_ref().map_or(0, |s| s.count);
     for p in found {
         let m = &p.manifest;
+        // As a resume refuses another version's checkpoint: rows of another kfmc may differ.
+        let ours = env!("CARGO_PKG_VERSION");
+        if m.kfmc_version != ours {
+            return Err(mismatch(
+                &p.dir,
+                format!(
+                    "is a part written by kfmc {} (this is {ours}): another version may compute other rows; run the part again with this kfmc",
+                    m.kfmc_version
+                ),
+            ));
+        }
         let s = m.shard.as_ref().expect("parts() keeps shards only");
         // The kind first: a simulation's part among a run's has another spec too, and the
         // kind is what the user must be told.

@@ -225,3 +225,38 @@ fn slurm_scripts_run_every_part_and_merge_after_the_array() {
     assert!(read("merge.sbatch").contains(" merge "));
     assert!(read("submit.sh").contains("--dependency=afterok:$array"));
 }
+
+/// A part written by another kfmc is refused, as a resume refuses another version's
+/// checkpoint: its rows may be computed differently.
+#[test]
+fn a_part_of_another_kfmc_version_is_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec = tmp.path().join("s.toml");
+    std::fs::write(&spec, spec_text()).unwrap();
+    let spec = spec.to_str().unwrap();
+    let out = tmp.path().join("d");
+    let o = out.to_str().unwrap();
+    for i in 0..2 {
+        let shard = format!("{i}/2");
+        assert_eq!(
+            run(&["run", spec, "-q", "--out", o, "--shard", &shard]).0,
+            0
+        );
+    }
+    let manifest = out.join("parts/part-00001-of-00002/manifest.toml");
+    let text = std::fs::read_to_string(&manifest).unwrap();
+    let ours = format!("kfmc_version = \"{}\"", env!("CARGO_PKG_VERSION"));
+    assert!(text.contains(&ours), "{text}");
+    std::fs::write(&manifest, text.replace(&ours, "kfmc_version = \"0.0.1\"")).unwrap();
+    let (code, _, err) = run(&["merge", o]);
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("part-00001-of-00002")
+            && err.contains(&format!(
+                "written by kfmc 0.0.1 (this is {})",
+                env!("CARGO_PKG_VERSION")
+            )),
+        "{err}"
+    );
+    assert!(!out.join("manifest.toml").exists(), "nothing is committed");
+}
