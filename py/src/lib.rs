@@ -9,8 +9,10 @@
 //! * the GIL is released while Rust works, and a study runs on its own thread while the
 //!   caller waits in short released-GIL slices, checking Python's signals between them: a
 //!   Ctrl-C cancels the study through its [`CancelToken`] (the executor's checkpoint path,
-//!   as SIGINT does for the command) and is re-raised as `KeyboardInterrupt`, without any
-//!   process-wide signal handler being installed;
+//!   as SIGINT does for the command) and is re-raised as `KeyboardInterrupt` unless the
+//!   study had already committed; SIGTERM stops it the same way and then ends the process.
+//!   No process-wide signal handler of kfmc's is installed: SIGTERM's, while a study runs,
+//!   is Python's own mechanism, put back afterwards;
 //! * library errors become `kfmc.Error` subclasses by their kind, with the whole cause chain
 //!   as the message (as the command prints it).
 
@@ -222,8 +224,11 @@ impl Progress {
 
 /// Runs `job` on its own thread while the caller waits in released-GIL slices; between
 /// slices Python's signal handlers run (`py.check_signals`), and an exception there (Ctrl-C's
-/// `KeyboardInterrupt`) cancels the study, waits for it to stop at its next window (keeping
-/// its checkpoint) and is re-raised.
+/// `KeyboardInterrupt`) cancels the study, which stops at its next window (keeping its
+/// checkpoint). SIGTERM does the same ([`SigtermStop`]) and then ends the process as SIGTERM
+/// would have. What is raised depends on what the study did, not on when the signal came:
+/// a study that committed its tables before it saw the request returns its result (the
+/// interrupt is taken and dropped), one that was stopped raises the interrupt.
 fn run_study<T: Send + 'static>(
     py: Python<'_>,
     quiet: bool,
@@ -235,6 +240,8 @@ fn run_study<T: Send + 'static>(
         .name("kfmc-study".into())
         .spawn(move || job(&theirs))
         .map_err(|e| Error::new_err(format!("cannot start the study's thread: {e}")))?;
+    // Best effort: without it SIGTERM keeps Python's default (the process ends at once).
+    let sigterm = SigtermStop::install(py).ok().flatten();
     let mut progress = (!quiet).then(|| Progress {
         started: Instant::now(),
         last: None,
@@ -263,18 +270,97 @@ fn run_study<T: Send + 'static>(
         }
     }
     let joined = py.detach(|| handle.join());
+    // A signal that came while the study was finishing is taken here, where what the study
+    // did is known, rather than raised by Python as soon as this returns.
+    if interrupt.is_none()
+        && let Err(e) = py.check_signals()
+    {
+        interrupt = Some(e);
+    }
+    let terminated = sigterm.map(|s| s.restore(py)).transpose()?.unwrap_or(false);
     if let Some(p) = progress.as_mut() {
         p.show(py, &observer, true);
     }
-    if let Some(e) = interrupt {
-        return Err(e);
+    let result = match joined {
+        Ok(r) => r,
+        Err(panic) => {
+            return Err(Error::new_err(format!(
+                "internal error in kfmc (please report it): {}",
+                panic_message(&*panic)
+            )));
+        }
+    };
+    if terminated {
+        // Stopped cleanly or committed: now end as SIGTERM asked, with its default action.
+        py.import("signal")?
+            .call_method1("raise_signal", (sigterm_number(py)?,))?;
+        // Still here (the signal blocked): say so as an exit would.
+        return Err(pyo3::exceptions::PySystemExit::new_err(128 + 15));
     }
-    match joined {
-        Ok(r) => r.map_err(Failure::into_py),
-        Err(panic) => Err(Error::new_err(format!(
-            "internal error in kfmc (please report it): {}",
-            panic_message(&*panic)
-        ))),
+    match (result, interrupt) {
+        // Committed: a KeyboardInterrupt that came too late to stop it is dropped; any other
+        // exception a signal handler raised (a `SystemExit`, say) is the caller's.
+        (Ok(r), Some(e)) if e.is_instance_of::<pyo3::exceptions::PyKeyboardInterrupt>(py) => Ok(r),
+        (Ok(r), None) => Ok(r),
+        (_, Some(e)) => Err(e),
+        (Err(f), None) => Err(f.into_py()),
+    }
+}
+
+/// SIGTERM's number, from Python's `signal` module.
+fn sigterm_number(py: Python<'_>) -> PyResult<Bound<'_, PyAny>> {
+    py.import("signal")?.getattr("SIGTERM")
+}
+
+/// While a study runs, SIGTERM stops it as Ctrl-C does (its handler raises
+/// `KeyboardInterrupt` where `run_study` checks signals, and records that it came), so that
+/// a terminated Python process leaves a final checkpoint and no partial files instead of
+/// dying mid-write. Installed only over SIGTERM's default action and only on the main
+/// thread (where Python runs handlers); a handler of the caller's own is left alone.
+struct SigtermStop {
+    came: Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl SigtermStop {
+    fn install(py: Python<'_>) -> PyResult<Option<SigtermStop>> {
+        let threading = py.import("threading")?;
+        let main = threading
+            .call_method0("current_thread")?
+            .is(&threading.call_method0("main_thread")?);
+        let signal = py.import("signal")?;
+        let sigterm = signal.getattr("SIGTERM")?;
+        if !main
+            || !signal
+                .call_method1("getsignal", (&sigterm,))?
+                .eq(signal.getattr("SIG_DFL")?)?
+        {
+            return Ok(None);
+        }
+        let came = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let flag = came.clone();
+        let handler = pyo3::types::PyCFunction::new_closure(
+            py,
+            Some(c"kfmc_sigterm"),
+            None,
+            move |_, _| -> PyResult<()> {
+                flag.store(true, Ordering::SeqCst);
+                Err(pyo3::exceptions::PyKeyboardInterrupt::new_err(
+                    "SIGTERM: the study was stopped",
+                ))
+            },
+        )?;
+        signal.call_method1("signal", (&sigterm, handler))?;
+        Ok(Some(SigtermStop { came }))
+    }
+
+    /// Puts SIGTERM's default action back; returns whether SIGTERM came meanwhile.
+    fn restore(self, py: Python<'_>) -> PyResult<bool> {
+        let signal = py.import("signal")?;
+        signal.call_method1(
+            "signal",
+            (signal.getattr("SIGTERM")?, signal.getattr("SIG_DFL")?),
+        )?;
+        Ok(self.came.load(Ordering::SeqCst))
     }
 }
 

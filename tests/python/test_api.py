@@ -730,3 +730,81 @@ def test_estimates_of_other_types_raise_estimates_error_naming_the_column(l1_wor
         assert not (tmp_path / column).exists()
     assert "panicked" not in capfd.readouterr().err
 
+
+COMMITTED_SCRIPT = textwrap.dedent(
+    """
+    import os, pathlib, signal, sys, threading, time, kfmc
+    spec = {spec!r}
+    out = pathlib.Path(sys.argv[1])
+    sent = []
+
+    def interrupt_while_running():
+        # The study runs in one window, which a stop request cannot cut short: a Ctrl-C
+        # while it runs comes too late to stop it, and it commits.
+        while not (out / ".kfmc.lock").exists():
+            time.sleep(0.0002)
+        os.kill(os.getpid(), signal.SIGINT)
+        sent.append(time.time())
+
+    threading.Thread(target=interrupt_while_running, daemon=True).start()
+    try:
+        r = kfmc.run(spec, out=out, quiet=True, threads=1, checkpoint_every=0.0)
+    except KeyboardInterrupt:
+        print("interrupted", bool(sent), flush=True)
+        sys.exit(3)
+    print("returned", bool(sent), r.report["runs"], flush=True)
+    """
+)
+
+
+def test_a_ctrl_c_that_comes_too_late_to_stop_the_study_does_not_raise(root, tmp_path):
+    text = (root / "experiments" / "ci_consistency.toml").read_text()
+    text = re.sub(r"^runs = \d+", "runs = 32", text, flags=re.M).replace("duration_s = 5.0", "duration_s = 10.0")
+    script = tmp_path / "late.py"
+    script.write_text(COMMITTED_SCRIPT.format(spec=text))
+    out = tmp_path / "committed"
+    p = subprocess.run([sys.executable, str(script), str(out)], capture_output=True, text=True, timeout=300)
+    committed = (out / "manifest.toml").exists()
+    assert p.stdout.split()[:2] == ["returned", "True"], (p.stdout, p.stderr[-2000:])
+    assert p.returncode == 0 and committed
+    assert "KeyboardInterrupt" not in p.stderr
+
+
+SIGTERM_SCRIPT = textwrap.dedent(
+    """
+    import sys, kfmc
+    spec = {spec!r}
+    print("started", flush=True)
+    kfmc.run(spec, out=sys.argv[1], quiet=True, checkpoint_every=0.0, threads=1)
+    print("finished", flush=True)
+    """
+)
+
+
+def test_sigterm_stops_a_run_like_ctrl_c_then_ends_the_process(root, tmp_path):
+    """SIGTERM during kfmc.run: the study stops at its next window with a final checkpoint
+    and no partial file, then the process ends by SIGTERM; resume=True completes it."""
+    spec = str(root / "experiments" / "ci_consistency.toml")
+    text = pathlib.Path(spec).read_text().replace("scales = [1.0]", "scales = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0]")
+    text = re.sub(r"^runs = \d+", "runs = 150", text, flags=re.M)
+    script = tmp_path / "term.py"
+    script.write_text(SIGTERM_SCRIPT.format(spec=text))
+    out = tmp_path / "terminated"
+    p = subprocess.Popen([sys.executable, str(script), str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    index = out / ".checkpoint" / "index.toml"
+    deadline = time.time() + 120
+    while not index.exists() and p.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    assert p.poll() is None, "the study ended before a checkpoint: make it longer"
+    os.kill(p.pid, signal.SIGTERM)
+    stdout, stderr = p.communicate(timeout=120)
+    assert p.returncode == -signal.SIGTERM, (p.returncode, stderr[-2000:])
+    assert "finished" not in stdout
+    left = [q.name for q in out.rglob("*") if q.name.endswith(".partial")]
+    assert left == [], left
+    assert not (out / "manifest.toml").exists(), "nothing is committed"
+    assert index.exists(), "the final checkpoint is kept"
+    resumed = kfmc.run(text, out=out, quiet=True, resume=True)
+    assert resumed.report["cells_resumed"] > 0
+    whole = kfmc.run(text, out=tmp_path / "whole", quiet=True)
+    assert_same_tables(tmp_path / "whole", out)
