@@ -664,7 +664,10 @@ fn check_column_class(
 
 /// Refuses an Arrow column (of a Parquet file's schema, or of a table handed over through
 /// the Arrow C stream interface) whose type the estimates format does not take, before any
-/// of its values is read: see [`check_column_class`]'s rules.
+/// of its values is read, naming `path`, the column and its type: the keys keep their
+/// documented types (`scenario` and `filter` strings, `run` and `step` integers,
+/// `noise_scale`, `q_scale` and `r_scale` numbers), and a value column is float64 or float32
+/// (or all null).
 pub fn check_arrow_column(
     path: &Path,
     name: &str,
