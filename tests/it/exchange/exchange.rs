@@ -392,7 +392,11 @@ fn bad_files_are_refused_naming_file_column_and_key() {
     float_run
         .with_column(Column::new("run".into(), runs))
         .unwrap();
-    cases.push(("float_run", float_run, "column `run` must be an integer"));
+    cases.push((
+        "float_run",
+        float_run,
+        "column `run` holds float64 values; it must be an integer column",
+    ));
     for (name, df, expect) in cases {
         let path = s.dir.join(format!("{name}.parquet"));
         write(&df, &path);

@@ -356,7 +356,16 @@ fn absurd_plans_are_refused_before_anything_runs() {
             assert!(start.elapsed() < Duration::from_secs(20), "refused at once");
         }
     }
+    // A device is no spec file; a regular file past the cap is read no further than it.
     let (code, _, err) = output(kfmc().args(["validate", "/dev/zero"]));
+    assert_eq!(code, 2);
+    assert!(err.contains("it is a device, not a regular file"), "{err}");
+    let huge = tmp.path().join("huge.toml");
+    std::fs::File::create(&huge)
+        .unwrap()
+        .set_len(2 << 20)
+        .unwrap();
+    let (code, _, err) = output(kfmc().arg("validate").arg(&huge));
     assert_eq!(code, 2);
     assert!(err.contains("larger than 1048576 bytes"), "{err}");
     let (code, _, err) = output(&mut {
