@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import secrets
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple, Union
 
@@ -662,7 +663,8 @@ _GROUP_VALUES = 1 << 20
 
 class _StreamWriter:
     """A Parquet file written row group by row group under a temporary name beside
-    ``path`` (``.<name>.partial``) and renamed to ``path`` on :meth:`commit`: the rows of
+    ``path`` (``.kfmc-<token>-0.<name>.partial``, unique to it) and renamed to ``path`` on
+    :meth:`commit`: the rows of
     every group but the last are exactly ``rows_per_group``, as ``pq.write_table`` cuts the
     whole table, so the file is the one :meth:`Estimates.write` writes."""
 
@@ -675,7 +677,16 @@ class _StreamWriter:
                 "pip install pyarrow (or leave out path= and write(path) at the end)"
             ) from None
         self.path = path
-        self.tmp = path.with_name(f".{path.name}.partial")
+        # A name of kfmc's own, taken exclusively (never a user's ``.<name>.partial``, never
+        # through a symbolic link), so that nothing else's file is written over or removed.
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+        while True:
+            self.tmp = path.with_name(f".kfmc-{secrets.token_hex(8)}-0.{path.name}.partial")
+            try:
+                os.close(os.open(self.tmp, flags, 0o666))
+                break
+            except FileExistsError:
+                continue
         self._writer: Any = None
         # Rows of the last flush beyond a whole group, written with the next.
         self._carry: Optional[pl.DataFrame] = None
@@ -712,8 +723,14 @@ class _StreamWriter:
 
     def commit(self) -> None:
         self._writer.close()
-        os.replace(self.tmp, self.path)
         self.closed = True
+        try:
+            os.replace(self.tmp, self.path)
+        except FileNotFoundError:
+            raise Error(
+                f"the estimates streamed to {self.tmp} are gone: something removed that temporary "
+                f"file before close(), so nothing was written at {self.path}; add the runs again"
+            ) from None
 
     def abort(self) -> None:
         if self.closed:
