@@ -584,13 +584,13 @@ impl StudyFolder {
                     why: format!("is {} where kfmc wrote {kind}", type_name(t)),
                 })
             };
-            if listed.folders.iter().any(|f| *f == name) {
+            if listed.folders.contains(&name) {
                 if !t.is_dir() {
                     listed_as("a folder")?;
                 }
                 continue;
             }
-            if listed.files.iter().any(|f| *f == name) {
+            if listed.files.contains(&name) {
                 if !t.is_file() {
                     listed_as("a file")?;
                 }
@@ -885,13 +885,13 @@ impl StudyFolder {
             }
             match lstat_under(dir, rel)? {
                 None => {}
+                Some(meta)
+                    if meta.file_type().is_file() && (m.files.contains(rel) || ours(&target)) => {}
                 Some(meta) if meta.file_type().is_file() => {
-                    if !m.files.contains(rel) && !ours(&target) {
-                        return Err(OutputError::NotOurs {
-                            path: target,
-                            why: "was not written by kfmc (manifest.toml does not list it) and would be replaced".into(),
-                        });
-                    }
+                    return Err(OutputError::NotOurs {
+                        path: target,
+                        why: "was not written by kfmc (manifest.toml does not list it) and would be replaced".into(),
+                    });
                 }
                 Some(meta) => {
                     return Err(OutputError::NotPlain {
@@ -1058,13 +1058,12 @@ pub fn write_file(
             match std::fs::symlink_metadata(target) {
                 Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
                 Err(e) => return Err(io("cannot read", target)(e)),
+                Ok(m) if m.file_type().is_file() && ours(target) => {}
                 Ok(m) if m.file_type().is_file() => {
-                    if !ours(target) {
-                        return Err(OutputError::NotOurs {
-                            path: target.to_path_buf(),
-                            why: "was not written by kfmc and would be replaced".into(),
-                        });
-                    }
+                    return Err(OutputError::NotOurs {
+                        path: target.to_path_buf(),
+                        why: "was not written by kfmc and would be replaced".into(),
+                    });
                 }
                 Ok(m) => {
                     return Err(OutputError::NotPlain {
@@ -1122,7 +1121,13 @@ pub fn verify(dir: &Path) -> Result<Manifest, OutputError> {
                 why: "it has no manifest.toml (not a kfmc result folder, or a run that did not finish)".into(),
             }
         }
-        other => other,
+        other => match Manifest::inspect(dir) {
+            Ok(Found::Foreign(why)) => OutputError::NotAStudy {
+                path: dir.to_path_buf(),
+                why: format!("its manifest.toml is not a kfmc manifest ({why})"),
+            },
+            _ => other,
+        },
     })?;
     if manifest.replacing.is_some() {
         return Err(OutputError::NotAStudy {
