@@ -683,10 +683,15 @@ class _StreamWriter:
         while True:
             self.tmp = path.with_name(f".kfmc-{secrets.token_hex(8)}-0.{path.name}.partial")
             try:
-                os.close(os.open(self.tmp, flags, 0o666))
+                fd = os.open(self.tmp, flags, 0o666)
                 break
             except FileExistsError:
                 continue
+        # The file created, by identity: pyarrow opens it by name, so each use checks that the
+        # name still holds this file and not something put there since.
+        st = os.fstat(fd)
+        os.close(fd)
+        self._identity = (st.st_dev, st.st_ino)
         self._writer: Any = None
         # Rows of the last flush beyond a whole group, written with the next.
         self._carry: Optional[pl.DataFrame] = None
@@ -715,22 +720,34 @@ class _StreamWriter:
         while df.height - at >= rows or (final and at < df.height):
             group = arrow(df.slice(at, rows).rechunk())
             if self._writer is None:
+                self._check_tmp()
                 opts = {k: v for k, v in options.items() if k != "row_group_size"}
                 self._writer = self._pq.ParquetWriter(self.tmp, group.schema, **opts)
             self._writer.write_table(group, row_group_size=rows)
             at += rows
         self._carry = df.slice(at) if at < df.height else None
 
+    def _check_tmp(self) -> None:
+        """Raises :class:`kfmc.Error` when the temporary file is no longer the one created."""
+        try:
+            st = os.lstat(self.tmp)
+            same = (st.st_dev, st.st_ino) == self._identity
+        except FileNotFoundError:
+            same = False
+        if not same:
+            # Whatever is at the name now is not this stream's: it is neither written nor
+            # removed, and the stream is over.
+            self.closed = True
+            raise Error(
+                f"the estimates streamed to {self.tmp} are gone: something removed or replaced that "
+                f"temporary file before close(), so nothing was written at {self.path}; add the runs again"
+            )
+
     def commit(self) -> None:
         self._writer.close()
         self.closed = True
-        try:
-            os.replace(self.tmp, self.path)
-        except FileNotFoundError:
-            raise Error(
-                f"the estimates streamed to {self.tmp} are gone: something removed that temporary "
-                f"file before close(), so nothing was written at {self.path}; add the runs again"
-            ) from None
+        self._check_tmp()
+        os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
         if self.closed:
