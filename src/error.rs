@@ -121,6 +121,58 @@ pub enum OutputError {
         /// How many.
         count: usize,
     },
+    /// An entry of a result folder is not what kfmc keeps there: a symbolic link, a FIFO, a
+    /// file where kfmc keeps a folder, ….
+    #[error(
+        "{path} is {what}: kfmc uses only regular files and folders inside a result folder and opens nothing there through a symbolic link; remove it, or choose another --out"
+    )]
+    NotPlain {
+        /// The entry.
+        path: PathBuf,
+        /// What it is ("a symbolic link", "a FIFO (named pipe)", …).
+        what: &'static str,
+    },
+    /// A writer would replace or remove a file that kfmc did not write (one its manifest does
+    /// not list, or one changed since).
+    #[error(
+        "{path} {why}; kfmc replaces or removes only what a result folder's manifest lists, even with --force: move it out of the folder, or choose another --out"
+    )]
+    NotOurs {
+        /// The file.
+        path: PathBuf,
+        /// Why it is not kfmc's.
+        why: String,
+    },
+    /// `manifest.toml` is not one kfmc wrote (a project's own, say).
+    #[error(
+        "{path} is not a kfmc manifest ({why}); kfmc does not replace it, even with --force: choose another --out"
+    )]
+    ForeignManifest {
+        /// The manifest.
+        path: PathBuf,
+        /// Why it is not kfmc's.
+        why: String,
+    },
+    /// `manifest.toml` looks like kfmc's but cannot be trusted to say what kfmc wrote.
+    #[error(
+        "{path} is a damaged kfmc manifest ({why}); choose another --out, or pass --force to replace the study it describes (kfmc then removes only the tables it lists that still match it)"
+    )]
+    DamagedManifest {
+        /// The manifest.
+        path: PathBuf,
+        /// What is wrong.
+        why: String,
+    },
+    /// A file the command reads lies inside the folder it writes.
+    #[error(
+        "{input} is read by this command and lies inside its output folder {folder}; kfmc does not write into a folder that holds its own input: move the file out of the folder, or choose another --out"
+    )]
+    InputInOutput {
+        /// The input.
+        input: PathBuf,
+        /// The output folder.
+        folder: PathBuf,
+    },
     /// A folder a reader was given is not a complete kfmc study.
     #[error("{path} is not a complete kfmc result folder: {why}")]
     NotAStudy {

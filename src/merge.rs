@@ -114,6 +114,8 @@ type Problem = (PathBuf, String);
 
 fn parts(dir: &Path, lock: bool) -> Result<(Vec<Part>, Vec<Problem>), OutputError> {
     let root = dir.join("parts");
+    // A part is read where it lies, inside the merged folder: never through a link.
+    crate::output::folder::refuse_link(&root)?;
     let entries = std::fs::read_dir(&root).map_err(|source| OutputError::Io {
         action: "cannot list the parts in",
         path: root.clone(),
@@ -124,8 +126,17 @@ fn parts(dir: &Path, lock: bool) -> Result<(Vec<Part>, Vec<Problem>), OutputErro
     let mut names: Vec<PathBuf> = entries.filter_map(|e| e.ok()).map(|e| e.path()).collect();
     names.sort();
     for path in names {
-        if !path.is_dir() {
-            continue;
+        match std::fs::symlink_metadata(&path) {
+            Ok(m) if m.file_type().is_symlink() && path.is_dir() => {
+                let why = format!(
+                    "{}: is a symbolic link; kfmc reads a part only where it lies, in the study's parts folder",
+                    path.display()
+                );
+                problems.push((path, why));
+                continue;
+            }
+            Ok(m) if m.file_type().is_dir() => {}
+            _ => continue,
         }
         let held = if lock {
             match FolderLock::acquire(&path) {

@@ -151,8 +151,15 @@ pub fn power_with(
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
-    let folder = StudyFolder::open(out, StudyKind::Power, opts.force)?;
-    let scratch: PathBuf = out.join(".power-replication");
+    let folder = StudyFolder::open_with(
+        out,
+        StudyKind::Power,
+        opts.force,
+        &crate::study::inputs(plan),
+    )?;
+    // Each replication's study, written under a temporary name of this process's own and
+    // removed once its consistency table is folded in.
+    let scratch: PathBuf = out.join(crate::output::atomic::temp_name("power-replication"));
     let mut one = plan.clone();
     one.trace_runs = 0;
     one.export_estimates = false;

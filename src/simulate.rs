@@ -89,7 +89,15 @@ pub fn simulate(
     world_only.export_estimates = false;
     let part_dir = opts.shard.map(|s| s.folder(&plan.output));
     let dir = part_dir.as_ref().unwrap_or(&plan.output);
-    let folder = StudyFolder::open(dir, StudyKind::Simulate, opts.force)?;
+    if opts.shard.is_some() {
+        crate::output::folder::refuse_link(&plan.output.join("parts"))?;
+    }
+    let folder = StudyFolder::open_with(
+        dir,
+        StudyKind::Simulate,
+        opts.force,
+        &crate::study::inputs(plan),
+    )?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
     let cells = opts.shard.map_or(0..n_cells, |s| s.cells(n_cells));
     let trial = world_only.trial();

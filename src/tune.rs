@@ -145,6 +145,28 @@ fn log_grid(center: f64, half_decades: f64, points: usize) -> Vec<f64> {
 
 /// Runs one stage of the search into its folder under `staging`, and returns its points and
 /// the folder's name.
+/// The folder of the stage `name` of a search over `plan` (a refine stage's plan has one
+/// noise scale).
+fn stage_folder(plan: &Plan, name: &str) -> String {
+    match plan.noise_scales.as_slice() {
+        [one] if name == "refine" => format!("tune_{name}_noise_{one}"),
+        _ => format!("tune_{name}"),
+    }
+}
+
+/// The folders of every stage a search over `plan` writes: the coarse grid, and a refine
+/// stage per noise scale.
+fn stage_names(plan: &Plan) -> Vec<String> {
+    let mut names = vec![stage_folder(plan, "coarse")];
+    // As stage_folder names the refine stage of each scale's one-scale plan.
+    names.extend(
+        plan.noise_scales
+            .iter()
+            .map(|scale| format!("tune_refine_noise_{scale}")),
+    );
+    names
+}
+
 fn stage(
     plan: &Plan,
     staging: &std::path::Path,
@@ -155,10 +177,7 @@ fn stage(
     observer: &dyn RunObserver,
 ) -> Result<(Vec<TunePoint>, String), KfmcError> {
     let mut p = plan.clone();
-    let folder = match plan.noise_scales.as_slice() {
-        [one] if name == "refine" => format!("tune_{name}_noise_{one}"),
-        _ => format!("tune_{name}"),
-    };
+    let folder = stage_folder(plan, name);
     p.output = staging.join(&folder);
     p.trace_runs = 0;
     p.assertions.clear();
@@ -475,14 +494,10 @@ fn commit(
     let coarse = staging.0.join("tune_coarse");
     let mut manifest = crate::output::folder::verify(&coarse)?;
     manifest.kind = Some(StudyKind::Tune);
-    let summary_tmp = plan.output.join(".summary.parquet.partial");
-    std::fs::copy(coarse.join("summary.parquet"), &summary_tmp).map_err(|source| {
-        OutputError::Io {
-            action: "cannot copy the coarse stage's summary to",
-            path: summary_tmp.clone(),
-            source,
-        }
-    })?;
+    let summary_tmp = copy_beside(
+        &coarse.join("summary.parquet"),
+        &plan.output.join("summary.parquet"),
+    )?;
     let summary_rows = manifest
         .tables
         .iter()
@@ -492,6 +507,8 @@ fn commit(
     if crate::runner::interrupted() {
         return Err(OutputError::Interrupted.into());
     }
+    // Every stage the earlier search listed goes with it (a refine stage per noise scale it
+    // had), not only those this search replaces.
     folder.commit_with_folders(
         vec![
             tuning,
@@ -508,12 +525,32 @@ fn commit(
                 name,
             })
             .collect(),
-        // Every stage of the earlier search goes with it (a refine stage per noise scale it
-        // had), not only those this search replaces.
-        |name| name.starts_with("tune_"),
         manifest,
     )?;
     Ok(())
+}
+
+/// Copies `from` to a temporary file beside `to` (never through a symbolic link, never over
+/// an existing file); returns the temporary path, removed with the table if not committed.
+fn copy_beside(from: &std::path::Path, to: &std::path::Path) -> Result<PathBuf, KfmcError> {
+    let (tmp, mut file) =
+        crate::output::atomic::create_temp_beside(to).map_err(|source| OutputError::Io {
+            action: "cannot create a temporary file beside",
+            path: to.to_path_buf(),
+            source,
+        })?;
+    let copied = crate::output::atomic::open_regular(from)
+        .and_then(|mut src| std::io::copy(&mut src, &mut file));
+    if let Err(source) = copied {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(OutputError::Io {
+            action: "cannot copy the coarse stage's summary to",
+            path: tmp,
+            source,
+        }
+        .into());
+    }
+    Ok(tmp)
 }
 
 /// Runs the search and writes `tuning.parquet` into the plan's output folder.
@@ -525,8 +562,17 @@ pub fn tune(
     let base = tuned_filter(plan, opts)?;
     // Locked for the whole search. The stages are written aside and move into place with the
     // tuning table in one commit: an interrupted search leaves the earlier one whole.
-    let folder = StudyFolder::open(&plan.output, StudyKind::Tune, opts.force)?;
-    let staging = Staging(plan.output.join(".tune-stages.partial"));
+    let folder = StudyFolder::open_with(
+        &plan.output,
+        StudyKind::Tune,
+        opts.force,
+        &crate::study::inputs(plan),
+    )?;
+    folder.refuse_unlisted(&stage_names(plan))?;
+    let staging = Staging(
+        plan.output
+            .join(crate::output::atomic::temp_name("tune-stages")),
+    );
     let mut stages = Vec::new();
     let (n, p) = (
         plan.layout().quantities.len() as f64,

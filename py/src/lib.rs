@@ -113,7 +113,12 @@ impl Failure {
                     | OutputError::OtherKind { .. }
                     | OutputError::Foreign { .. }
                     | OutputError::NotAStudy { .. }
-                    | OutputError::Mismatch { .. },
+                    | OutputError::Mismatch { .. }
+                    | OutputError::NotPlain { .. }
+                    | OutputError::NotOurs { .. }
+                    | OutputError::ForeignManifest { .. }
+                    | OutputError::DamagedManifest { .. }
+                    | OutputError::InputInOutput { .. },
                 )),
             ) => StudyError::new_err(message),
             _ => Error::new_err(message),

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import secrets
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Set, Tuple, Union
 
@@ -662,7 +663,8 @@ _GROUP_VALUES = 1 << 20
 
 class _StreamWriter:
     """A Parquet file written row group by row group under a temporary name beside
-    ``path`` (``.<name>.partial``) and renamed to ``path`` on :meth:`commit`: the rows of
+    ``path`` (``.kfmc-<token>-0.<name>.partial``, unique to it) and renamed to ``path`` on
+    :meth:`commit`: the rows of
     every group but the last are exactly ``rows_per_group``, as ``pq.write_table`` cuts the
     whole table, so the file is the one :meth:`Estimates.write` writes."""
 
@@ -675,7 +677,21 @@ class _StreamWriter:
                 "pip install pyarrow (or leave out path= and write(path) at the end)"
             ) from None
         self.path = path
-        self.tmp = path.with_name(f".{path.name}.partial")
+        # A name of kfmc's own, taken exclusively (never a user's ``.<name>.partial``, never
+        # through a symbolic link), so that nothing else's file is written over or removed.
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+        while True:
+            self.tmp = path.with_name(f".kfmc-{secrets.token_hex(8)}-0.{path.name}.partial")
+            try:
+                fd = os.open(self.tmp, flags, 0o666)
+                break
+            except FileExistsError:
+                continue
+        # The file created, by identity: pyarrow opens it by name, so each use checks that the
+        # name still holds this file and not something put there since.
+        st = os.fstat(fd)
+        os.close(fd)
+        self._identity = (st.st_dev, st.st_ino)
         self._writer: Any = None
         # Rows of the last flush beyond a whole group, written with the next.
         self._carry: Optional[pl.DataFrame] = None
@@ -704,16 +720,34 @@ class _StreamWriter:
         while df.height - at >= rows or (final and at < df.height):
             group = arrow(df.slice(at, rows).rechunk())
             if self._writer is None:
+                self._check_tmp()
                 opts = {k: v for k, v in options.items() if k != "row_group_size"}
                 self._writer = self._pq.ParquetWriter(self.tmp, group.schema, **opts)
             self._writer.write_table(group, row_group_size=rows)
             at += rows
         self._carry = df.slice(at) if at < df.height else None
 
+    def _check_tmp(self) -> None:
+        """Raises :class:`kfmc.Error` when the temporary file is no longer the one created."""
+        try:
+            st = os.lstat(self.tmp)
+            same = (st.st_dev, st.st_ino) == self._identity
+        except FileNotFoundError:
+            same = False
+        if not same:
+            # Whatever is at the name now is not this stream's: it is neither written nor
+            # removed, and the stream is over.
+            self.closed = True
+            raise Error(
+                f"the estimates streamed to {self.tmp} are gone: something removed or replaced that "
+                f"temporary file before close(), so nothing was written at {self.path}; add the runs again"
+            )
+
     def commit(self) -> None:
         self._writer.close()
-        os.replace(self.tmp, self.path)
         self.closed = True
+        self._check_tmp()
+        os.replace(self.tmp, self.path)
 
     def abort(self) -> None:
         if self.closed:

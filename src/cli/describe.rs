@@ -31,20 +31,21 @@ impl Describe {
         emit(&description.render());
         if !no_write {
             let path = out.unwrap_or_else(|| plan.output.join("describe.toml"));
-            let parent = path
-                .parent()
-                .filter(|p| !p.as_os_str().is_empty())
-                .unwrap_or(std::path::Path::new("."));
-            // The folder's writers share one lock: a study being written there, or
-            // another describe, is never written beside.
-            let _held = crate::output::folder::FolderLock::acquire(parent)
-                .map_err(KfmcError::from)
-                .map_err(|e| {
-                    anyhow::Error::from(e).context(format!("writing {}", path.display()))
-                })?;
-            crate::output::folder::write_atomic(&path, description.to_toml().as_bytes()).map_err(
-                |e| anyhow::Error::from(e).context(format!("writing {}", path.display())),
-            )?;
+            // Its first line tells it from a file of the same name that kfmc did not write,
+            // which is never replaced. The folder's writers share one lock: a study being
+            // written there, or another describe, is never written beside.
+            let text = format!(
+                "{}\n{}",
+                crate::output::folder::DESCRIBE_FORMAT_LINE,
+                description.to_toml()
+            );
+            crate::output::folder::write_file(
+                &path,
+                text.as_bytes(),
+                &crate::output::folder::is_kfmc_describe,
+            )
+            .map_err(KfmcError::from)
+            .map_err(|e| anyhow::Error::from(e).context(format!("writing {}", path.display())))?;
             outln!("wrote {}", path.display());
         }
         Ok(())

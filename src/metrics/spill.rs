@@ -3,9 +3,10 @@
 //! A cell's summary rows need the mean, standard deviation and exact 5/50/95 % quantiles of a
 //! per-run value (a state's RMSE, a world metric) over all runs of the cell. Keeping every
 //! value made memory grow with the runs; a [`Spill`] keeps at most [`SPILL_ROWS`] rows in
-//! memory and writes the rest to a scratch file in the study folder (`.scratch-N.partial`,
-//! removed when the spill is dropped; a crash leaves a `.partial` file that the next run in
-//! the folder clears). The statistics come from sequential passes over the rows in run order:
+//! memory and writes the rest to a scratch file in the study folder (a temporary name of
+//! kfmc's own, `.kfmc-<token>-<n>.scratch-N.partial`, removed when the spill is dropped; a
+//! crash leaves it for the next writer in the folder, which removes it by the token the lock
+//! file recorded). The statistics come from sequential passes over the rows in run order:
 //!
 //! * mean and standard deviation: the same sums in the same order as
 //!   [`crate::metrics::mean_std`], so the bits are the same;
@@ -216,11 +217,9 @@ impl Spill {
     fn write_out(&mut self) -> Result<(), OutputError> {
         if self.file.is_none() {
             let n = NEXT_SCRATCH.fetch_add(1, Ordering::Relaxed);
-            let path = self
-                .dir
-                .join(format!(".scratch-{}-{n}.partial", std::process::id()));
-            let f = File::create(&path)
-                .map_err(|e| Self::io_error(&path, "cannot create the scratch file", e))?;
+            let (path, f) =
+                crate::output::atomic::create_temp_beside(&self.dir.join(format!("scratch-{n}")))
+                    .map_err(|e| Self::io_error(&self.dir, "cannot create a scratch file in", e))?;
             self.file = Some((path, BufWriter::with_capacity(IO_BUFFER, f)));
         }
         let (path, w) = self.file.as_mut().expect("created above");

@@ -129,10 +129,8 @@ impl Index {
     /// Reads the index of `output`'s checkpoint, if there is one.
     pub fn read(output: &Path) -> Result<Option<Index>, OutputError> {
         let path = dir(output).join(INDEX_FILE);
-        let text = match super::atomic::read_input_to_string(&path) {
-            Ok(t) => t,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(io("cannot read", &path)(e)),
+        let Some(text) = read_plain(output, &path)? else {
+            return Ok(None);
         };
         toml::from_str(&text)
             .map(Some)
@@ -284,18 +282,69 @@ impl Index {
     }
 }
 
+/// Whether `output`'s checkpoint folder is a folder of its own (not a symbolic link, not a
+/// file): `Ok(false)` when there is none.
+pub fn check_dir(output: &Path) -> Result<bool, OutputError> {
+    let d = dir(output);
+    match std::fs::symlink_metadata(&d) {
+        Ok(m) if m.file_type().is_dir() => Ok(true),
+        Ok(m) => Err(OutputError::NotPlain {
+            path: d,
+            what: super::atomic::type_name(m.file_type()),
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(e) => Err(io("cannot read", &d)(e)),
+    }
+}
+
+/// The text of the checkpoint file `path` of `output`, or `None` when there is none; refuses
+/// a checkpoint folder or file that is a symbolic link, a FIFO or anything but a folder and a
+/// regular file, without waiting on it.
+fn read_plain(output: &Path, path: &Path) -> Result<Option<String>, OutputError> {
+    if !check_dir(output)? {
+        return Ok(None);
+    }
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_file() => {}
+        Ok(m) => {
+            return Err(OutputError::NotPlain {
+                path: path.to_path_buf(),
+                what: super::atomic::type_name(m.file_type()),
+            });
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(io("cannot read", path)(e)),
+    }
+    super::atomic::read_regular(path)
+        .map(Some)
+        .map_err(io("cannot read", path))
+}
+
 /// Removes `output`'s checkpoint: the index first, so a kill half-way leaves journals that
-/// nothing vouches for, which the next run overwrites.
+/// nothing vouches for, which the next run overwrites; then the journals, and the folder if
+/// nothing else is in it (kfmc removes only the files it writes there).
 pub fn remove(output: &Path) -> Result<(), OutputError> {
     let d = dir(output);
-    match std::fs::remove_file(d.join(INDEX_FILE)) {
-        Ok(()) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-        Err(e) => return Err(io("cannot remove the checkpoint index in", &d)(e)),
+    if !check_dir(output)? {
+        return Ok(());
     }
-    match std::fs::remove_dir_all(&d) {
+    let gone = |path: &Path, action: &'static str| match std::fs::remove_file(path) {
         Ok(()) => Ok(()),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(io(action, path)(e)),
+    };
+    gone(&d.join(INDEX_FILE), "cannot remove the checkpoint index")?;
+    for t in super::schema::TABLES {
+        gone(
+            &journal_path(output, t),
+            "cannot remove the checkpoint journal",
+        )?;
+    }
+    match std::fs::remove_dir(&d) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        // Something kfmc did not write is in it: it stays, with the folder.
+        Err(e) if e.kind() == std::io::ErrorKind::DirectoryNotEmpty => Ok(()),
         Err(e) => Err(io("cannot remove the checkpoint", &d)(e)),
     }
 }
@@ -335,9 +384,35 @@ impl Journal {
     /// another study's whatever its index says.
     pub fn create(path: &Path, study: &Index) -> Result<Self, OutputError> {
         if let Some(d) = path.parent() {
-            std::fs::create_dir_all(d).map_err(io("cannot create the checkpoint folder", d))?;
+            match std::fs::symlink_metadata(d) {
+                Ok(m) if m.file_type().is_dir() => {}
+                Ok(m) => {
+                    return Err(OutputError::NotPlain {
+                        path: d.to_path_buf(),
+                        what: super::atomic::type_name(m.file_type()),
+                    });
+                }
+                Err(_) => {
+                    std::fs::create_dir(d).map_err(io("cannot create the checkpoint folder", d))?
+                }
+            }
         }
-        let file = File::create(path).map_err(io("cannot create", path))?;
+        let file = {
+            use std::os::unix::fs::OpenOptionsExt;
+            std::fs::OpenOptions::new()
+                .write(true)
+                .create(true)
+                .truncate(true)
+                .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK)
+                .open(path)
+                .map_err(io("cannot create", path))?
+        };
+        if !file.metadata().is_ok_and(|m| m.file_type().is_file()) {
+            return Err(OutputError::NotPlain {
+                path: path.to_path_buf(),
+                what: "not a regular file",
+            });
+        }
         let mut journal = Journal::around(file, path, 0, 0);
         let text = study.identity_text();
         journal.scratch.clear();
@@ -354,10 +429,7 @@ impl Journal {
     /// Continues the journal at `path` after its first `bytes` bytes (`rows` rows), dropping
     /// whatever a killed run wrote after its last checkpoint.
     pub fn reopen(path: &Path, bytes: u64, rows: u64) -> Result<Self, OutputError> {
-        let mut file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .open(path)
+        let mut file = super::atomic::open_regular_rw(path, false)
             .map_err(io("cannot open the checkpoint journal", path))?;
         let len = file
             .metadata()
@@ -715,8 +787,8 @@ pub fn replay(
     study: &Index,
     mut f: impl FnMut(&[Value<'_>]) -> Result<(), OutputError>,
 ) -> Result<u64, OutputError> {
-    let file =
-        super::atomic::open_input(path).map_err(io("cannot open the checkpoint journal", path))?;
+    let file = super::atomic::open_regular(path)
+        .map_err(io("cannot open the checkpoint journal", path))?;
     let decoder = zstd::stream::read::Decoder::new(file.take(bytes))
         .map_err(io("cannot start decompressing", path))?;
     let mut records = Records {

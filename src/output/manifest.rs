@@ -203,9 +203,24 @@ impl StudyKind {
     }
 }
 
+/// The `format` of the manifests this kfmc writes: what makes a folder a kfmc result folder.
+pub const FORMAT: &str = "kfmc-result/1";
+
+/// What every `format` of a kfmc manifest starts with.
+const FORMAT_FAMILY: &str = "kfmc-result/";
+
+/// The largest `manifest.toml` read: far above any kfmc writes (its spec text is at most
+/// 1 MiB), so that a foreign file of that name is not read whole.
+const MAX_MANIFEST_BYTES: u64 = 64 << 20;
+
 /// The manifest of a result folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
+    /// The manifest's format ([`FORMAT`]): a folder belongs to kfmc only by a manifest that
+    /// says so. Absent in manifests written before it was recorded, which are trusted only
+    /// when every table they list matches ([`super::folder::StudyFolder::prepare`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub format: Option<String>,
     /// kfmc version that wrote the folder.
     pub kfmc_version: String,
     /// Experiment name.
@@ -259,6 +274,20 @@ pub struct Manifest {
     pub runs_per_s: f64,
     /// Tables written.
     pub tables: Vec<TableEntry>,
+    /// The other files kfmc wrote into the folder, as paths relative to it with `/`
+    /// (`figures/rmse.png`, `report.html`, `describe.toml`): what `plot`, `report` and
+    /// `describe` add to a committed study, listed before they are written.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub files: Vec<String>,
+    /// The sub-folders kfmc wrote whole (a tuning search's `tune_*` stages), replaced with
+    /// the study.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub folders: Vec<String>,
+    /// Set only while a commit is replacing an earlier study: what that study listed, some of
+    /// which may still be on disk. Readers refuse such a folder; the next writer knows from
+    /// it what it may remove.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub replacing: Option<Listed>,
     /// Set in a folder written by `kfmc simulate`: what its exchange tables mean.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub exchange: Option<ExchangeEntry>,
@@ -273,7 +302,194 @@ pub struct Manifest {
     pub spec: String,
 }
 
+/// What a manifest lists as written by kfmc.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Listed {
+    /// Tables.
+    #[serde(default)]
+    pub tables: Vec<TableEntry>,
+    /// Other files, relative to the folder.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub files: Vec<String>,
+    /// Sub-folders written whole.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub folders: Vec<String>,
+}
+
+impl Listed {
+    /// Everything `manifest` lists: its own entries and, during a commit, the earlier
+    /// study's.
+    pub fn of(manifest: &Manifest) -> Listed {
+        let mut l = Listed {
+            tables: manifest.tables.clone(),
+            files: manifest.files.clone(),
+            folders: manifest.folders.clone(),
+        };
+        if let Some(r) = &manifest.replacing {
+            l.tables.extend(r.tables.iter().cloned());
+            l.files.extend(r.files.iter().cloned());
+            l.folders.extend(r.folders.iter().cloned());
+        }
+        l
+    }
+
+    /// What a manifest that does not parse as one still lists, as far as its TOML can be
+    /// read: table entries with a name, and file and folder paths.
+    fn salvaged(t: &toml::Table) -> Listed {
+        let strings = |v: Option<&toml::Value>| -> Vec<String> {
+            v.and_then(|v| v.as_array())
+                .map(|a| {
+                    a.iter()
+                        .filter_map(|s| s.as_str().map(str::to_string))
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        let tables = |v: Option<&toml::Value>| -> Vec<TableEntry> {
+            v.and_then(|v| v.as_array())
+                .map(|a| {
+                    a.iter()
+                        .filter_map(|e| {
+                            let e = e.as_table()?;
+                            Some(TableEntry {
+                                name: e.get("name")?.as_str()?.to_string(),
+                                rows: e.get("rows").and_then(|v| v.as_integer()).unwrap_or(0)
+                                    as u64,
+                                bytes: u64::try_from(e.get("bytes")?.as_integer()?).ok()?,
+                                checksum: e.get("checksum")?.as_str()?.to_string(),
+                            })
+                        })
+                        .collect()
+                })
+                .unwrap_or_default()
+        };
+        let mut l = Listed {
+            tables: tables(t.get("tables")),
+            files: strings(t.get("files")),
+            folders: strings(t.get("folders")),
+        };
+        if let Some(r) = t.get("replacing").and_then(|r| r.as_table()) {
+            l.tables.extend(tables(r.get("tables")));
+            l.files.extend(strings(r.get("files")));
+            l.folders.extend(strings(r.get("folders")));
+        }
+        l
+    }
+}
+
+/// What a folder's `manifest.toml` is, as a writer finds it.
+#[derive(Debug)]
+pub enum Found {
+    /// There is none.
+    Absent,
+    /// Something that is not a regular file has the name (a symbolic link, a folder, …).
+    NotAFile(&'static str),
+    /// A manifest kfmc wrote: of this [`FORMAT`] (possibly in the middle of a commit,
+    /// [`Manifest::replacing`]), or of an earlier one without `format`, which is trusted only
+    /// once its tables are checked.
+    Kfmc(Box<Manifest>),
+    /// It says it is kfmc's (its `format` or its `kfmc_version`) but cannot be read as a
+    /// manifest this kfmc trusts: why, and what it still lists.
+    Damaged {
+        /// What is wrong.
+        why: String,
+        /// What it lists, as far as it can be read.
+        listed: Listed,
+    },
+    /// Not a kfmc manifest (a project's own `manifest.toml`): why not.
+    Foreign(String),
+}
+
 impl Manifest {
+    /// Tells what `dir/manifest.toml` is, without following a symbolic link or waiting on a
+    /// FIFO.
+    pub fn inspect(dir: &Path) -> Result<Found, OutputError> {
+        let path = dir.join("manifest.toml");
+        let meta = match std::fs::symlink_metadata(&path) {
+            Ok(m) => m,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Found::Absent),
+            Err(source) => {
+                return Err(OutputError::Io {
+                    action: "cannot read",
+                    path,
+                    source,
+                });
+            }
+        };
+        if !meta.file_type().is_file() {
+            return Ok(Found::NotAFile(super::atomic::type_name(meta.file_type())));
+        }
+        if meta.len() > MAX_MANIFEST_BYTES {
+            return Ok(Found::Foreign(format!(
+                "{} bytes, more than any manifest kfmc writes",
+                meta.len()
+            )));
+        }
+        let bytes = {
+            use std::io::Read;
+            let mut b = Vec::new();
+            super::atomic::open_regular(&path)
+                .and_then(|f| f.take(MAX_MANIFEST_BYTES).read_to_end(&mut b))
+                .map_err(|source| OutputError::Io {
+                    action: "cannot read",
+                    path: path.clone(),
+                    source,
+                })?;
+            b
+        };
+        let Ok(text) = String::from_utf8(bytes) else {
+            return Ok(Found::Foreign("it is not UTF-8 text".into()));
+        };
+        let table = match text.parse::<toml::Table>() {
+            Ok(t) => t,
+            Err(e) => {
+                // A manifest kfmc wrote starts with its format (or, before it was recorded,
+                // its version): damaged past that line, it is still recognisably kfmc's.
+                let first = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
+                let first = first.trim_start();
+                return Ok(
+                    if first.starts_with(&format!("format = \"{FORMAT_FAMILY}"))
+                        || first.starts_with("kfmc_version = ")
+                    {
+                        Found::Damaged {
+                            why: format!("it is not valid TOML: {}", one_line(&e.to_string())),
+                            listed: Listed::default(),
+                        }
+                    } else {
+                        Found::Foreign("it is not TOML".into())
+                    },
+                );
+            }
+        };
+        match table.get("format") {
+            Some(toml::Value::String(f)) if f == FORMAT => {}
+            Some(toml::Value::String(f)) if f.starts_with(FORMAT_FAMILY) => {
+                return Ok(Found::Damaged {
+                    why: format!("its format `{f}` is not one this kfmc reads ({FORMAT})"),
+                    listed: Listed::salvaged(&table),
+                });
+            }
+            Some(other) => {
+                return Ok(Found::Foreign(format!(
+                    "its format is {other}, not {FORMAT}"
+                )));
+            }
+            None if !table.get("kfmc_version").is_some_and(|v| v.is_str()) => {
+                return Ok(Found::Foreign(format!(
+                    "it has neither `format = \"{FORMAT}\"` nor the `kfmc_version` of an earlier kfmc manifest"
+                )));
+            }
+            None => {}
+        }
+        match toml::from_str::<Manifest>(&text) {
+            Ok(m) => Ok(Found::Kfmc(Box::new(m))),
+            Err(e) => Ok(Found::Damaged {
+                why: one_line(&e.to_string()),
+                listed: Listed::salvaged(&table),
+            }),
+        }
+    }
+
     /// Writes `manifest.toml` atomically into `dir`. Inside a study folder this is the commit
     /// record, written last ([`super::folder::StudyFolder::commit`]).
     pub fn write(&self, dir: &Path) -> Result<(), OutputError> {
@@ -311,19 +527,32 @@ impl Manifest {
         }
     }
 
-    /// Reads `manifest.toml` from `dir`.
+    /// Reads `manifest.toml` from `dir` (never through a symbolic link).
     pub fn read(dir: &Path) -> Result<Self, OutputError> {
         let path = dir.join("manifest.toml");
-        let text =
-            super::atomic::read_input_to_string(&path).map_err(|source| OutputError::Io {
-                action: "cannot read",
-                path: path.clone(),
-                source,
-            })?;
+        let text = super::atomic::read_regular(&path).map_err(|source| OutputError::Io {
+            action: "cannot read",
+            path: path.clone(),
+            source,
+        })?;
         toml::from_str(&text).map_err(|e| OutputError::Format {
             path,
             message: e.to_string(),
         })
+    }
+}
+
+/// A parser's message on one line (the TOML parser's spans the source over several).
+fn one_line(message: &str) -> String {
+    let lines: Vec<&str> = message
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect();
+    match lines.as_slice() {
+        [] => String::new(),
+        [one] => one.to_string(),
+        [first, .., last] => format!("{first}: {last}"),
     }
 }
 

@@ -50,8 +50,10 @@ fn rows_per_group(name: &str, columns: usize) -> usize {
     }
 }
 
-/// Writes one table to `<dir>/.<name>.parquet.partial` and renames it to `<name>.parquet` on
-/// [`TableWriter::commit`]. Dropped without a commit, it deletes its temporary file.
+/// Writes one table to a temporary file beside `<dir>/<name>.parquet`
+/// (`.kfmc-<token>-<n>.<name>.parquet.partial`, [`super::atomic::temp_name`]) and renames it
+/// to `<name>.parquet` on [`TableWriter::commit`]. Dropped without a commit, it deletes its
+/// temporary file.
 pub struct TableWriter {
     name: String,
     path: PathBuf,
@@ -91,12 +93,12 @@ impl TableWriter {
         metadata: &[(String, String)],
     ) -> Result<Self, OutputError> {
         let path = dir.join(format!("{name}.parquet"));
-        let tmp = dir.join(format!(".{name}.parquet.partial"));
-        let file = File::create(&tmp).map_err(|source| OutputError::Io {
-            action: "cannot create",
-            path: tmp.clone(),
-            source,
-        })?;
+        let (tmp, file) =
+            super::atomic::create_temp_beside(&path).map_err(|source| OutputError::Io {
+                action: "cannot create a temporary file beside",
+                path: path.clone(),
+                source,
+            })?;
         let schema = Schema::from_iter(columns.iter().map(|c| {
             let dt = match c.dtype {
                 Dtype::Str => DataType::String,
@@ -667,7 +669,12 @@ mod tests {
         assert_eq!(b.get(1), Some(1.0));
         assert_eq!(b.get(n - 1), Some((n - 1) as f64));
         assert_eq!(b.get(n), None, "NaN is written as null");
-        assert!(!dir.path().join(".t.parquet.partial").exists());
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".partial"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
     }
 
     fn summary_cols() -> Vec<ColumnDef> {

@@ -696,8 +696,16 @@ pub struct PlotOptions {
 
 /// Draws every figure the tables of `dir` support; returns the files written.
 pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotError> {
-    let tables = Tables::load(dir)?;
     let out = opts.out.clone().unwrap_or_else(|| dir.join("figures"));
+    // Figures inside the result folder are the study's: drawn under its lock from the tables
+    // it holds, and listed in its manifest before they are written. A folder named outside
+    // it is written as named.
+    let inside = crate::output::folder::relative_inside(dir, &out);
+    let held = match &inside {
+        Some(_) if dir.is_dir() => Some(crate::output::folder::StudyFolder::lock(dir)?),
+        _ => None,
+    };
+    let tables = Tables::load(dir)?;
     let figures = all_figures(&tables, &opts.only)?;
     // A kind asked for by name that the data cannot give is an error, not an empty success.
     let lacking: Vec<&str> = opts
@@ -721,6 +729,20 @@ pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotErro
                 available.join(", ")
             },
         });
+    }
+    if let (Some(held), Some(rel)) = (&held, &inside) {
+        let files: Vec<String> = figures
+            .iter()
+            .map(|fig| {
+                let name = format!("{}.{}", fig.name, opts.format.ext());
+                if rel.is_empty() {
+                    name
+                } else {
+                    format!("{rel}/{name}")
+                }
+            })
+            .collect();
+        held.claim_files(&files, &|_| false)?;
     }
     std::fs::create_dir_all(&out).map_err(|source| PlotError::Io {
         action: "cannot create the figure folder",

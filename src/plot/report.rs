@@ -778,17 +778,39 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
 
 /// Writes the report of `dir` to `out` (default `<dir>/report.html`); returns the path.
 pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError> {
-    let t = Tables::load(dir)?;
-    let html = render_html(&t)?;
+    use crate::output::folder;
     let path = out.map_or_else(|| dir.join("report.html"), Path::to_path_buf);
-    crate::output::folder::write_atomic(&path, html.as_bytes()).map_err(|source| {
-        PlotError::Io {
-            action: "cannot write the report",
-            path: path.clone(),
-            source,
+    match folder::relative_inside(dir, &path).filter(|_| dir.is_dir()) {
+        // The study's own report: drawn under its lock, listed in its manifest before it is
+        // written.
+        Some(rel) => {
+            let held = folder::StudyFolder::lock(dir)?;
+            let html = render_html(&Tables::load(dir)?)?;
+            held.claim_files(&[rel], &is_kfmc_report)?;
+            folder::write_atomic(&path, html.as_bytes()).map_err(|source| PlotError::Io {
+                action: "cannot write the report",
+                path: path.clone(),
+                source,
+            })?;
         }
-    })?;
+        None => {
+            let html = render_html(&Tables::load(dir)?)?;
+            folder::write_file(&path, html.as_bytes(), &is_kfmc_report)?;
+        }
+    }
     Ok(path)
+}
+
+/// Whether the file at `path` is a report kfmc wrote (its title says so), which a report may
+/// replace where no manifest lists it.
+fn is_kfmc_report(path: &Path) -> bool {
+    use std::io::Read;
+    let mut head = Vec::new();
+    crate::output::atomic::open_regular(path)
+        .and_then(|f| f.take(4096).read_to_end(&mut head))
+        .is_ok()
+        && head.starts_with(b"<!DOCTYPE html>")
+        && String::from_utf8_lossy(&head).contains("<title>kfmc report: ")
 }
 
 #[cfg(test)]

@@ -20,6 +20,7 @@ pub(crate) fn manifest_for(
         opts.threads
     };
     Manifest {
+        format: Some(crate::output::manifest::FORMAT.into()),
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
         experiment: plan.name.clone(),
         system: plan.kind.clone(),
@@ -62,6 +63,9 @@ pub(crate) fn manifest_for(
         runs_per_s: size.runs as f64 / wall_s.max(1e-9),
         // Filled in by the commit, with each table's size and checksum.
         tables: Vec::new(),
+        files: Vec::new(),
+        folders: Vec::new(),
+        replacing: None,
         exchange: None,
         shard: opts.shard.map(|s| crate::output::manifest::ShardEntry {
             index: s.index as u64,

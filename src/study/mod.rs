@@ -73,7 +73,10 @@ pub fn run_locked(
         .map_or(0, |d| d.as_secs());
     let part_dir = opts.shard.map(|s| s.folder(&plan.output));
     let dir = part_dir.as_ref().unwrap_or(&plan.output);
-    let folder = StudyFolder::open(dir, study_kind(plan), opts.force)?;
+    if opts.shard.is_some() {
+        crate::output::folder::refuse_link(&plan.output.join("parts"))?;
+    }
+    let folder = StudyFolder::open_with(dir, study_kind(plan), opts.force, &inputs(plan))?;
     let n_cells = plan.scenarios.len() * plan.noise_scales.len();
     let session = Session {
         dir,
@@ -93,6 +96,21 @@ pub fn run_locked(
         let _ = crate::output::checkpoint::remove(dir);
     }
     result.map(|report| (report, folder))
+}
+
+/// The files a study of `plan` reads: its spec file and the estimates files attached to it.
+/// None of them may lie inside the folder the study writes.
+pub(crate) fn inputs(plan: &Plan) -> Vec<std::path::PathBuf> {
+    let mut files: Vec<std::path::PathBuf> = plan
+        .estimates
+        .iter()
+        .flat_map(|set| set.sources())
+        .flat_map(|(_, files)| files)
+        .collect();
+    if plan.spec_path.is_file() {
+        files.push(plan.spec_path.clone());
+    }
+    files
 }
 
 /// What [`run_locked`] settles before a study runs: the folder it holds, the cells this

@@ -36,6 +36,7 @@ mod pipeline {
     mod cli;
     mod disk_full;
     mod memory;
+    mod ownership;
     mod per_step_runs;
     mod plot;
     mod reliability;

@@ -632,6 +632,26 @@ def test_estimates_streamed_to_a_path_are_the_file_write_writes(world, tmp_path,
         est.add_run(*runs[0][0], x=runs[0][1][0], P=runs[0][1][1])
 
 
+def test_a_stream_has_a_temporary_name_of_its_own_and_a_vanished_one_is_a_kfmc_error(world, tmp_path):
+    sim, own, runs, _ = world
+    target = tmp_path / "mine.parquet"
+    # A user's file with the name an earlier kfmc streamed under is neither used nor removed.
+    theirs = tmp_path / ".mine.parquet.partial"
+    theirs.write_text("the user's\n")
+    est = kfmc.Estimates(sim, "mine", path=target)
+    for key, (x, P, nu, S, A) in runs:
+        est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A)
+    temporary = [p for p in tmp_path.iterdir() if p.name.endswith(".mine.parquet.partial") and p != theirs]
+    assert len(temporary) == 1 and temporary[0].name.startswith(".kfmc-"), temporary
+    temporary[0].unlink()
+    with pytest.raises(kfmc.Error, match="are gone") as raised:
+        est.close()
+    assert not isinstance(raised.value, FileNotFoundError)
+    assert not target.exists()
+    assert theirs.read_text() == "the user's\n"
+    est.close()  # closing again is harmless
+
+
 def test_a_streamed_table_scores_and_an_abandoned_one_leaves_no_file(world, tmp_path, monkeypatch):
     import gc
 
@@ -654,7 +674,7 @@ def test_a_streamed_table_scores_and_an_abandoned_one_leaves_no_file(world, tmp_
             with est if scoped else contextlib.nullcontext():
                 for i, (key, (x, P, nu, S, A)) in enumerate(runs):
                     if i == len(runs) - 3:
-                        assert (tmp_path / f".{target.name}.partial").exists()
+                        assert [p for p in tmp_path.iterdir() if p.name.endswith(f".{target.name}.partial")]
                         raise KeyError("the filter failed")
                     est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A)
         del est

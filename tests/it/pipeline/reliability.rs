@@ -166,10 +166,12 @@ fn sigkill_at_twenty_moments_leaves_the_old_study_or_the_new_one() {
             }
             Some(s) => panic!("moment {i}: a study of seed {s} appeared"),
             None => {
-                // Killed inside the commit's renames: no manifest, so every reader refuses.
+                // Killed inside the commit's renames: the manifest is the one in the middle of
+                // the commit, so every reader refuses.
                 refused += 1;
-                let (_, _, err) = output(kfmc().args(["summary", out.to_str().unwrap()]));
-                assert!(!out.join("manifest.toml").exists(), "moment {i}: {err}");
+                let (code, _, err) = output(kfmc().args(["summary", out.to_str().unwrap()]));
+                assert_eq!(code, 1, "moment {i}: {err}");
+                assert!(err.contains("committed a study here"), "moment {i}: {err}");
             }
         }
     }
@@ -271,18 +273,34 @@ fn a_foreign_folder_is_refused_unless_forced_and_dot_dot_names_are_rejected() {
     let out = tmp.path().join("d");
     std::fs::create_dir_all(&out).unwrap();
     std::fs::write(out.join("notes.txt"), "mine").unwrap();
-    std::fs::write(out.join("traces.parquet"), "not kfmc's").unwrap();
     let (code, _, err) = output(&mut quick_run(&out, 1));
     assert_eq!(code, 1);
     assert!(
         err.contains("is not a kfmc result folder") && err.contains("--force"),
         "{err}"
     );
-    assert_eq!(
-        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
-        "mine"
-    );
-    assert!(out.join("traces.parquet").exists(), "nothing was touched");
+    // A file with a table's name that no manifest lists is the user's: refused by name,
+    // forced or not, and never written over.
+    std::fs::write(out.join("traces.parquet"), "not kfmc's").unwrap();
+    for force in [false, true] {
+        let mut c = quick_run(&out, 1);
+        if force {
+            c.arg("--force");
+        }
+        let (code, _, err) = output(&mut c);
+        assert_eq!(code, 1, "{err}");
+        assert!(
+            err.contains("traces.parquet has the name of a kfmc table")
+                && err.contains("even with --force"),
+            "{err}"
+        );
+        assert_eq!(
+            std::fs::read_to_string(out.join("traces.parquet")).unwrap(),
+            "not kfmc's",
+            "nothing was touched"
+        );
+    }
+    std::fs::remove_file(out.join("traces.parquet")).unwrap();
     let (code, _, err) = output(quick_run(&out, 1).arg("--force"));
     assert_eq!(code, 0, "{err}");
     assert_eq!(
