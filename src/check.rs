@@ -14,6 +14,10 @@ use crate::experiment::plan::{Assertion, FilterPlan, Selection};
 use crate::metrics::consistency::{SEQUENTIAL, VERDICT, test_names};
 use crate::output::table::read;
 
+/// What the verdict of a filter without innovations says, in the check's report and in
+/// Python's `Study.verdict()`: the NIS half of the verdict has no data.
+pub const NO_INNOVATIONS: &str = "not judged: no innovations";
+
 /// One evaluated test case (an assertion applied to one cell the spec declares).
 #[derive(Clone, Debug, PartialEq)]
 pub struct CaseResult {
@@ -206,6 +210,8 @@ struct RunCounts {
     failed: Vec<u64>,
     /// The failed run of lowest index, and why it failed.
     first_failure: Option<(i64, String)>,
+    /// The run of lowest index whose row says it is missing.
+    first_missing: Option<i64>,
 }
 
 /// Counts the runs of every cell of `runs.parquet` below each of `bounds`, one row group at
@@ -221,10 +227,19 @@ fn count_runs(path: &Path, bounds: &[usize]) -> Result<HashMap<CellKey, RunCount
                 present: vec![0; bounds.len()],
                 failed: vec![0; bounds.len()],
                 first_failure: None,
+                first_missing: None,
             });
             let Some(run) = run[i].filter(|r| *r >= 0) else {
                 continue;
             };
+            // A run whose status says it is missing (an outside filter's estimates left it
+            // out) has a row but no data: it is no more present than a run without a row.
+            if status[i] == "missing" {
+                if c.first_missing.is_none_or(|r| run < r) {
+                    c.first_missing = Some(run);
+                }
+                continue;
+            }
             let failed = status[i] == "numerical_failure";
             for (b, &bound) in bounds.iter().enumerate() {
                 if (run as u64) < bound as u64 {
@@ -264,8 +279,12 @@ fn runs_problem(
         ));
     }
     if present < runs as u64 {
+        let first = c
+            .first_missing
+            .map(|r| format!(" (the estimates leave them out; first: run {r})"))
+            .unwrap_or_default();
         return Some(format!(
-            "{} of the {runs} runs of {cell} the spec declares are missing",
+            "{} of the {runs} runs of {cell} the spec declares are missing{first}",
             runs as u64 - present
         ));
     }
@@ -575,7 +594,9 @@ impl<'a> Judge<'a> {
                     };
                     // A p-value is part of every test but the descriptive fractions.
                     let needs_p = !want.ends_with("_steps_inside");
-                    let computed = stat[i].is_some_and(f64::is_finite)
+                    // An infinite statistic with a p-value is a rejection (a t-test whose
+                    // spread is rounding, away from μ); NaN or null is not computed.
+                    let computed = stat[i].is_some_and(|s| !s.is_nan())
                         && pass[i].is_some()
                         && (!needs_p || p[i].is_some_and(f64::is_finite));
                     if gated && !computed {
@@ -755,12 +776,40 @@ impl<'a> Judge<'a> {
                     ));
                     continue;
                 };
-                let pairs: Vec<(f64, f64)> = mine[s]
+                // Runs left out (failed within the tolerance, or missing) are no pair; any
+                // other run without a finite RMSE for both filters is data the test cannot
+                // judge, never a pair dropped without a word.
+                let mut pairs: Vec<(f64, f64)> = Vec::new();
+                let mut unjudged = None;
+                for (run, ((a, b), (la, lb))) in mine.values[s]
                     .iter()
-                    .zip(&theirs[s])
-                    .filter_map(|(a, b)| a.zip(*b))
-                    .filter(|(a, b)| a.is_finite() && b.is_finite())
-                    .collect();
+                    .zip(&theirs.values[s])
+                    .zip(mine.left_out.iter().zip(&theirs.left_out))
+                    .enumerate()
+                {
+                    if *la || *lb {
+                        continue;
+                    }
+                    match (a, b) {
+                        (Some(a), Some(b)) if a.is_finite() && b.is_finite() => {
+                            pairs.push((*a, *b))
+                        }
+                        _ if unjudged.is_none() => {
+                            unjudged = Some(format!(
+                                "run {run} is not a failure, yet its rmse_{state} is {} for {} and {} for {}: the paired test cannot use it",
+                                fmt(*a),
+                                c.name,
+                                fmt(*b),
+                                r.name
+                            ))
+                        }
+                        _ => {}
+                    }
+                }
+                if let Some(why) = unjudged {
+                    out.push(CaseResult::incomplete(kind, label, why));
+                    continue;
+                }
                 match paired_excess_test(&pairs, margin) {
                     None => out.push(CaseResult::incomplete(
                         kind,
@@ -796,11 +845,16 @@ impl<'a> Judge<'a> {
     }
 }
 
-/// Per state, each run's value (`None` where the run has none).
-type StateRuns = Vec<Vec<Option<f64>>>;
+/// One cell's runs: per state, each run's value (`None` where the run has none), and per
+/// run whether it is left out of the statistics (a numerical failure or a missing run).
+#[derive(Clone, Debug)]
+struct StateRuns {
+    values: Vec<Vec<Option<f64>>>,
+    left_out: Vec<bool>,
+}
 
 /// Per cell in `wanted`: per state, each run's RMSE (by run index below `runs`; `None` for a
-/// run without one, e.g. a numerical failure).
+/// run without one, e.g. a numerical failure), and which runs are left out.
 fn run_rmse(
     path: &Path,
     wanted: &[CellKey],
@@ -809,7 +863,13 @@ fn run_rmse(
 ) -> Result<HashMap<CellKey, StateRuns>, OutputError> {
     let mut out: HashMap<CellKey, StateRuns> = wanted
         .iter()
-        .map(|k| (k.clone(), vec![vec![None; runs]; states.len()]))
+        .map(|k| {
+            let runs = StateRuns {
+                values: vec![vec![None; runs]; states.len()],
+                left_out: vec![false; runs],
+            };
+            (k.clone(), runs)
+        })
         .collect();
     if out.is_empty() {
         return Ok(out);
@@ -817,7 +877,7 @@ fn run_rmse(
     crate::output::table::for_each_row_group(path, |df| {
         let t = Table::of(df, path);
         let keys = t.keys()?;
-        let run = t.i64("run")?;
+        let (run, status) = (t.i64("run")?, t.str("status")?);
         let columns = states
             .iter()
             .map(|s| t.f64(&format!("rmse_{s}")))
@@ -832,8 +892,9 @@ fn run_rmse(
             else {
                 continue;
             };
+            cell.left_out[r] = matches!(status[i].as_str(), "numerical_failure" | "missing");
             for (s, col) in columns.iter().enumerate() {
-                cell[s][r] = col[i];
+                cell.values[s][r] = col[i];
             }
         }
         Ok(())
@@ -934,6 +995,11 @@ fn not_computed(want: &str, cell: &str, rows: &[usize], test: &[String]) -> Stri
         return format!("{cell} has no consistency tests at all: {want} could not be computed");
     }
     let has = |n: &str| rows.iter().any(|&i| test[i] == n);
+    if want == VERDICT && !has("nis_time_average") {
+        return format!(
+            "the verdict of {cell} could not be computed: {NO_INNOVATIONS} (no NIS test: the filter reports no innovation ν with its covariance S; an outside filter's estimates give them as nu_<z> and S_<zi>_<zj>)"
+        );
+    }
     if want == VERDICT && !has("nees_time_average") && has("nees_run_average_t") {
         return format!(
             "the verdict of {cell} could not be computed: the calibrated NEES test needs every run's error transition (the filter gave it for some runs only), or, for a filter that gives none, at least 20 runs for the model-free test"
@@ -1235,6 +1301,7 @@ mod tests {
             present: vec![present],
             failed: vec![failed],
             first_failure: (failed > 0).then(|| (4, "non-finite estimate".into())),
+            first_missing: None,
         }
     }
 

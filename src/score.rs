@@ -8,6 +8,7 @@
 //! |---|---|
 //! | `scenario`, `noise_scale`, `run`, `step` | the keys of `kfmc simulate`'s tables (integers are never matched by time) |
 //! | `filter` | the label of a `[[filters]]` entry with `kind = "external"` |
+//! | `failed` | optional, boolean: true from the step at which the filter failed on; the run counts as a numerical failure there (null: false) |
 //! | `est_<q>` | the estimate of every evaluated quantity q |
 //! | `P_<qi>_<qj>` | its covariance, lower triangle (qi at or after qj in the quantity order), or |
 //! | `L_<i>_<j>` | a lower Cholesky factor of it (0-based indices, i ≥ j), or |
@@ -36,7 +37,11 @@
 //!
 //! A run's rows cover every step 0..=K or none (a run left out): a run with some steps
 //! missing, or a step outside 0..=K, is an error naming the run and the step, raised before
-//! anything is scored. So is a NaN or infinite innovation or error-transition entry: null
+//! anything is scored. A run left out is **missing** (status `missing` in `runs.parquet`):
+//! no statistic counts it, and a case judged on the runs the spec declares is incomplete
+//! without it, whatever `check.max_failed_runs` allows. A run the filter failed on is
+//! **failed**: its rows say so in the `failed` column (true from the failing step on, where
+//! the estimate may be null), and only such runs count against `check.max_failed_runs`. So is a NaN or infinite innovation or error-transition entry: null
 //! there means "not given", never NaN.
 //!
 //! Reading streams the files row group by row group into one fixed-width spill file per
@@ -151,6 +156,12 @@ impl StudyFilter<'_> {
 /// The optional key columns of an estimates file: the multipliers naming the variant of a
 /// filter that declares `q_scale` or `r_scale` variants in the spec.
 pub const VARIANT_COLUMNS: [&str; 2] = ["q_scale", "r_scale"];
+
+/// The optional boolean column of an estimates file that marks a failed run: true on the
+/// rows from the step at which the filter failed (its estimate there may be null), false or
+/// null before. A run marked failed is a numerical failure at its first marked step; a run
+/// with no rows at all is missing, never a failure.
+pub const FAILED_COLUMN: &str = "failed";
 
 /// How an estimates file gives the covariance. Each form has n(n + 1)/2 columns. A Cholesky
 /// factor however rounded (to float32, say) still gives a positive semi-definite P = L Lᵀ,
@@ -365,6 +376,10 @@ pub fn estimate_columns_in(
         quaternions: rotations.to_vec(),
     };
     let mut c = key_columns();
+    c.push(ColumnDef {
+        name: FAILED_COLUMN.into(),
+        dtype: Dtype::Bool,
+    });
     c.extend(cols.file_columns().into_iter().map(|name| {
         let estimate = name.starts_with("est_") || name.starts_with("quat_");
         let dtype = match precision {
@@ -404,6 +419,8 @@ struct External {
     spill: File,
     /// One bit per (cell, run, step) row: whether a file gave it.
     present: Vec<u64>,
+    /// One bit per row: whether its `failed` flag is true.
+    failed: Vec<u64>,
 }
 
 /// The estimates of a plan's external filters, read and checked.
@@ -534,7 +551,8 @@ fn detect_columns(
                     names
                         .iter()
                         .filter(|n| !key_columns().iter().any(|k| k.name == **n)
-                            && !VARIANT_COLUMNS.contains(&n.as_str()))
+                            && !VARIANT_COLUMNS.contains(&n.as_str())
+                            && n.as_str() != FAILED_COLUMN)
                         .count(),
                     expected.len()
                 ),
@@ -543,6 +561,7 @@ fn detect_columns(
     }
     let mut keys: Vec<String> = key_columns().into_iter().map(|c| c.name).collect();
     keys.extend(VARIANT_COLUMNS.map(String::from));
+    keys.push(FAILED_COLUMN.into());
     if let Some(extra) = names
         .iter()
         .find(|n| !keys.contains(n) && !expected.contains(n))
@@ -628,12 +647,14 @@ impl EstimateSet {
             bytemuck::cast_slice_mut(&mut values),
             first * width as u64 * 8,
         );
-        let present: Vec<bool> = (0..samples as u64)
-            .map(|k| {
-                let row = first + k;
-                e.present[(row / 64) as usize] & (1 << (row % 64)) != 0
-            })
-            .collect();
+        let bit = |bits: &[u64], k: u64| {
+            let row = first + k;
+            bits[(row / 64) as usize] & (1 << (row % 64)) != 0
+        };
+        let present: Vec<bool> = (0..samples as u64).map(|k| bit(&e.present, k)).collect();
+        let failed_at = (0..samples as u64)
+            .find(|&k| bit(&e.failed, k))
+            .map(|k| k as usize);
         // A spill shorter than this run (its last rows never written) reads as absent rows.
         if read.is_err() {
             values.fill(f64::NAN);
@@ -655,6 +676,7 @@ impl EstimateSet {
             columns: &e.columns,
             values,
             present,
+            failed_at,
             width,
         })
     }
@@ -1051,6 +1073,8 @@ struct RowGroup {
     /// The variant columns, when the file has them.
     q_scale: Option<Float64Chunked>,
     r_scale: Option<Float64Chunked>,
+    /// The `failed` column, when the file has it.
+    failed: Option<BooleanChunked>,
     values: Vec<Float64Chunked>,
     /// The values row by row (`width` per row, the spill's order), NaN where null.
     table: Vec<f64>,
@@ -1145,6 +1169,21 @@ impl RowGroup {
             step: ints("step")?,
             q_scale: optional("q_scale")?,
             r_scale: optional("r_scale")?,
+            failed: match df.column(FAILED_COLUMN) {
+                Ok(c) if c.dtype() == &DataType::Boolean => {
+                    Some(c.bool().map_err(|e| col_err(FAILED_COLUMN, e))?.clone())
+                }
+                Ok(c) => {
+                    return Err(format_err(
+                        path,
+                        format!(
+                            "column `{FAILED_COLUMN}` must be boolean (true from the step at which the filter failed), not {}",
+                            c.dtype()
+                        ),
+                    ));
+                }
+                Err(_) => None,
+            },
             values,
             table,
             flagged,
@@ -1381,6 +1420,9 @@ impl<'a> Reading<'a> {
                 return Err(format_err(path, format!("duplicate row {}", rows.key(i))));
             }
             e.present[word] |= 1 << bit;
+            if rows.failed.as_ref().is_some_and(|f| f.get(i) == Some(true)) {
+                e.failed[word] |= 1 << bit;
+            }
             if !rows.row_is_clean(columns, i) {
                 // The exact check, for its message.
                 columns.values(path, rows, i, &mut buf)?;
@@ -1425,6 +1467,7 @@ impl<'a> Reading<'a> {
                     columns: columns.clone(),
                     spill: scratch_file()?,
                     present: vec![0; self.keys.total.div_ceil(64) as usize],
+                    failed: vec![0; self.keys.total.div_ceil(64) as usize],
                 });
                 self.by_filter[fi] = Some(self.externals.len() - 1);
                 self.externals.len() - 1
@@ -1583,6 +1626,8 @@ struct UnitRows<'a> {
     columns: &'a EstimateColumns,
     values: Vec<f64>,
     present: Vec<bool>,
+    /// The first step whose `failed` flag is true.
+    failed_at: Option<usize>,
     width: usize,
 }
 
@@ -1626,6 +1671,11 @@ impl UnitRows<'_> {
     fn problem<const NQ: usize>(&self, k: usize) -> Option<String> {
         if !self.present[k] {
             return Some(format!("estimates: no row for step {k}"));
+        }
+        if self.failed_at.is_some_and(|f| f <= k) {
+            return Some(format!(
+                "estimates: the filter failed at step {k} (`{FAILED_COLUMN}` = true)"
+            ));
         }
         let row = self.row(k);
         let names = &self.columns.quantities;
@@ -1789,6 +1839,13 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
             "no estimates were given for the external filter `{label}`"
         ));
     };
+    // A run left out whole was not run: missing, which no tolerance for failures covers.
+    if !rows.present.iter().any(|&p| p) {
+        return FilterOutput::missing(
+            ctx,
+            format!("the estimates of `{label}` leave this run out"),
+        );
+    }
     if let Some(why) = rows.problem::<NQ>(0) {
         return fail(why);
     }
