@@ -1556,8 +1556,8 @@ pub fn attach_estimates(
 }
 
 /// [`attach_estimates`] with tables already in memory besides the files
-/// ([`crate::score::InMemoryTable`]: no file, so no stamp to check; the caller vouches for
-/// their world).
+/// ([`crate::score::InMemoryTable`]: their stamp is looked for in their metadata, and one
+/// without is unstamped as a file without is).
 pub fn attach_estimates_with_tables(
     plan: &mut Plan,
     files: &[std::path::PathBuf],
@@ -1604,13 +1604,40 @@ pub fn attach_estimates_from(
                 return Err(OutputError::Format {
                     path: path.clone(),
                     message: format!(
-                        "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped"
+                        "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped{}",
+                        if set.is_table(path) {
+                            " (in Python: allow_unstamped=True; a kfmc.Estimates made on the simulation, or a pyarrow Table read from a stamped file, carries the stamp)"
+                        } else {
+                            ""
+                        }
                     ),
                 }
                 .into());
             }
         }
     }
+    for m in set.missing_runs() {
+        eprintln!("warning: {}", missing_runs_text(plan, &m));
+    }
     plan.estimates = Some(std::sync::Arc::new(set));
     Ok(())
+}
+
+/// What `kfmc score` and `kfmc check` say of an external filter's missing runs.
+pub fn missing_runs_text(plan: &Plan, m: &crate::score::MissingRuns) -> String {
+    let first = m
+        .first
+        .map(|(cell, run)| {
+            let scales = plan.noise_scales.len();
+            format!(
+                "; first: scenario {}, noise scale {}, run {run}",
+                plan.scenarios[cell / scales].name,
+                plan.noise_scales[cell % scales]
+            )
+        })
+        .unwrap_or_default();
+    format!(
+        "the estimates of {} leave {} of its {} runs out{first}: they are missing (status `missing` in runs.parquet), not failures; no statistic counts them, and a `kfmc check` case judged on the declared runs is incomplete without them",
+        m.filter, m.runs, m.of
+    )
 }

@@ -29,7 +29,8 @@
 //! prior) and `kfmc.master_seed`. kfmc writes both into every estimates file; a file whose
 //! keys name another world is refused, naming the simulation it belongs to, and a file
 //! without a stamp is read but reported ([`EstimateSet::unstamped`]) for `kfmc score` to warn
-//! and `kfmc check` to refuse.
+//! and `kfmc check` to refuse. A table in memory is held to the same rule through its
+//! metadata (an Arrow schema's: a pyarrow Table read from a stamped file keeps the stamp).
 //!
 //! A file gives the covariance in one of the three forms ([`CovarianceForm`]); one with
 //! columns of two forms is refused, naming a column of each. Value columns may be float32
@@ -434,8 +435,10 @@ pub struct EstimateSet {
     /// Noise multipliers per scenario (cells are scenario-major).
     n_scales: usize,
     runs: usize,
-    /// The files read that carry no world stamp.
+    /// The files and tables read that carry no world stamp.
     unstamped: Vec<PathBuf>,
+    /// The names of the tables in memory read.
+    tables: Vec<PathBuf>,
 }
 
 fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
@@ -614,18 +617,55 @@ impl EstimateSet {
                     reading.file(&path)?;
                     files.push(path);
                 }
-                EstimatesSource::Table(table) => {
-                    reading.table(&table.name, table.batches.iter().cloned().map(Ok))?
+                EstimatesSource::Table(table) => reading.table(
+                    &table.name,
+                    &table.metadata,
+                    table.batches.iter().cloned().map(Ok),
+                )?,
+                EstimatesSource::Stream(stream) => {
+                    reading.table(&stream.name, &stream.metadata, stream.batches)?
                 }
-                EstimatesSource::Stream(stream) => reading.table(&stream.name, stream.batches)?,
             }
         }
         reading.finish(&files)
     }
 
-    /// The files read that carry no world stamp: nothing ties them to this study's runs.
+    /// Per external filter variant whose estimates leave runs out: those runs are missing
+    /// (status `missing`), so a case judged on the declared runs is incomplete.
+    pub fn missing_runs(&self) -> Vec<MissingRuns> {
+        let mut out = Vec::new();
+        for e in &self.externals {
+            let has = |row: u64| e.present[(row / 64) as usize] & (1 << (row % 64)) != 0;
+            let mut m = MissingRuns {
+                filter: e.label.clone(),
+                runs: 0,
+                of: self.runs * self.cells.len(),
+                first: None,
+            };
+            for (ci, &(base, samples)) in self.cells.iter().enumerate() {
+                for r in 0..self.runs {
+                    if !has(base + (r * samples) as u64) {
+                        m.runs += 1;
+                        m.first.get_or_insert((ci, r));
+                    }
+                }
+            }
+            if m.runs > 0 {
+                out.push(m);
+            }
+        }
+        out
+    }
+
+    /// The files and tables read that carry no world stamp (a table by its name): nothing
+    /// ties them to this study's runs.
     pub fn unstamped(&self) -> &[PathBuf] {
         &self.unstamped
+    }
+
+    /// Whether `name` (of [`EstimateSet::unstamped`]) is a table in memory, not a file.
+    pub fn is_table(&self, name: &Path) -> bool {
+        self.tables.iter().any(|t| t == name)
     }
 
     /// The filter variants read (as messages name them, [`StudyFilter::name`]) and the files
@@ -687,28 +727,47 @@ impl EstimateSet {
     }
 }
 
+/// The runs an external filter variant's estimates leave out ([`EstimateSet::missing_runs`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MissingRuns {
+    /// The variant, as messages name it ([`StudyFilter::name`]).
+    pub filter: String,
+    /// Runs left out, over every cell.
+    pub runs: usize,
+    /// Runs the study declares for the filter, over every cell.
+    pub of: usize,
+    /// The first left out: (cell index, scenario-major; run).
+    pub first: Option<(usize, usize)>,
+}
+
 /// Estimates already in memory (a Python user's DataFrames, read through the Arrow C stream
-/// interface): the table's batches in order. They carry no file metadata, so no world stamp:
-/// whoever hands them over vouches for their world (the Python API pairs them with the
-/// simulation they were made from), and they are not listed as unstamped.
+/// interface): the table's batches in order, and the table's key-value metadata (an Arrow
+/// schema's), where its world stamp is looked for as in a file's: a table stamped with
+/// another world is refused, and one without a stamp is listed as unstamped
+/// ([`EstimateSet::unstamped`]) for `kfmc check` to refuse, as it refuses such a file.
 #[derive(Clone, Debug)]
 pub struct InMemoryTable {
     /// A name for messages (`<estimates 0>`).
     pub name: String,
     /// The batches, each with the same columns.
     pub batches: Vec<DataFrame>,
+    /// The table's metadata (key, value): `kfmc.world_stamp` and `kfmc.master_seed` when
+    /// it is stamped.
+    pub metadata: Vec<(String, String)>,
 }
 
 /// A table in memory whose batches are taken one at a time (a Python user's table read
 /// through the Arrow C stream interface): each is read and let go before the next is asked
 /// for, as a file's row groups are, so a producer that makes its batches as they are asked
-/// for (a database query, a dataset scanner) is never held whole. No stamp, as
-/// [`InMemoryTable`].
+/// for (a database query, a dataset scanner) is never held whole. Its stamp is checked as
+/// an [`InMemoryTable`]'s.
 pub struct TableStream {
     /// A name for messages (`<estimates 0>`).
     pub name: String,
     /// The batches, each with the same columns; an `Err` ends the reading with it.
     pub batches: Box<dyn Iterator<Item = Result<DataFrame, OutputError>>>,
+    /// The table's metadata (key, value), as [`InMemoryTable::metadata`].
+    pub metadata: Vec<(String, String)>,
 }
 
 impl std::fmt::Debug for TableStream {
@@ -1273,6 +1332,8 @@ struct Reading<'a> {
     by_filter: Vec<Option<usize>>,
     externals: Vec<External>,
     unstamped: Vec<PathBuf>,
+    /// The names of the tables in memory read.
+    tables: Vec<PathBuf>,
 }
 
 impl<'a> Reading<'a> {
@@ -1282,6 +1343,7 @@ impl<'a> Reading<'a> {
             keys: KeyIndex::new(study),
             externals: Vec::new(),
             unstamped: Vec::new(),
+            tables: Vec::new(),
         }
     }
 
@@ -1303,7 +1365,14 @@ impl<'a> Reading<'a> {
             .get_metadata()
             .map_err(|e| polars_err(path, e))?
             .clone();
-        if !check_metadata(path, &meta, self.keys.study)? {
+        let get = |key: &str| {
+            meta.key_value_metadata()
+                .iter()
+                .flatten()
+                .find(|kv| kv.key == key)
+                .map(|kv| kv.value.clone().unwrap_or_default())
+        };
+        if !check_stamp(path, get, self.keys.study)? {
             self.unstamped.push(path.clone());
         }
         let names: Vec<String> = reader
@@ -1329,13 +1398,25 @@ impl<'a> Reading<'a> {
         Ok(())
     }
 
-    /// Reads a table already in memory, batch by batch as they come, as a file's row groups.
+    /// Reads a table already in memory, batch by batch as they come, as a file's row groups;
+    /// its stamp is looked for in `metadata` as a file's is in its key-value metadata.
     fn table(
         &mut self,
         name: &str,
+        metadata: &[(String, String)],
         batches: impl IntoIterator<Item = Result<DataFrame, OutputError>>,
     ) -> Result<(), OutputError> {
         let path = PathBuf::from(name);
+        self.tables.push(path.clone());
+        let get = |key: &str| {
+            metadata
+                .iter()
+                .find(|(k, _)| k == key)
+                .map(|(_, v)| v.clone())
+        };
+        if !check_stamp(&path, get, self.keys.study)? {
+            self.unstamped.push(path.clone());
+        }
         let mut batches = batches.into_iter();
         let Some(first) = batches.next().transpose()? else {
             return Err(format_err(
@@ -1522,6 +1603,7 @@ impl<'a> Reading<'a> {
             cells: self.keys.cells,
             runs: study.runs,
             unstamped: self.unstamped,
+            tables: self.tables,
         })
     }
 }
@@ -1582,21 +1664,14 @@ fn check_steps(
     Ok(())
 }
 
-/// Checks the file's stamp against the study's world: returns whether the file is stamped
-/// (carries `kfmc.world_stamp`), and refuses one whose stamp or master seed names another
-/// simulation, saying which.
-fn check_metadata(
+/// Checks a file's or a table's stamp (its metadata, looked up by `get`) against the
+/// study's world: returns whether it is stamped (carries `kfmc.world_stamp`), and refuses
+/// one whose stamp or master seed names another simulation, saying which.
+fn check_stamp(
     path: &Path,
-    meta: &polars::io::parquet::read::FileMetadata,
+    get: impl Fn(&str) -> Option<String>,
     study: &StudyKeys<'_>,
 ) -> Result<bool, OutputError> {
-    let get = |key: &str| {
-        meta.key_value_metadata()
-            .iter()
-            .flatten()
-            .find(|kv| kv.key == key)
-            .map(|kv| kv.value.clone().unwrap_or_default())
-    };
     let (stamp, seed) = (get(STAMP_KEY), get(SEED_KEY));
     let ours = &study.world_stamp;
     let foreign = stamp.as_ref().is_some_and(|s| s != ours)
