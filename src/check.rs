@@ -776,40 +776,13 @@ impl<'a> Judge<'a> {
                     ));
                     continue;
                 };
-                // Runs left out (failed within the tolerance, or missing) are no pair; any
-                // other run without a finite RMSE for both filters is data the test cannot
-                // judge, never a pair dropped without a word.
-                let mut pairs: Vec<(f64, f64)> = Vec::new();
-                let mut unjudged = None;
-                for (run, ((a, b), (la, lb))) in mine.values[s]
-                    .iter()
-                    .zip(&theirs.values[s])
-                    .zip(mine.left_out.iter().zip(&theirs.left_out))
-                    .enumerate()
-                {
-                    if *la || *lb {
+                let pairs = match rmse_pairs(mine, theirs, s, state, (&c.name, &r.name)) {
+                    Ok(p) => p,
+                    Err(why) => {
+                        out.push(CaseResult::incomplete(kind, label, why));
                         continue;
                     }
-                    match (a, b) {
-                        (Some(a), Some(b)) if a.is_finite() && b.is_finite() => {
-                            pairs.push((*a, *b))
-                        }
-                        _ if unjudged.is_none() => {
-                            unjudged = Some(format!(
-                                "run {run} is not a failure, yet its rmse_{state} is {} for {} and {} for {}: the paired test cannot use it",
-                                fmt(*a),
-                                c.name,
-                                fmt(*b),
-                                r.name
-                            ))
-                        }
-                        _ => {}
-                    }
-                }
-                if let Some(why) = unjudged {
-                    out.push(CaseResult::incomplete(kind, label, why));
-                    continue;
-                }
+                };
                 match paired_excess_test(&pairs, margin) {
                     None => out.push(CaseResult::incomplete(
                         kind,
@@ -846,11 +819,49 @@ impl<'a> Judge<'a> {
 }
 
 /// One cell's runs: per state, each run's value (`None` where the run has none), and per
-/// run whether it is left out of the statistics (a numerical failure or a missing run).
+/// run whether it is left out of the statistics (a numerical failure, a missing run, or a
+/// run without a row, which `runs_problem` has judged already).
 #[derive(Clone, Debug)]
 struct StateRuns {
     values: Vec<Vec<Option<f64>>>,
     left_out: Vec<bool>,
+}
+
+/// The (filter, reference) RMSE pairs of state `s` over the runs: runs left out (failed
+/// within the tolerance, or missing) are no pair; any other run without a finite RMSE for
+/// both is data the paired test cannot judge (`Err`, naming the first), never a pair
+/// dropped without a word. `names`: the two cells, for the message.
+fn rmse_pairs(
+    mine: &StateRuns,
+    theirs: &StateRuns,
+    s: usize,
+    state: &str,
+    names: (&str, &str),
+) -> Result<Vec<(f64, f64)>, String> {
+    let mut pairs = Vec::new();
+    for (run, ((a, b), (la, lb))) in mine.values[s]
+        .iter()
+        .zip(&theirs.values[s])
+        .zip(mine.left_out.iter().zip(&theirs.left_out))
+        .enumerate()
+    {
+        if *la || *lb {
+            continue;
+        }
+        match (a, b) {
+            (Some(a), Some(b)) if a.is_finite() && b.is_finite() => pairs.push((*a, *b)),
+            _ => {
+                return Err(format!(
+                    "run {run} is not a failure, yet its rmse_{state} is {} for {} and {} for {}: the paired test cannot use it",
+                    fmt(*a),
+                    names.0,
+                    fmt(*b),
+                    names.1
+                ));
+            }
+        }
+    }
+    Ok(pairs)
 }
 
 /// Per cell in `wanted`: per state, each run's RMSE (by run index below `runs`; `None` for a
@@ -866,7 +877,7 @@ fn run_rmse(
         .map(|k| {
             let runs = StateRuns {
                 values: vec![vec![None; runs]; states.len()],
-                left_out: vec![false; runs],
+                left_out: vec![true; runs],
             };
             (k.clone(), runs)
         })
@@ -1294,6 +1305,28 @@ mod tests {
         assert!(power > 0.8, "power {power}");
         // Better than the reference by the margin: never failed.
         assert!(rate(-0.2) < 0.001);
+    }
+
+    #[test]
+    fn rmse_pairs_refuse_a_non_finite_rmse_of_a_run_that_did_not_fail() {
+        let runs = |values: Vec<Option<f64>>, left_out: Vec<bool>| StateRuns {
+            values: vec![values],
+            left_out,
+        };
+        let theirs = runs(vec![Some(1.0), Some(1.0), Some(2.0)], vec![false; 3]);
+        // A failed run (null RMSE) is left out; the others pair.
+        let mine = runs(vec![Some(1.5), None, Some(2.5)], vec![false, true, false]);
+        assert_eq!(
+            rmse_pairs(&mine, &theirs, 0, "x", ("a", "b")),
+            Ok(vec![(1.5, 1.0), (2.5, 2.0)])
+        );
+        // An infinite or NaN RMSE, or a null one of a run that did not fail, is no pair to
+        // drop: the case cannot be judged.
+        for bad in [Some(f64::INFINITY), Some(f64::NAN), None] {
+            let mine = runs(vec![Some(1.5), bad, Some(2.5)], vec![false; 3]);
+            let why = rmse_pairs(&mine, &theirs, 0, "x", ("a", "b")).unwrap_err();
+            assert!(why.starts_with("run 1 is not a failure"), "{why}");
+        }
     }
 
     fn counts(present: u64, failed: u64) -> RunCounts {

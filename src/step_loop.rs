@@ -477,12 +477,10 @@ where
         for r in ctx.rotations {
             r.error_into(ctx.truth[k].as_slice(), mean.as_slice(), e.as_mut_slice());
         }
-        // An error whose square is not finite makes the RMSE infinite or NaN: the run failed
-        // numerically at this step, as it does when the filter reports an error.
-        if let Some(i) = (0..NQ).find(|&i| !(e[i] * e[i]).is_finite()) {
-            failure = Some((k, non_finite_error(ctx.quantity_names[i], e[i])));
-            break;
-        }
+        // An error whose square is not finite makes the RMSE infinite or NaN: the run fails
+        // numerically at this step, as it does when the filter reports an error (after the
+        // covariance's own check, which names the cause when P broke down with it).
+        let bad_error = (0..NQ).find(|&i| !(e[i] * e[i]).is_finite());
         let mut nees = f64::NAN;
         // The quantities' covariance, formed once per step (after a repair, the repaired
         // one): NEES, the consistency sums and the trace all read this one value.
@@ -501,6 +499,10 @@ where
                     which: "state covariance P",
                 };
                 failure = Some((k, err.to_string()));
+                break;
+            }
+            if let Some(i) = bad_error {
+                failure = Some((k, non_finite_error(ctx.quantity_names[i], e[i])));
                 break;
             }
             // Formed above: borrowed from the belief, or in `p_own`.
@@ -560,6 +562,10 @@ where
                 }
             }
         }
+        if let Some(i) = bad_error {
+            failure = Some((k, non_finite_error(ctx.quantity_names[i], e[i])));
+            break;
+        }
         if let Some(est) = est.as_mut() {
             est[k * NQ..(k + 1) * NQ].copy_from_slice(eval.mean(&filter.mean(&belief)).as_slice());
         }
@@ -606,7 +612,7 @@ fn non_finite_error(name: &str, e: f64) -> String {
     if e.is_nan() {
         format!("the error of {name} is NaN (a non-finite estimate)")
     } else {
-        format!("the error of {name}, {e:e}, squares to a value that is not finite")
+        format!("the error of {name}, {e:e}, squares to a non-finite value")
     }
 }
 

@@ -412,10 +412,10 @@ impl StepValues {
         &self.sq_err
     }
 
-    /// Where the run's sums stopped being finite although each step's value was (a long run
-    /// of errors near 1e154 overflows the sum of their squares): an RMSE or mean NEES that is
-    /// not finite is a numerical failure at the step whose term made it so, never a run that
-    /// is "ok".
+    /// Where the run's sums overflowed although each step's value was finite (errors near
+    /// 1e154 over a few steps overflow the sum of their squares): an infinite RMSE or mean
+    /// NEES is a numerical failure at the step whose term made it so, never a run that is
+    /// "ok". (A NaN error stops the step loop itself; a NaN sum is no overflow.)
     fn overflow(&self, state_names: &[&str]) -> Option<(usize, String)> {
         let nx = self.nx;
         let done = &self.sq_err[..self.completed * nx];
@@ -425,11 +425,11 @@ impl StepValues {
                 .enumerate()
                 .find(|&(_, v)| {
                     s += v;
-                    !s.is_finite()
+                    s.is_infinite()
                 })
                 .map(|(k, _)| k)
         }
-        if let Some(i) = (0..nx).find(|&i| !self.sq_err_sum[i].is_finite()) {
+        if let Some(i) = (0..nx).find(|&i| self.sq_err_sum[i].is_infinite()) {
             let k = first_k(done.chunks_exact(nx).map(|row| row[i]))?;
             return Some((
                 k,
@@ -439,7 +439,7 @@ impl StepValues {
                 ),
             ));
         }
-        if !self.nees_sum.0.is_finite() {
+        if self.nees_sum.0.is_infinite() {
             let nees = self.nees[..self.completed].iter().enumerate().skip(1);
             let k = first_k(nees.map(|(_, &v)| if v.is_nan() { 0.0 } else { v }))?;
             return Some((
@@ -792,10 +792,10 @@ mod tests {
 
     #[test]
     fn a_run_whose_rmse_or_mean_nees_overflows_failed_numerically() {
-        // Each squared error (1e300) is finite; their sum over three steps is not.
+        // Each squared error (1e308) is finite; their sum over two steps is not.
         let mut v = StepValues::new(2, 2);
         for _ in 0..3 {
-            v.record(&[1.0, 1e150], 2.0, f64::NAN, 0);
+            v.record(&[1.0, 1e154], 2.0, f64::NAN, 0);
         }
         let r = v.finish(None, None, &["a", "b"], 0);
         assert_eq!(r.status.label(), "numerical_failure", "{:?}", r.status);
