@@ -698,7 +698,7 @@ def test_estimates_streamed_to_a_path_are_the_file_write_writes(world, tmp_path,
 
     sim, own, runs, _ = world
     # Small groups, so that these 32 runs make several.
-    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", 77 * 100)
+    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", len(own.columns) * 100)
     whole = build(sim, runs, **options)
     assert whole.buffered_rows == len(whole) == own.height
     whole.write(tmp_path / "whole.parquet")
@@ -726,7 +726,7 @@ def test_a_streamed_table_scores_and_an_abandoned_one_leaves_no_file(world, tmp_
     import gc
 
     sim, own, runs, _ = world
-    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", 77 * 100)
+    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", len(own.columns) * 100)
     whole = build(sim, runs)
     # Scoring a streamed table closes it and reads its file.
     est = build(sim, runs, path=tmp_path / "s.parquet")
