@@ -14,6 +14,10 @@ use crate::experiment::plan::{Assertion, FilterPlan, Selection};
 use crate::metrics::consistency::{SEQUENTIAL, VERDICT, test_names};
 use crate::output::table::read;
 
+/// What the verdict of a filter without innovations says, in the check's report and in
+/// Python's `Study.verdict()`: the NIS half of the verdict has no data.
+pub const NO_INNOVATIONS: &str = "not judged: no innovations";
+
 /// One evaluated test case (an assertion applied to one cell the spec declares).
 #[derive(Clone, Debug, PartialEq)]
 pub struct CaseResult {
@@ -206,6 +210,8 @@ struct RunCounts {
     failed: Vec<u64>,
     /// The failed run of lowest index, and why it failed.
     first_failure: Option<(i64, String)>,
+    /// The run of lowest index whose row says it is missing.
+    first_missing: Option<i64>,
 }
 
 /// Counts the runs of every cell of `runs.parquet` below each of `bounds`, one row group at
@@ -221,10 +227,19 @@ fn count_runs(path: &Path, bounds: &[usize]) -> Result<HashMap<CellKey, RunCount
                 present: vec![0; bounds.len()],
                 failed: vec![0; bounds.len()],
                 first_failure: None,
+                first_missing: None,
             });
             let Some(run) = run[i].filter(|r| *r >= 0) else {
                 continue;
             };
+            // A run whose status says it is missing (an outside filter's estimates left it
+            // out) has a row but no data: it is no more present than a run without a row.
+            if status[i] == "missing" {
+                if c.first_missing.is_none_or(|r| run < r) {
+                    c.first_missing = Some(run);
+                }
+                continue;
+            }
             let failed = status[i] == "numerical_failure";
             for (b, &bound) in bounds.iter().enumerate() {
                 if (run as u64) < bound as u64 {
@@ -264,8 +279,12 @@ fn runs_problem(
         ));
     }
     if present < runs as u64 {
+        let first = c
+            .first_missing
+            .map(|r| format!(" (the estimates leave them out; first: run {r})"))
+            .unwrap_or_default();
         return Some(format!(
-            "{} of the {runs} runs of {cell} the spec declares are missing",
+            "{} of the {runs} runs of {cell} the spec declares are missing{first}",
             runs as u64 - present
         ));
     }
@@ -575,7 +594,9 @@ impl<'a> Judge<'a> {
                     };
                     // A p-value is part of every test but the descriptive fractions.
                     let needs_p = !want.ends_with("_steps_inside");
-                    let computed = stat[i].is_some_and(f64::is_finite)
+                    // An infinite statistic with a p-value is a rejection (a t-test whose
+                    // spread is rounding, away from μ); NaN or null is not computed.
+                    let computed = stat[i].is_some_and(|s| !s.is_nan())
                         && pass[i].is_some()
                         && (!needs_p || p[i].is_some_and(f64::is_finite));
                     if gated && !computed {
@@ -755,12 +776,13 @@ impl<'a> Judge<'a> {
                     ));
                     continue;
                 };
-                let pairs: Vec<(f64, f64)> = mine[s]
-                    .iter()
-                    .zip(&theirs[s])
-                    .filter_map(|(a, b)| a.zip(*b))
-                    .filter(|(a, b)| a.is_finite() && b.is_finite())
-                    .collect();
+                let pairs = match rmse_pairs(mine, theirs, s, state, (&c.name, &r.name)) {
+                    Ok(p) => p,
+                    Err(why) => {
+                        out.push(CaseResult::incomplete(kind, label, why));
+                        continue;
+                    }
+                };
                 match paired_excess_test(&pairs, margin) {
                     None => out.push(CaseResult::incomplete(
                         kind,
@@ -796,11 +818,54 @@ impl<'a> Judge<'a> {
     }
 }
 
-/// Per state, each run's value (`None` where the run has none).
-type StateRuns = Vec<Vec<Option<f64>>>;
+/// One cell's runs: per state, each run's value (`None` where the run has none), and per
+/// run whether it is left out of the statistics (a numerical failure, a missing run, or a
+/// run without a row, which `runs_problem` has judged already).
+#[derive(Clone, Debug)]
+struct StateRuns {
+    values: Vec<Vec<Option<f64>>>,
+    left_out: Vec<bool>,
+}
+
+/// The (filter, reference) RMSE pairs of state `s` over the runs: runs left out (failed
+/// within the tolerance, or missing) are no pair; any other run without a finite RMSE for
+/// both is data the paired test cannot judge (`Err`, naming the first), never a pair
+/// dropped without a word. `names`: the two cells, for the message.
+fn rmse_pairs(
+    mine: &StateRuns,
+    theirs: &StateRuns,
+    s: usize,
+    state: &str,
+    names: (&str, &str),
+) -> Result<Vec<(f64, f64)>, String> {
+    let mut pairs = Vec::new();
+    for (run, ((a, b), (la, lb))) in mine.values[s]
+        .iter()
+        .zip(&theirs.values[s])
+        .zip(mine.left_out.iter().zip(&theirs.left_out))
+        .enumerate()
+    {
+        if *la || *lb {
+            continue;
+        }
+        match (a, b) {
+            (Some(a), Some(b)) if a.is_finite() && b.is_finite() => pairs.push((*a, *b)),
+            _ => {
+                return Err(format!(
+                    "run {run} is not a failure, yet its rmse_{state} is {} for {} and {} for {}: the paired test cannot use it",
+                    fmt(*a),
+                    names.0,
+                    fmt(*b),
+                    names.1
+                ));
+            }
+        }
+    }
+    Ok(pairs)
+}
 
 /// Per cell in `wanted`: per state, each run's RMSE (by run index below `runs`; `None` for a
-/// run without one, e.g. a numerical failure).
+/// run without one, e.g. a numerical failure), and which runs are left out.
 fn run_rmse(
     path: &Path,
     wanted: &[CellKey],
@@ -809,7 +874,13 @@ fn run_rmse(
 ) -> Result<HashMap<CellKey, StateRuns>, OutputError> {
     let mut out: HashMap<CellKey, StateRuns> = wanted
         .iter()
-        .map(|k| (k.clone(), vec![vec![None; runs]; states.len()]))
+        .map(|k| {
+            let runs = StateRuns {
+                values: vec![vec![None; runs]; states.len()],
+                left_out: vec![true; runs],
+            };
+            (k.clone(), runs)
+        })
         .collect();
     if out.is_empty() {
         return Ok(out);
@@ -817,7 +888,7 @@ fn run_rmse(
     crate::output::table::for_each_row_group(path, |df| {
         let t = Table::of(df, path);
         let keys = t.keys()?;
-        let run = t.i64("run")?;
+        let (run, status) = (t.i64("run")?, t.str("status")?);
         let columns = states
             .iter()
             .map(|s| t.f64(&format!("rmse_{s}")))
@@ -832,8 +903,9 @@ fn run_rmse(
             else {
                 continue;
             };
+            cell.left_out[r] = matches!(status[i].as_str(), "numerical_failure" | "missing");
             for (s, col) in columns.iter().enumerate() {
-                cell[s][r] = col[i];
+                cell.values[s][r] = col[i];
             }
         }
         Ok(())
@@ -934,6 +1006,11 @@ fn not_computed(want: &str, cell: &str, rows: &[usize], test: &[String]) -> Stri
         return format!("{cell} has no consistency tests at all: {want} could not be computed");
     }
     let has = |n: &str| rows.iter().any(|&i| test[i] == n);
+    if want == VERDICT && !has("nis_time_average") {
+        return format!(
+            "the verdict of {cell} could not be computed: {NO_INNOVATIONS} (no NIS test: the filter reports no innovation ν with its covariance S; an outside filter's estimates give them as nu_<z> and S_<zi>_<zj>)"
+        );
+    }
     if want == VERDICT && !has("nees_time_average") && has("nees_run_average_t") {
         return format!(
             "the verdict of {cell} could not be computed: the calibrated NEES test needs every run's error transition (the filter gave it for some runs only), or, for a filter that gives none, at least 20 runs for the model-free test"
@@ -1230,11 +1307,34 @@ mod tests {
         assert!(rate(-0.2) < 0.001);
     }
 
+    #[test]
+    fn rmse_pairs_refuse_a_non_finite_rmse_of_a_run_that_did_not_fail() {
+        let runs = |values: Vec<Option<f64>>, left_out: Vec<bool>| StateRuns {
+            values: vec![values],
+            left_out,
+        };
+        let theirs = runs(vec![Some(1.0), Some(1.0), Some(2.0)], vec![false; 3]);
+        // A failed run (null RMSE) is left out; the others pair.
+        let mine = runs(vec![Some(1.5), None, Some(2.5)], vec![false, true, false]);
+        assert_eq!(
+            rmse_pairs(&mine, &theirs, 0, "x", ("a", "b")),
+            Ok(vec![(1.5, 1.0), (2.5, 2.0)])
+        );
+        // An infinite or NaN RMSE, or a null one of a run that did not fail, is no pair to
+        // drop: the case cannot be judged.
+        for bad in [Some(f64::INFINITY), Some(f64::NAN), None] {
+            let mine = runs(vec![Some(1.5), bad, Some(2.5)], vec![false; 3]);
+            let why = rmse_pairs(&mine, &theirs, 0, "x", ("a", "b")).unwrap_err();
+            assert!(why.starts_with("run 1 is not a failure"), "{why}");
+        }
+    }
+
     fn counts(present: u64, failed: u64) -> RunCounts {
         RunCounts {
             present: vec![present],
             failed: vec![failed],
             first_failure: (failed > 0).then(|| (4, "non-finite estimate".into())),
+            first_missing: None,
         }
     }
 
@@ -1489,8 +1589,8 @@ pub fn attach_estimates(
 }
 
 /// [`attach_estimates`] with tables already in memory besides the files
-/// ([`crate::score::InMemoryTable`]: no file, so no stamp to check; the caller vouches for
-/// their world).
+/// ([`crate::score::InMemoryTable`]: their stamp is looked for in their metadata, and one
+/// without is unstamped as a file without is).
 pub fn attach_estimates_with_tables(
     plan: &mut Plan,
     files: &[std::path::PathBuf],
@@ -1537,13 +1637,40 @@ pub fn attach_estimates_from(
                 return Err(OutputError::Format {
                     path: path.clone(),
                     message: format!(
-                        "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped"
+                        "carries no world stamp; kfmc check judges only estimates tied to the spec's runs: stamp the file with the metadata {stamp}, or pass --allow-unstamped{}",
+                        if set.is_table(path) {
+                            " (in Python: allow_unstamped=True; a kfmc.Estimates made on the simulation, or a pyarrow Table read from a stamped file, carries the stamp)"
+                        } else {
+                            ""
+                        }
                     ),
                 }
                 .into());
             }
         }
     }
+    for m in set.missing_runs() {
+        eprintln!("warning: {}", missing_runs_text(plan, &m));
+    }
     plan.estimates = Some(std::sync::Arc::new(set));
     Ok(())
+}
+
+/// What `kfmc score` and `kfmc check` say of an external filter's missing runs.
+pub fn missing_runs_text(plan: &Plan, m: &crate::score::MissingRuns) -> String {
+    let first = m
+        .first
+        .map(|(cell, run)| {
+            let scales = plan.noise_scales.len();
+            format!(
+                "; first: scenario {}, noise scale {}, run {run}",
+                plan.scenarios[cell / scales].name,
+                plan.noise_scales[cell % scales]
+            )
+        })
+        .unwrap_or_default();
+    format!(
+        "the estimates of {} leave {} of its {} runs out{first}: they are missing (status `missing` in runs.parquet), not failures; no statistic counts them, and a `kfmc check` case judged on the declared runs is incomplete without them",
+        m.filter, m.runs, m.of
+    )
 }

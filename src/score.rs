@@ -8,6 +8,7 @@
 //! |---|---|
 //! | `scenario`, `noise_scale`, `run`, `step` | the keys of `kfmc simulate`'s tables (integers are never matched by time) |
 //! | `filter` | the label of a `[[filters]]` entry with `kind = "external"` |
+//! | `failed` | optional, boolean: true from the step at which the filter failed on; the run counts as a numerical failure there (null: false) |
 //! | `est_<q>` | the estimate of every evaluated quantity q |
 //! | `P_<qi>_<qj>` | its covariance, lower triangle (qi at or after qj in the quantity order), or |
 //! | `L_<i>_<j>` | a lower Cholesky factor of it (0-based indices, i ≥ j), or |
@@ -28,7 +29,8 @@
 //! prior) and `kfmc.master_seed`. kfmc writes both into every estimates file; a file whose
 //! keys name another world is refused, naming the simulation it belongs to, and a file
 //! without a stamp is read but reported ([`EstimateSet::unstamped`]) for `kfmc score` to warn
-//! and `kfmc check` to refuse.
+//! and `kfmc check` to refuse. A table in memory is held to the same rule through its
+//! metadata (an Arrow schema's: a pyarrow Table read from a stamped file keeps the stamp).
 //!
 //! A file gives the covariance in one of the three forms ([`CovarianceForm`]); one with
 //! columns of two forms is refused, naming a column of each. Value columns may be float32
@@ -36,7 +38,11 @@
 //!
 //! A run's rows cover every step 0..=K or none (a run left out): a run with some steps
 //! missing, or a step outside 0..=K, is an error naming the run and the step, raised before
-//! anything is scored. So is a NaN or infinite innovation or error-transition entry: null
+//! anything is scored. A run left out is **missing** (status `missing` in `runs.parquet`):
+//! no statistic counts it, and a case judged on the runs the spec declares is incomplete
+//! without it, whatever `check.max_failed_runs` allows. A run the filter failed on is
+//! **failed**: its rows say so in the `failed` column (true from the failing step on, where
+//! the estimate may be null), and only such runs count against `check.max_failed_runs`. So is a NaN or infinite innovation or error-transition entry: null
 //! there means "not given", never NaN.
 //!
 //! Reading streams the files row group by row group into one fixed-width spill file per
@@ -151,6 +157,12 @@ impl StudyFilter<'_> {
 /// The optional key columns of an estimates file: the multipliers naming the variant of a
 /// filter that declares `q_scale` or `r_scale` variants in the spec.
 pub const VARIANT_COLUMNS: [&str; 2] = ["q_scale", "r_scale"];
+
+/// The optional boolean column of an estimates file that marks a failed run: true on the
+/// rows from the step at which the filter failed (its estimate there may be null), false or
+/// null before. A run marked failed is a numerical failure at its first marked step; a run
+/// with no rows at all is missing, never a failure.
+pub const FAILED_COLUMN: &str = "failed";
 
 /// How an estimates file gives the covariance. Each form has n(n + 1)/2 columns. A Cholesky
 /// factor however rounded (to float32, say) still gives a positive semi-definite P = L Lᵀ,
@@ -365,6 +377,10 @@ pub fn estimate_columns_in(
         quaternions: rotations.to_vec(),
     };
     let mut c = key_columns();
+    c.push(ColumnDef {
+        name: FAILED_COLUMN.into(),
+        dtype: Dtype::Bool,
+    });
     c.extend(cols.file_columns().into_iter().map(|name| {
         let estimate = name.starts_with("est_") || name.starts_with("quat_");
         let dtype = match precision {
@@ -404,6 +420,8 @@ struct External {
     spill: File,
     /// One bit per (cell, run, step) row: whether a file gave it.
     present: Vec<u64>,
+    /// One bit per row: whether its `failed` flag is true.
+    failed: Vec<u64>,
 }
 
 /// The estimates of a plan's external filters, read and checked.
@@ -417,8 +435,10 @@ pub struct EstimateSet {
     /// Noise multipliers per scenario (cells are scenario-major).
     n_scales: usize,
     runs: usize,
-    /// The files read that carry no world stamp.
+    /// The files and tables read that carry no world stamp.
     unstamped: Vec<PathBuf>,
+    /// The names of the tables in memory read.
+    tables: Vec<PathBuf>,
 }
 
 fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
@@ -534,7 +554,8 @@ fn detect_columns(
                     names
                         .iter()
                         .filter(|n| !key_columns().iter().any(|k| k.name == **n)
-                            && !VARIANT_COLUMNS.contains(&n.as_str()))
+                            && !VARIANT_COLUMNS.contains(&n.as_str())
+                            && n.as_str() != FAILED_COLUMN)
                         .count(),
                     expected.len()
                 ),
@@ -543,6 +564,7 @@ fn detect_columns(
     }
     let mut keys: Vec<String> = key_columns().into_iter().map(|c| c.name).collect();
     keys.extend(VARIANT_COLUMNS.map(String::from));
+    keys.push(FAILED_COLUMN.into());
     if let Some(extra) = names
         .iter()
         .find(|n| !keys.contains(n) && !expected.contains(n))
@@ -722,18 +744,55 @@ impl EstimateSet {
                     reading.file(&path)?;
                     files.push(path);
                 }
-                EstimatesSource::Table(table) => {
-                    reading.table(&table.name, table.batches.iter().cloned().map(Ok))?
+                EstimatesSource::Table(table) => reading.table(
+                    &table.name,
+                    &table.metadata,
+                    table.batches.iter().cloned().map(Ok),
+                )?,
+                EstimatesSource::Stream(stream) => {
+                    reading.table(&stream.name, &stream.metadata, stream.batches)?
                 }
-                EstimatesSource::Stream(stream) => reading.table(&stream.name, stream.batches)?,
             }
         }
         reading.finish(&files)
     }
 
-    /// The files read that carry no world stamp: nothing ties them to this study's runs.
+    /// Per external filter variant whose estimates leave runs out: those runs are missing
+    /// (status `missing`), so a case judged on the declared runs is incomplete.
+    pub fn missing_runs(&self) -> Vec<MissingRuns> {
+        let mut out = Vec::new();
+        for e in &self.externals {
+            let has = |row: u64| e.present[(row / 64) as usize] & (1 << (row % 64)) != 0;
+            let mut m = MissingRuns {
+                filter: e.label.clone(),
+                runs: 0,
+                of: self.runs * self.cells.len(),
+                first: None,
+            };
+            for (ci, &(base, samples)) in self.cells.iter().enumerate() {
+                for r in 0..self.runs {
+                    if !has(base + (r * samples) as u64) {
+                        m.runs += 1;
+                        m.first.get_or_insert((ci, r));
+                    }
+                }
+            }
+            if m.runs > 0 {
+                out.push(m);
+            }
+        }
+        out
+    }
+
+    /// The files and tables read that carry no world stamp (a table by its name): nothing
+    /// ties them to this study's runs.
     pub fn unstamped(&self) -> &[PathBuf] {
         &self.unstamped
+    }
+
+    /// Whether `name` (of [`EstimateSet::unstamped`]) is a table in memory, not a file.
+    pub fn is_table(&self, name: &Path) -> bool {
+        self.tables.iter().any(|t| t == name)
     }
 
     /// The filter variants read (as messages name them, [`StudyFilter::name`]) and the files
@@ -755,12 +814,14 @@ impl EstimateSet {
             bytemuck::cast_slice_mut(&mut values),
             first * width as u64 * 8,
         );
-        let present: Vec<bool> = (0..samples as u64)
-            .map(|k| {
-                let row = first + k;
-                e.present[(row / 64) as usize] & (1 << (row % 64)) != 0
-            })
-            .collect();
+        let bit = |bits: &[u64], k: u64| {
+            let row = first + k;
+            bits[(row / 64) as usize] & (1 << (row % 64)) != 0
+        };
+        let present: Vec<bool> = (0..samples as u64).map(|k| bit(&e.present, k)).collect();
+        let failed_at = (0..samples as u64)
+            .find(|&k| bit(&e.failed, k))
+            .map(|k| k as usize);
         // A spill shorter than this run (its last rows never written) reads as absent rows.
         if read.is_err() {
             values.fill(f64::NAN);
@@ -782,6 +843,7 @@ impl EstimateSet {
             columns: &e.columns,
             values,
             present,
+            failed_at,
             width,
         })
     }
@@ -792,28 +854,47 @@ impl EstimateSet {
     }
 }
 
+/// The runs an external filter variant's estimates leave out ([`EstimateSet::missing_runs`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MissingRuns {
+    /// The variant, as messages name it ([`StudyFilter::name`]).
+    pub filter: String,
+    /// Runs left out, over every cell.
+    pub runs: usize,
+    /// Runs the study declares for the filter, over every cell.
+    pub of: usize,
+    /// The first left out: (cell index, scenario-major; run).
+    pub first: Option<(usize, usize)>,
+}
+
 /// Estimates already in memory (a Python user's DataFrames, read through the Arrow C stream
-/// interface): the table's batches in order. They carry no file metadata, so no world stamp:
-/// whoever hands them over vouches for their world (the Python API pairs them with the
-/// simulation they were made from), and they are not listed as unstamped.
+/// interface): the table's batches in order, and the table's key-value metadata (an Arrow
+/// schema's), where its world stamp is looked for as in a file's: a table stamped with
+/// another world is refused, and one without a stamp is listed as unstamped
+/// ([`EstimateSet::unstamped`]) for `kfmc check` to refuse, as it refuses such a file.
 #[derive(Clone, Debug)]
 pub struct InMemoryTable {
     /// A name for messages (`<estimates 0>`).
     pub name: String,
     /// The batches, each with the same columns.
     pub batches: Vec<DataFrame>,
+    /// The table's metadata (key, value): `kfmc.world_stamp` and `kfmc.master_seed` when
+    /// it is stamped.
+    pub metadata: Vec<(String, String)>,
 }
 
 /// A table in memory whose batches are taken one at a time (a Python user's table read
 /// through the Arrow C stream interface): each is read and let go before the next is asked
 /// for, as a file's row groups are, so a producer that makes its batches as they are asked
-/// for (a database query, a dataset scanner) is never held whole. No stamp, as
-/// [`InMemoryTable`].
+/// for (a database query, a dataset scanner) is never held whole. Its stamp is checked as
+/// an [`InMemoryTable`]'s.
 pub struct TableStream {
     /// A name for messages (`<estimates 0>`).
     pub name: String,
     /// The batches, each with the same columns; an `Err` ends the reading with it.
     pub batches: Box<dyn Iterator<Item = Result<DataFrame, OutputError>>>,
+    /// The table's metadata (key, value), as [`InMemoryTable::metadata`].
+    pub metadata: Vec<(String, String)>,
 }
 
 impl std::fmt::Debug for TableStream {
@@ -1178,6 +1259,8 @@ struct RowGroup {
     /// The variant columns, when the file has them.
     q_scale: Option<Float64Chunked>,
     r_scale: Option<Float64Chunked>,
+    /// The `failed` column, when the file has it.
+    failed: Option<BooleanChunked>,
     values: Vec<Float64Chunked>,
     /// The values row by row (`width` per row, the spill's order), NaN where null.
     table: Vec<f64>,
@@ -1272,6 +1355,21 @@ impl RowGroup {
             step: ints("step")?,
             q_scale: optional("q_scale")?,
             r_scale: optional("r_scale")?,
+            failed: match df.column(FAILED_COLUMN) {
+                Ok(c) if c.dtype() == &DataType::Boolean => {
+                    Some(c.bool().map_err(|e| col_err(FAILED_COLUMN, e))?.clone())
+                }
+                Ok(c) => {
+                    return Err(format_err(
+                        path,
+                        format!(
+                            "column `{FAILED_COLUMN}` must be boolean (true from the step at which the filter failed), not {}",
+                            c.dtype()
+                        ),
+                    ));
+                }
+                Err(_) => None,
+            },
             values,
             table,
             flagged,
@@ -1361,6 +1459,8 @@ struct Reading<'a> {
     by_filter: Vec<Option<usize>>,
     externals: Vec<External>,
     unstamped: Vec<PathBuf>,
+    /// The names of the tables in memory read.
+    tables: Vec<PathBuf>,
 }
 
 impl<'a> Reading<'a> {
@@ -1370,6 +1470,7 @@ impl<'a> Reading<'a> {
             keys: KeyIndex::new(study),
             externals: Vec::new(),
             unstamped: Vec::new(),
+            tables: Vec::new(),
         }
     }
 
@@ -1391,7 +1492,14 @@ impl<'a> Reading<'a> {
             .get_metadata()
             .map_err(|e| polars_err(path, e))?
             .clone();
-        if !check_metadata(path, &meta, self.keys.study)? {
+        let get = |key: &str| {
+            meta.key_value_metadata()
+                .iter()
+                .flatten()
+                .find(|kv| kv.key == key)
+                .map(|kv| kv.value.clone().unwrap_or_default())
+        };
+        if !check_stamp(path, get, self.keys.study)? {
             self.unstamped.push(path.clone());
         }
         let schema = reader.schema().map_err(|e| polars_err(path, e))?;
@@ -1418,13 +1526,25 @@ impl<'a> Reading<'a> {
         Ok(())
     }
 
-    /// Reads a table already in memory, batch by batch as they come, as a file's row groups.
+    /// Reads a table already in memory, batch by batch as they come, as a file's row groups;
+    /// its stamp is looked for in `metadata` as a file's is in its key-value metadata.
     fn table(
         &mut self,
         name: &str,
+        metadata: &[(String, String)],
         batches: impl IntoIterator<Item = Result<DataFrame, OutputError>>,
     ) -> Result<(), OutputError> {
         let path = PathBuf::from(name);
+        self.tables.push(path.clone());
+        let get = |key: &str| {
+            metadata
+                .iter()
+                .find(|(k, _)| k == key)
+                .map(|(_, v)| v.clone())
+        };
+        if !check_stamp(&path, get, self.keys.study)? {
+            self.unstamped.push(path.clone());
+        }
         let mut batches = batches.into_iter();
         let Some(first) = batches.next().transpose()? else {
             return Err(format_err(
@@ -1511,6 +1631,9 @@ impl<'a> Reading<'a> {
                 return Err(format_err(path, format!("duplicate row {}", rows.key(i))));
             }
             e.present[word] |= 1 << bit;
+            if rows.failed.as_ref().is_some_and(|f| f.get(i) == Some(true)) {
+                e.failed[word] |= 1 << bit;
+            }
             if !rows.row_is_clean(columns, i) {
                 // The exact check, for its message.
                 columns.values(path, rows, i, &mut buf)?;
@@ -1555,6 +1678,7 @@ impl<'a> Reading<'a> {
                     columns: columns.clone(),
                     spill: scratch_file()?,
                     present: vec![0; self.keys.total.div_ceil(64) as usize],
+                    failed: vec![0; self.keys.total.div_ceil(64) as usize],
                 });
                 self.by_filter[fi] = Some(self.externals.len() - 1);
                 self.externals.len() - 1
@@ -1609,6 +1733,7 @@ impl<'a> Reading<'a> {
             cells: self.keys.cells,
             runs: study.runs,
             unstamped: self.unstamped,
+            tables: self.tables,
         })
     }
 }
@@ -1669,21 +1794,14 @@ fn check_steps(
     Ok(())
 }
 
-/// Checks the file's stamp against the study's world: returns whether the file is stamped
-/// (carries `kfmc.world_stamp`), and refuses one whose stamp or master seed names another
-/// simulation, saying which.
-fn check_metadata(
+/// Checks a file's or a table's stamp (its metadata, looked up by `get`) against the
+/// study's world: returns whether it is stamped (carries `kfmc.world_stamp`), and refuses
+/// one whose stamp or master seed names another simulation, saying which.
+fn check_stamp(
     path: &Path,
-    meta: &polars::io::parquet::read::FileMetadata,
+    get: impl Fn(&str) -> Option<String>,
     study: &StudyKeys<'_>,
 ) -> Result<bool, OutputError> {
-    let get = |key: &str| {
-        meta.key_value_metadata()
-            .iter()
-            .flatten()
-            .find(|kv| kv.key == key)
-            .map(|kv| kv.value.clone().unwrap_or_default())
-    };
     let (stamp, seed) = (get(STAMP_KEY), get(SEED_KEY));
     let ours = &study.world_stamp;
     let foreign = stamp.as_ref().is_some_and(|s| s != ours)
@@ -1713,6 +1831,8 @@ struct UnitRows<'a> {
     columns: &'a EstimateColumns,
     values: Vec<f64>,
     present: Vec<bool>,
+    /// The first step whose `failed` flag is true.
+    failed_at: Option<usize>,
     width: usize,
 }
 
@@ -1756,6 +1876,11 @@ impl UnitRows<'_> {
     fn problem<const NQ: usize>(&self, k: usize) -> Option<String> {
         if !self.present[k] {
             return Some(format!("estimates: no row for step {k}"));
+        }
+        if self.failed_at.is_some_and(|f| f <= k) {
+            return Some(format!(
+                "estimates: the filter failed at step {k} (`{FAILED_COLUMN}` = true)"
+            ));
         }
         let row = self.row(k);
         let names = &self.columns.quantities;
@@ -1919,6 +2044,13 @@ pub fn replay<const NQ: usize, const NU: usize, const NZ: usize, M: Model<NQ, NU
             "no estimates were given for the external filter `{label}`"
         ));
     };
+    // A run left out whole was not run: missing, which no tolerance for failures covers.
+    if !rows.present.iter().any(|&p| p) {
+        return FilterOutput::missing(
+            ctx,
+            format!("the estimates of `{label}` leave this run out"),
+        );
+    }
     if let Some(why) = rows.problem::<NQ>(0) {
         return fail(why);
     }

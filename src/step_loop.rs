@@ -8,7 +8,7 @@
 
 use crate::filter::{Filter, FilterError, Innovation};
 use crate::linalg::{Matrix, SmallCholesky, Vector};
-use crate::metrics::{FilterRun, RunConsistency, StepValues};
+use crate::metrics::{FilterRun, RunConsistency, RunStatus, StepValues};
 use crate::model::{Measurement, Model};
 
 /// One unit of work: a run of one (scenario, noise scale) cell.
@@ -371,6 +371,23 @@ impl FilterOutput {
             export: None,
         }
     }
+
+    /// The record of a run the filter has no data for (an external filter's estimates leave
+    /// it out): status `missing`, every per-step value null. It is no failure: the study
+    /// counts it apart, and a case judged on the declared runs is incomplete without it.
+    pub fn missing<const NQ: usize, const NU: usize, const NZ: usize>(
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+        why: String,
+    ) -> Self {
+        let mut run =
+            StepValues::new(NQ, ctx.truth.len() - 1).finish(None, None, ctx.quantity_names, 0);
+        run.status = RunStatus::Missing { detail: why };
+        FilterOutput {
+            run,
+            trace: None,
+            export: None,
+        }
+    }
 }
 
 /// The monomorphised step loop: predict, update, and per-step metrics on the quantities that
@@ -460,6 +477,10 @@ where
         for r in ctx.rotations {
             r.error_into(ctx.truth[k].as_slice(), mean.as_slice(), e.as_mut_slice());
         }
+        // An error whose square is not finite makes the RMSE infinite or NaN: the run fails
+        // numerically at this step, as it does when the filter reports an error (after the
+        // covariance's own check, which names the cause when P broke down with it).
+        let bad_error = (0..NQ).find(|&i| !(e[i] * e[i]).is_finite());
         let mut nees = f64::NAN;
         // The quantities' covariance, formed once per step (after a repair, the repaired
         // one): NEES, the consistency sums and the trace all read this one value.
@@ -480,12 +501,23 @@ where
                 failure = Some((k, err.to_string()));
                 break;
             }
+            if let Some(i) = bad_error {
+                failure = Some((k, non_finite_error(ctx.quantity_names[i], e[i])));
+                break;
+            }
             // Formed above: borrowed from the belief, or in `p_own`.
             let p_now = filter
                 .covariance_ref(&belief)
                 .and_then(|p| eval.covariance_ref(p))
                 .unwrap_or(&p_own);
             nees = chol.inverse_quadratic_form(&e);
+            if !nees.is_finite() {
+                failure = Some((
+                    k,
+                    format!("NEES eᵀP⁻¹e = {nees} is not finite (P is singular to this error)"),
+                ));
+                break;
+            }
             if let Some(o) = opts {
                 o.blocks.nees(&e, p_now, nees, &mut block_nees);
                 values.record_credibility(k, e.as_slice(), &block_nees);
@@ -530,6 +562,10 @@ where
                 }
             }
         }
+        if let Some(i) = bad_error {
+            failure = Some((k, non_finite_error(ctx.quantity_names[i], e[i])));
+            break;
+        }
         if let Some(est) = est.as_mut() {
             est[k * NQ..(k + 1) * NQ].copy_from_slice(eval.mean(&filter.mean(&belief)).as_slice());
         }
@@ -566,6 +602,17 @@ where
         run,
         trace: est.zip(cov),
         export,
+    }
+}
+
+/// Why a run stops at an error e = truth − estimate of quantity `name` whose square is not
+/// finite.
+#[cold]
+fn non_finite_error(name: &str, e: f64) -> String {
+    if e.is_nan() {
+        format!("the error of {name} is NaN (a non-finite estimate)")
+    } else {
+        format!("the error of {name}, {e:e}, squares to a non-finite value")
     }
 }
 

@@ -225,6 +225,11 @@ def main():
 
     cols = {n: [] for n in ["scenario", "noise_scale", "run", "step", "filter"]}
     variant = []
+    # The `failed` column: true from the step the filter failed at (an exception from its
+    # linear algebra), where the row carries no estimate. kfmc counts such a run a
+    # numerical failure there; a run left out of the file would be missing instead, which no
+    # [check] max_failed_runs tolerates.
+    failed = []
     values = []
     tri = [(i, j) for i in range(nq) for j in range(i + 1)]
     ztri = [(i, j) for i in range(nz) for j in range(i + 1)]
@@ -249,6 +254,7 @@ def main():
         for q_scale in q_scales:
             filt = Runner(args.model, args, q_scale, x0, p0, nq, nz)
             k = 0
+            failed_at = None
             while first + k < meas.num_rows and (
                 meas_keys[0][first + k],
                 meas_keys[1][first + k],
@@ -258,16 +264,23 @@ def main():
                 nu = np.full(nz, np.nan)
                 s = np.full((nz, nz), np.nan)
                 a = np.full((nq, nq), np.nan)
-                if k > 0:
-                    nu, s, a = filt.step(z_all[first + k], u_all[first + k])
+                if k > 0 and failed_at is None:
+                    try:
+                        nu, s, a = filt.step(z_all[first + k], u_all[first + k])
+                    except (np.linalg.LinAlgError, ValueError):
+                        failed_at = k
                 cols["scenario"].append(key[0])
                 cols["noise_scale"].append(key[1])
                 cols["run"].append(key[2])
                 cols["step"].append(k)
                 cols["filter"].append(args.label)
                 variant.append(q_scale)
+                failed.append(failed_at is not None)
+                width = nq + len(tri) + nz + len(ztri) + nq * nq
                 values.append(
-                    list(filt.kf.x.ravel())
+                    [np.nan] * width
+                    if failed_at is not None
+                    else list(filt.kf.x.ravel())
                     + [filt.kf.P[i, j] for i, j in tri]
                     + list(nu)
                     + [s[i, j] for i, j in ztri]
@@ -294,6 +307,8 @@ def main():
     if declared is not None:
         arrays.append(pa.array(variant, pa.float64()))
         keys.append("q_scale")
+    arrays.append(pa.array(failed, pa.bool_()))
+    keys.append("failed")
     arrays += [pa.array(v[:, c], pa.float64(), mask=~np.isfinite(v[:, c])) for c in range(len(names))]
     table = pa.table(arrays, names=keys + names)
     table = table.replace_schema_metadata(

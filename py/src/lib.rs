@@ -647,15 +647,40 @@ fn simulate<'py>(
 /// table whose batches the estimates reader takes one at a time through the Arrow C stream
 /// interface, checking them as it checks a file's row groups: no copy of the values, no
 /// file, and each batch let go before the next is asked for.
+///
+/// The table's stamp is the metadata of its stream's schema (a pyarrow Table read from a
+/// stamped file keeps it there), or, for a `(table, metadata)` pair, the dict the Python
+/// layer hands over with a `kfmc.Estimates` made on the simulation: the reader refuses a
+/// table stamped with another world, and lists one without a stamp as a file without one.
 fn import_table(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::TableStream> {
-    let readers = if let Ok(parts) = obj.cast::<PyList>() {
+    let (table, given) = match obj.cast::<PyTuple>() {
+        Ok(pair) if pair.len() == 2 => {
+            let meta: std::collections::HashMap<String, String> = pair.get_item(1)?.extract()?;
+            (pair.get_item(0)?, Some(meta))
+        }
+        _ => (obj.clone(), None),
+    };
+    let readers = if let Ok(parts) = table.cast::<PyList>() {
         parts
             .iter()
             .map(|part| open_stream(&part, &name))
             .collect::<PyResult<Vec<_>>>()?
     } else {
-        vec![open_stream(obj, &name)?]
+        vec![open_stream(&table, &name)?]
     };
+    let mut metadata: Vec<(String, String)> = match given {
+        Some(meta) => meta.into_iter().collect(),
+        None => readers
+            .first()
+            .and_then(|r| r.field().metadata.as_deref())
+            .map(|m| {
+                m.iter()
+                    .map(|(k, v)| (k.to_string(), v.to_string()))
+                    .collect()
+            })
+            .unwrap_or_default(),
+    };
+    metadata.sort();
     Ok(kfmc::score::TableStream {
         batches: Box::new(Batches {
             name: PathBuf::from(&name),
@@ -663,6 +688,7 @@ fn import_table(obj: &Bound<'_, PyAny>, name: String) -> PyResult<kfmc::score::T
             current: None,
         }),
         name,
+        metadata,
     })
 }
 
@@ -825,6 +851,11 @@ fn score<'py>(
         let mut plan = kfmc::simulate::scoring_plan(&simulation, out, &registry)
             .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
         attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
+        // Per external filter variant, the runs its estimates leave out (status `missing`).
+        let missing = PyDict::new(py);
+        for m in plan.estimates.iter().flat_map(|e| e.missing_runs()) {
+            missing.set_item(m.filter.replace('`', ""), m.runs)?;
+        }
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
             force,
@@ -836,7 +867,9 @@ fn score<'py>(
                 Failure::from(e).context(format!("scoring against {}", simulation.display()))
             })
         })?;
-        report_dict(py, &report)
+        let d = report_dict(py, &report)?;
+        d.set_item("runs_missing", missing)?;
+        Ok(d)
     })
 }
 

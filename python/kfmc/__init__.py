@@ -117,9 +117,36 @@ class Study:
         return _kfmc.load_toml(self.folder / "manifest.toml")
 
     def verdict(self) -> pl.DataFrame:
-        """The consistency verdict of every (cell, filter) as a DataFrame (the
-        ``consistency`` table's ``test == "verdict"`` rows)."""
-        return self.table("consistency").filter(pl.col("test") == _VERDICT)
+        """The consistency verdict of every (cell, filter) and evaluation as a DataFrame: the
+        ``consistency`` table's ``test == "verdict"`` rows, with a ``note`` column. A filter
+        whose tests were evaluated but that has no verdict row is not left out: its row has
+        a null statistic, p-value and pass, and the note says why — ``"not judged: no
+        innovations"`` for a filter without a NIS test (estimates with ``x`` and ``P`` but
+        no ``nu``/``S``), ``"not judged: the verdict could not be computed"`` otherwise."""
+        t = self.table("consistency").with_row_index("_row")
+        group = ["scenario", "noise_scale", "filter", "q_scale", "r_scale", "alpha", "runs"]
+        tests = t.filter(pl.col("test") != "sequential")
+        judged = tests.group_by(group).agg(
+            (pl.col("test") == _VERDICT).any().alias("_has_verdict"),
+            (pl.col("test") == "nis_time_average").any().alias("_has_nis"),
+            pl.col("_row").max().alias("_last"),
+        )
+        missing = judged.filter(~pl.col("_has_verdict"))
+        rows = t.filter(pl.col("test") == _VERDICT).with_columns(pl.lit(None, dtype=pl.String).alias("note"))
+        if missing.height == 0:
+            return rows.drop("_row")
+        # One row per evaluation without a verdict, after that evaluation's last test.
+        first = t.join(missing.select(group + ["_last", "_has_nis"]), left_on=group + ["_row"], right_on=group + ["_last"], how="inner", nulls_equal=True)
+        blank = [c for c in t.columns if c not in group + ["_row", "test", "burn_in_steps"]]
+        added = first.with_columns(
+            pl.lit(_VERDICT).alias("test"),
+            *[pl.lit(None, dtype=t.schema[c]).alias(c) for c in blank],
+            pl.when(pl.col("_has_nis"))
+            .then(pl.lit("not judged: the verdict could not be computed"))
+            .otherwise(pl.lit("not judged: no innovations"))
+            .alias("note"),
+        ).select(rows.columns)
+        return pl.concat([rows, added]).sort("_row").drop("_row")
 
 
 Vector = Any
@@ -647,7 +674,8 @@ def _estimates(
             if e.path is not None:
                 # A table streamed to a file is read from it, once complete.
                 return os.fspath(e.close())
-            return _as_stream(e.to_polars())
+            # A polars DataFrame has no metadata to carry the stamp: it goes beside it.
+            return (_as_stream(e.to_polars()), e.metadata)
         return _as_stream(e)
 
     if not isinstance(estimates, (list, tuple)):
@@ -691,8 +719,12 @@ def score(
     tables ``kfmc run`` writes, with kfmc's own filters of the spec run beside them.
 
     In-memory estimates (the columns ``schema("estimates", spec)`` lists) go to the library
-    through the Arrow C stream interface; they are taken as made from ``simulation``'s runs
-    (a file must carry the world stamp for that, a table in memory has nowhere to carry it).
+    through the Arrow C stream interface. Their world stamp is checked as a file's: a
+    :class:`Estimates` carries its simulation's, a pyarrow Table read from a stamped file
+    keeps it in its schema metadata; one stamped with another world is refused, and one
+    without a stamp (a polars or pandas DataFrame) is scored with a warning on stderr, as
+    an unstamped file is. ``report["runs_missing"]`` counts, per outside filter, the runs
+    its estimates leave out (a warning names them too): they are missing, not failures.
     """
     folder = simulation.folder if isinstance(simulation, Simulation) else Path(simulation)
     paths, streams = _estimates(estimates, lambda: Simulation(folder).stamp)
@@ -724,9 +756,12 @@ def check(
 ) -> CheckResult:
     """Runs the study and evaluates its ``[check]`` assertions (``kfmc check``). A failing
     or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
-    :meth:`CheckResult.raise_for_status` raises it. Estimates files must carry the world
-    stamp unless ``allow_unstamped``; in-memory tables are taken as made from the spec's
-    runs; a :class:`Estimates` must be made on the spec's world (and seed).
+    :meth:`CheckResult.raise_for_status` raises it. Estimates, files or tables in memory,
+    must carry the world stamp of the spec's runs unless ``allow_unstamped``, as the
+    command refuses an unstamped file: a :class:`Estimates` made on the spec's world (and
+    seed) carries it, and so does a pyarrow Table read from a stamped file (in its schema
+    metadata); a polars or pandas DataFrame has none, so it needs ``allow_unstamped=True``.
+    A table stamped with another world is refused either way.
 
     ``sequential=True`` judges the consistency verdicts with the group-sequential gate
     (``kfmc check --sequential``; the spec's ``[check] sequential = true`` does the same):

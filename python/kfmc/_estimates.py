@@ -21,6 +21,9 @@ COVARIANCE_FORMS = ("lower", "cholesky", "correlation")
 
 _KEYS = ("scenario", "noise_scale", "run", "step", "filter")
 
+#: The column that marks a failed run: true from the step the filter failed at.
+_FAILED = "failed"
+
 #: The key columns naming the variant of a filter that declares ``q_scale``/``r_scale``.
 _VARIANT_KEYS = ("q_scale", "r_scale")
 
@@ -199,7 +202,7 @@ class Estimates:
         if quaternions:
             for r in reversed(self._rotations):
                 est[r["first"] : r["first"] + 3] = list(r["quaternion"])
-        cols = list(_KEYS) + [a for a in _VARIANT_KEYS if a in self.variants]
+        cols = list(_KEYS) + [a for a in _VARIANT_KEYS if a in self.variants] + [_FAILED]
         cols += est + self._covariance_columns()
         if innovations:
             cols += [f"nu_{n}" for n in z]
@@ -245,8 +248,11 @@ class Estimates:
         rows for it the rotation error's covariance. A key from ``Simulation.runs()`` fits
         as ``add_run(*key, x=…, P=…)``.
 
-        A filter that failed at step k: ``failed_at=k`` writes its rows from k on without
-        an estimate, and kfmc counts the run a numerical failure at k, as its own filters'.
+        A filter that failed at step k: ``failed_at=k`` marks its rows from k on
+        ``failed = true`` and writes them without an estimate, and kfmc counts the run a
+        numerical failure at k, as its own filters'; only such runs count against
+        ``[check] max_failed_runs``. A run never added is missing, not failed: a ``kfmc
+        check`` case is incomplete without it, whatever the tolerance.
 
         ``q_scale`` and ``r_scale`` name the run's variant when the label declares variants
         (:attr:`variants`): the multipliers the filter applied to its assumed Q and R, each
@@ -346,6 +352,7 @@ class Estimates:
                 if c != "step":
                     cols[c] = cols[c].copy()
                     cols[c][end:] = np.nan
+        cols[_FAILED] = np.arange(k1) >= end
         if self._parts is None:
             self._parts, self._first = parts, name
         self._runs[key] = cols
@@ -558,6 +565,9 @@ class Estimates:
         for axis in variant_keys:
             series.append(pl.Series(axis, np.concatenate(keys[axis]), dtype=pl.Float64))
         for c in values:
+            if c == _FAILED:
+                series.append(pl.Series(c, np.concatenate(data[c]), dtype=pl.Boolean))
+                continue
             dtype = pl.Float64 if c in keep64 else f32
             a = np.concatenate(data[c]).astype(np.float64 if dtype == pl.Float64 else np.float32)
             series.append(pl.Series(c, a, dtype=dtype, nan_to_null=True))
@@ -575,7 +585,7 @@ class Estimates:
     def _options(self) -> Dict[str, Any]:
         """pyarrow's writer options: byte-stream-split floats, zstd, dictionaries for the
         two string keys only, row groups of :attr:`rows_per_group`."""
-        floats = [c for c in self.columns if c not in _KEYS and c not in _VARIANT_KEYS]
+        floats = [c for c in self.columns if c not in _KEYS and c not in _VARIANT_KEYS and c != _FAILED]
         return dict(
             compression="zstd",
             use_dictionary=["scenario", "filter"],

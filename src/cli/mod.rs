@@ -398,6 +398,9 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             }
             (SchemaTable::Estimates, "P") => "  or L_<i>_<j>, a lower Cholesky factor",
             (SchemaTable::Estimates, "filter") => "  a [[filters]] label with kind = \"external\"",
+            (SchemaTable::Estimates, "failed") => {
+                "  optional: true from the step the filter failed at (the run is a numerical failure there); a run left out whole is missing, not failed"
+            }
             (SchemaTable::Estimates, "quat") => "  a rotation as a unit quaternion (see below)",
             (SchemaTable::Measurements, "z") => {
                 "  null where the sensor did not report; null at step 0 (a run starts from its prior, with no measurement)"

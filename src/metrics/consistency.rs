@@ -62,17 +62,36 @@ pub fn average_chi2_band(dof_per_run: f64, runs: f64, alpha: f64) -> Option<Band
     })
 }
 
-/// Two-sided p-value of `x` under χ²(`dof`).
+/// Two-sided p-value of `x` under χ²(`dof`); `None` for a NaN `x` (a statistic that could
+/// not be computed has no p-value). Each tail is computed as itself (the upper one by the
+/// survival function, never as 1 − cdf), so p-values far below 1e-16 keep their value and
+/// their order down to the smallest positive double.
 pub fn chi2_two_sided_p(x: f64, dof: f64) -> Option<f64> {
+    if x.is_nan() {
+        return None;
+    }
     let chi = ChiSquared::new(dof).ok()?;
     let c = chi.cdf(x);
-    Some((2.0 * c.min(1.0 - c)).min(1.0))
+    // 1 − cdf is exact to 2⁻⁵³ in absolute terms: above `COMPLEMENT_FLOOR` that is within
+    // 1e-10 of the tail and the complement is kept, so every p-value it gave to ten digits
+    // stays bit for bit what it was; below, only the survival function has the digits.
+    let tail = if 1.0 - c > COMPLEMENT_FLOOR {
+        c.min(1.0 - c)
+    } else {
+        chi.sf(x)
+    };
+    Some((2.0 * tail).min(1.0))
 }
 
-/// Two-sided p-value of a standard normal statistic.
+/// The upper tail below which [`chi2_two_sided_p`] takes the survival function rather than
+/// 1 − cdf (whose rounding, 2⁻⁵³, is 1e-10 of a tail of about 1.1e-6).
+const COMPLEMENT_FLOOR: f64 = 1.2e-6;
+
+/// Two-sided p-value of a standard normal statistic (NaN for a NaN `z`), from erfc: to about
+/// 1e-9 in relative terms far into the tail.
 pub fn normal_two_sided_p(z: f64) -> f64 {
     let n = Normal::new(0.0, 1.0).expect("the standard normal is valid");
-    2.0 * n.cdf(-z.abs())
+    2.0 * n.sf(z.abs())
 }
 
 /// The standard normal quantile z_q.
@@ -82,10 +101,18 @@ pub fn normal_quantile(q: f64) -> f64 {
         .inverse_cdf(q)
 }
 
-/// Two-sided p-value of a Student-t statistic with `dof` degrees of freedom.
+/// Two-sided p-value of a Student-t statistic with `dof` degrees of freedom (`None` for a NaN
+/// `t`; 0 for an infinite one). The tail is the regularised incomplete beta function of
+/// ν/(ν + t²) itself, so a far-tail p-value is not lost to 1 − cdf.
 pub fn t_two_sided_p(t: f64, dof: f64) -> Option<f64> {
+    if t.is_nan() {
+        return None;
+    }
+    if t.is_infinite() {
+        return Some(0.0);
+    }
     let d = StudentsT::new(0.0, 1.0, dof).ok()?;
-    Some(2.0 * d.cdf(-t.abs()))
+    Some((2.0 * d.sf(t.abs())).min(1.0))
 }
 
 /// The Student-t quantile t_q with `dof` degrees of freedom.
@@ -165,12 +192,50 @@ pub struct TestResult {
     pub direction: Option<Direction>,
 }
 
+impl TestResult {
+    /// A test whose statistic could not be computed from the data (a NaN or infinite sum, a
+    /// spread of zero that leaves the statistic 0/0): statistic NaN (null in the table), no
+    /// p-value, and never a pass. The band and dof are those the statistic would have been
+    /// judged against.
+    pub fn not_computed(
+        test: &str,
+        lower: Option<f64>,
+        upper: Option<f64>,
+        dof: Option<f64>,
+    ) -> Self {
+        TestResult {
+            test: test.to_string(),
+            statistic: f64::NAN,
+            lower,
+            upper,
+            dof,
+            p_value: None,
+            pass: false,
+            direction: None,
+        }
+    }
+
+    /// Whether the test was computed: a statistic that is not NaN and a finite p-value (the
+    /// descriptive fractions, which have no p-value, by their statistic alone). An infinite
+    /// statistic with p = 0 is computed: a rejection ([`t_statistic`]).
+    pub fn computed(&self) -> bool {
+        !self.statistic.is_nan()
+            && (self.p_value.is_some_and(f64::is_finite)
+                || (self.p_value.is_none() && self.test.ends_with("_steps_inside")))
+    }
+}
+
 /// The χ²-average test: `mean` is an average whose scaled value `mean·ν/d` ~ χ²(ν).
-/// `d` is the expected value of one term (n for NEES, p for NIS).
+/// `d` is the expected value of one term (n for NEES, p for NIS). A `mean` that is NaN or
+/// infinite (a sum that overflowed) has no p-value: the test is
+/// [not computed](TestResult::not_computed).
 pub fn scaled_chi2_test(test: &str, mean: f64, d: f64, nu: f64, alpha: f64) -> Option<TestResult> {
     let chi = ChiSquared::new(nu).ok()?;
     let lo = d * chi.inverse_cdf(alpha / 2.0) / nu;
     let hi = d * chi.inverse_cdf(1.0 - alpha / 2.0) / nu;
+    if !mean.is_finite() {
+        return Some(TestResult::not_computed(test, Some(lo), Some(hi), Some(nu)));
+    }
     let pass = mean >= lo && mean <= hi;
     Some(TestResult {
         test: test.to_string(),
@@ -210,6 +275,33 @@ pub fn t_test(
     t_test_of(test, nf, mean, var, mu, alpha, high_is_optimistic)
 }
 
+/// Spreads at or below this many ulp of the mean's magnitude are rounding, not data: a
+/// sum of N values carries a rounding of a few ulp per term, so a standard error that small
+/// says the values are equal as far as doubles can tell.
+pub const ROUNDING_ULPS: f64 = 4.0;
+
+/// The one-sample t statistic (mean − μ)/se, or what stands in for it when se cannot carry
+/// it:
+///
+/// * `None` (not computed) when the mean or se is NaN or infinite (a value or a square
+///   that overflowed), or when the spread is at the level of rounding
+///   (se ≤ [`ROUNDING_ULPS`] ulp of |mean|) and the mean is μ to the same rounding: 0/0;
+/// * ±∞ (a rejection, p = 0) when the spread is at the level of rounding but the mean is
+///   not μ: values that agree to the last digits away from μ are no sample of a
+///   distribution centred on it (every NEES exactly 0 where n is expected; an estimate off
+///   by 1e20 in every run, whose run-to-run differences are below one ulp).
+pub fn t_statistic(mean: f64, se: f64, mu: f64) -> Option<f64> {
+    if !mean.is_finite() || !se.is_finite() {
+        return None;
+    }
+    let ulp = f64::EPSILON;
+    if se > ROUNDING_ULPS * ulp * mean.abs() {
+        return Some((mean - mu) / se);
+    }
+    let d = mean - mu;
+    (d.abs() > ROUNDING_ULPS * ulp * mean.abs().max(mu.abs())).then(|| d.signum() * f64::INFINITY)
+}
+
 /// The t-test of `nf` (≥ 2) values with this mean and sample variance.
 fn t_test_of(
     test: &str,
@@ -220,9 +312,15 @@ fn t_test_of(
     alpha: f64,
     high_is_optimistic: bool,
 ) -> Option<TestResult> {
-    let se = (var / nf).sqrt();
-    let t = if se > 0.0 { (mean - mu) / se } else { 0.0 };
     let crit = t_quantile(1.0 - alpha / 2.0, nf - 1.0)?;
+    let Some(t) = t_statistic(mean, (var / nf).sqrt(), mu) else {
+        return Some(TestResult::not_computed(
+            test,
+            Some(-crit),
+            Some(crit),
+            Some(nf - 1.0),
+        ));
+    };
     let pass = t.abs() <= crit;
     Some(TestResult {
         test: test.to_string(),
@@ -266,7 +364,9 @@ fn t_test_of(
 ///
 /// **Lags combined** by Bonferroni: the test passes when every lag's |ρ̂_l| ≤ z/√m_l, so its
 /// false-alarm rate is at most α. The row reports the lag with the largest |ρ̂_l|·√m_l, its
-/// band, `dof` = L and p = min(1, L·p_l). `None` without lags, pairs or components.
+/// band, `dof` = L and p = min(1, L·p_l). `None` without lags, pairs or components;
+/// [not computed](TestResult::not_computed) when the sums are not finite (an innovation
+/// that overflowed) or the innovations are all exactly zero (no variance to normalise by).
 pub fn whiteness_test(
     lag_prod: &[f64],
     lag_pairs: &[u64],
@@ -275,8 +375,18 @@ pub fn whiteness_test(
     alpha: f64,
 ) -> Option<TestResult> {
     let lags = lag_prod.len();
-    if lags == 0 || components == 0 || w_sq.is_nan() || w_sq <= 0.0 {
+    if lags == 0 || components == 0 || lag_pairs.iter().all(|&m| m == 0) {
         return None;
+    }
+    const TEST: &str = "innovation_whiteness";
+    let finite = w_sq.is_finite() && lag_prod.iter().all(|p| p.is_finite());
+    if !finite || w_sq <= 0.0 {
+        return Some(TestResult::not_computed(
+            TEST,
+            None,
+            None,
+            Some(lags as f64),
+        ));
     }
     let variance = w_sq / components as f64;
     let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
@@ -294,7 +404,7 @@ pub fn whiteness_test(
     }
     let (z, rho, half) = worst?;
     Some(TestResult {
-        test: "innovation_whiteness".into(),
+        test: TEST.into(),
         statistic: rho,
         lower: Some(-half),
         upper: Some(half),
@@ -681,13 +791,12 @@ impl CellSums {
                 .then(|| out.iter().find(|t| t.test == "nees_run_average_t").cloned())
                 .flatten()
         });
-        // A p-value that is missing or NaN is a verdict that could not be computed: none is
-        // written (NaN compares false, and `f64::min` would drop it silently).
-        let judged =
-            |t: &TestResult| t.statistic.is_finite() && t.p_value.is_some_and(f64::is_finite);
+        // A test that was not computed (a NaN statistic, a missing or NaN p-value) is a
+        // verdict that could not be computed: none is written (NaN compares false, and
+        // `f64::min` would drop it silently).
         if let (Some(a), Some(b)) = (&nees, &nis)
-            && judged(a)
-            && judged(b)
+            && a.computed()
+            && b.computed()
         {
             let (pa, pb) = (a.p_value.unwrap_or(0.0), b.p_value.unwrap_or(0.0));
             let pass = pa > alpha / 2.0 && pb > alpha / 2.0;
@@ -844,6 +953,156 @@ mod tests {
         assert!((chi2_two_sided_p(x, 2.0).unwrap() - 0.05).abs() < 1e-12);
         assert!((normal_two_sided_p(1.959963984540054) - 0.05).abs() < 1e-9);
         assert!((normal_quantile(0.975) - 1.959963984540054).abs() < 1e-9);
+    }
+
+    /// ln Σ_{k<m} (x/2)^k / k!: with e^{−x/2} the χ²(2m) survival function, in log space
+    /// (ln k! summed from ln j, not from a gamma function).
+    fn ln_poisson_head(x: f64, m: usize) -> f64 {
+        let h = x / 2.0;
+        let mut ln_fact = 0.0;
+        let terms: Vec<f64> = (0..m)
+            .map(|k| {
+                if k > 0 {
+                    ln_fact += (k as f64).ln();
+                }
+                k as f64 * h.ln() - ln_fact
+            })
+            .collect();
+        let top = terms.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        top + terms.iter().map(|t| (t - top).exp()).sum::<f64>().ln()
+    }
+
+    fn rel(a: f64, b: f64) -> f64 {
+        ((a - b) / b).abs()
+    }
+
+    #[test]
+    fn far_tail_p_values_keep_their_digits() {
+        // χ² with even dof 2m: P(X > x) = e^{−x/2} Σ_{k<m} (x/2)^k / k! exactly. These tails
+        // are far below 1e-16, where 1 − cdf is 0.
+        for (x, dof) in [(200.0, 6.0), (1000.0, 20.0), (1200.0, 400.0)] {
+            let exact =
+                (2.0 * (-x / 2.0 + ln_poisson_head(x, (dof / 2.0) as usize)).exp()).min(1.0);
+            assert!(exact > 0.0 && exact < 1e-20, "{x}, {dof}: {exact}");
+            let p = chi2_two_sided_p(x, dof).unwrap();
+            assert!(rel(p, exact) < 1e-8, "χ²({dof}) at {x}: {p} vs {exact}");
+        }
+        // Hard numbers from mpmath 1.3 at 50 digits: 2·gammainc(k/2, x/2, ∞, regularized),
+        // erfc(z/√2) and betainc(ν/2, 1/2, 0, ν/(ν + t²), regularized).
+        let p = chi2_two_sided_p(400.0, 3.0).unwrap();
+        assert!(rel(p, 4.427773186202235e-86) < 1e-10, "{p}");
+        let p = chi2_two_sided_p(2400.0, 1201.0).unwrap();
+        assert!(rel(p, 5.05404850716276e-82) < 1e-9, "{p}");
+        // The dof of a large study's NEES test (N·K·n of about a million).
+        let p = chi2_two_sided_p(209_500.0, 2.0e5).unwrap();
+        assert!(rel(p, 1.6889899959214821e-49) < 1e-9, "{p}");
+        let p = chi2_two_sided_p(1_223_000.0, 1.2e6).unwrap();
+        assert!(rel(p, 2.9402450564040366e-49) < 1e-9, "{p}");
+        let p = normal_two_sided_p(20.0);
+        assert!(rel(p, 5.5072482372124675e-89) < 1e-8, "{p}");
+        let p = normal_two_sided_p(-37.0);
+        assert!(rel(p, 1.1451142445049154e-299) < 1e-8, "{p}");
+        let p = t_two_sided_p(30.0, 49.0).unwrap();
+        assert!(rel(p, 3.407670106498325e-33) < 1e-10, "{p}");
+        let p = t_two_sided_p(-1000.0, 9.0).unwrap();
+        assert!(rel(p, 5.091606607896935e-24) < 1e-10, "{p}");
+        // Closed forms: with 1 dof p = (2/π)·atan(1/t), with 2 dof p = 1 − t/√(t² + 2).
+        let p = t_two_sided_p(1e20, 1.0).unwrap();
+        assert!(rel(p, 2.0 / std::f64::consts::PI * 1e-20) < 1e-12, "{p}");
+        let t = 1e6f64;
+        let r = (t * t + 2.0).sqrt();
+        let p = t_two_sided_p(t, 2.0).unwrap();
+        assert!(rel(p, 2.0 / (r * (r + t))) < 1e-10, "{p}");
+        // Larger statistics, smaller p-values: the order survives far into the tail.
+        let ps: Vec<f64> = [300.0, 400.0, 600.0, 900.0]
+            .map(|x| chi2_two_sided_p(x, 6.0).unwrap())
+            .to_vec();
+        assert!(ps.windows(2).all(|w| w[0] > w[1] && w[1] > 0.0), "{ps:?}");
+    }
+
+    #[test]
+    fn a_statistic_that_is_not_a_number_has_no_p_value() {
+        assert_eq!(chi2_two_sided_p(f64::NAN, 6.0), None);
+        assert_eq!(t_two_sided_p(f64::NAN, 6.0), None);
+        for mean in [f64::NAN, f64::INFINITY] {
+            let r = scaled_chi2_test("nees_time_average", mean, 6.0, 300.0, 0.05).unwrap();
+            assert!(r.statistic.is_nan() && r.p_value.is_none(), "{r:?}");
+            assert!(!r.pass && !r.computed() && r.direction.is_none(), "{r:?}");
+            assert!(r.lower.is_some() && r.upper.is_some());
+        }
+    }
+
+    #[test]
+    fn a_t_test_without_spread_is_a_rejection_or_not_computed_never_a_pass() {
+        // Every run's NEES exactly 0 where 6 is expected: no spread, mean far from μ.
+        let r = t_test("nees_run_average_t", &[0.0; 30], 6.0, 0.05, true).unwrap();
+        assert_eq!(r.statistic, f64::NEG_INFINITY, "{r:?}");
+        assert_eq!(r.p_value, Some(0.0));
+        assert!(!r.pass && r.computed());
+        assert_eq!(r.direction, Some(Direction::Pessimistic));
+        // An estimate off by 1e20 in every run: run-to-run differences below one ulp.
+        let v: Vec<f64> = (0..30).map(|i| 1e20 + (i % 2) as f64 * 16384.0).collect();
+        let r = t_test("bias_x", &v, 0.0, 0.05, true).unwrap();
+        assert_eq!(r.statistic, f64::INFINITY, "{r:?}");
+        assert!(!r.pass && r.computed() && r.p_value == Some(0.0), "{r:?}");
+        // No spread and the mean is μ: 0/0, not computed.
+        let r = t_test("bias_x", &[0.0; 30], 0.0, 0.05, true).unwrap();
+        assert!(r.statistic.is_nan() && r.p_value.is_none(), "{r:?}");
+        assert!(!r.pass && !r.computed());
+        // A value or a square that overflowed: no mean or no spread to test.
+        let mut v: Vec<f64> = (0..30).map(|i| 6.0 + (i as f64 * 0.7).sin()).collect();
+        v[4] = 1e160;
+        let r = t_test("nees_run_average_t", &v, 6.0, 0.05, true).unwrap();
+        assert!(!r.pass && !r.computed(), "{r:?}");
+        for bad in [f64::INFINITY, f64::NAN] {
+            v[4] = bad;
+            let r = t_test("nees_run_average_t", &v, 6.0, 0.05, true).unwrap();
+            assert!(!r.pass && !r.computed(), "{bad}: {r:?}");
+        }
+        // A real spread is tested as before.
+        v[4] = 6.0;
+        let r = t_test("nees_run_average_t", &v, 6.0, 0.05, true).unwrap();
+        assert!(r.computed() && r.statistic.is_finite(), "{r:?}");
+    }
+
+    #[test]
+    fn whiteness_from_sums_that_are_not_finite_or_zero_is_not_computed() {
+        for (prod, w_sq) in [
+            ([0.5, f64::NAN], 40.0),
+            ([0.5, 0.1], f64::INFINITY),
+            ([f64::INFINITY, 0.1], 40.0),
+            ([0.0, 0.0], 0.0),
+        ] {
+            let r = whiteness_test(&prod, &[38, 36], w_sq, 40, 0.05).unwrap();
+            assert!(!r.pass && !r.computed(), "{prod:?}, {w_sq}: {r:?}");
+        }
+        assert!(
+            whiteness_test(&[0.5, 0.1], &[38, 36], 40.0, 40, 0.05).is_some_and(|r| r.computed())
+        );
+    }
+
+    #[test]
+    fn a_cell_whose_nees_is_exactly_zero_is_rejected_by_the_model_free_verdict() {
+        // 25 runs without an error transition (the model-free verdict), every NEES 0: the
+        // filter's estimate is the truth at every step, where n = 2 is expected.
+        let runs: Vec<RunConsistency> = runs_25()
+            .into_iter()
+            .map(|r| RunConsistency {
+                nees_sum: 0.0,
+                rho_sum: None,
+                nme_sum: vec![0.0, 0.0],
+                ..r
+            })
+            .collect();
+        let tests = cell_tests(&runs, 2, &["a", "b"], 0.05, (None, None));
+        let t = find(&tests, "nees_run_average_t");
+        assert!(!t.pass && t.computed() && t.p_value == Some(0.0), "{t:?}");
+        let v = find(&tests, VERDICT);
+        assert!(!v.pass && v.computed(), "{v:?}");
+        assert_eq!(v.direction, Some(Direction::Pessimistic));
+        // Every normalised error exactly 0 and μ = 0: the bias tests cannot be computed.
+        let b = find(&tests, "bias_a");
+        assert!(!b.pass && !b.computed(), "{b:?}");
     }
 
     #[test]

@@ -75,6 +75,13 @@ pub enum RunStatus {
         /// The filter's error message.
         detail: String,
     },
+    /// The run has no data at all (an external filter's estimates leave it out): it was not
+    /// run, so it is neither a success nor a failure, and a case judged on the runs the spec
+    /// declares is incomplete without it.
+    Missing {
+        /// Why, e.g. which filter's estimates lack it.
+        detail: String,
+    },
 }
 
 impl RunStatus {
@@ -84,12 +91,21 @@ impl RunStatus {
             RunStatus::Ok => "ok",
             RunStatus::Diverged { .. } => "diverged",
             RunStatus::NumericalFailure { .. } => "numerical_failure",
+            RunStatus::Missing { .. } => "missing",
         }
+    }
+    /// Whether the run is left out of every statistic (a numerical failure, or a missing
+    /// run): its RMSE is null in `runs.parquet` and it is no term of the summary.
+    pub fn left_out(&self) -> bool {
+        matches!(
+            self,
+            RunStatus::NumericalFailure { .. } | RunStatus::Missing { .. }
+        )
     }
     /// The step of a divergence or failure.
     pub fn step(&self) -> Option<usize> {
         match self {
-            RunStatus::Ok => None,
+            RunStatus::Ok | RunStatus::Missing { .. } => None,
             RunStatus::Diverged { step, .. } | RunStatus::NumericalFailure { step, .. } => {
                 Some(*step)
             }
@@ -99,9 +115,9 @@ impl RunStatus {
     pub fn detail(&self) -> Option<&str> {
         match self {
             RunStatus::Ok => None,
-            RunStatus::Diverged { detail, .. } | RunStatus::NumericalFailure { detail, .. } => {
-                Some(detail)
-            }
+            RunStatus::Diverged { detail, .. }
+            | RunStatus::NumericalFailure { detail, .. }
+            | RunStatus::Missing { detail } => Some(detail),
         }
     }
 }
@@ -396,6 +412,44 @@ impl StepValues {
         &self.sq_err
     }
 
+    /// Where the run's sums overflowed although each step's value was finite (errors near
+    /// 1e154 over a few steps overflow the sum of their squares): an infinite RMSE or mean
+    /// NEES is a numerical failure at the step whose term made it so, never a run that is
+    /// "ok". (A NaN error stops the step loop itself; a NaN sum is no overflow.)
+    fn overflow(&self, state_names: &[&str]) -> Option<(usize, String)> {
+        let nx = self.nx;
+        let done = &self.sq_err[..self.completed * nx];
+        fn first_k(values: impl Iterator<Item = f64>) -> Option<usize> {
+            let mut s = 0.0f64;
+            values
+                .enumerate()
+                .find(|&(_, v)| {
+                    s += v;
+                    s.is_infinite()
+                })
+                .map(|(k, _)| k)
+        }
+        if let Some(i) = (0..nx).find(|&i| self.sq_err_sum[i].is_infinite()) {
+            let k = first_k(done.chunks_exact(nx).map(|row| row[i]))?;
+            return Some((
+                k,
+                format!(
+                    "the sum of squared errors of {} is not finite: its RMSE cannot be computed",
+                    state_names.get(i).unwrap_or(&"?")
+                ),
+            ));
+        }
+        if self.nees_sum.0.is_infinite() {
+            let nees = self.nees[..self.completed].iter().enumerate().skip(1);
+            let k = first_k(nees.map(|(_, &v)| if v.is_nan() { 0.0 } else { v }))?;
+            return Some((
+                k + 1,
+                "the sum of NEES is not finite: its mean cannot be computed".into(),
+            ));
+        }
+        None
+    }
+
     /// Summarises the run: RMSE, means and the threshold-based status.
     pub fn finish(
         self,
@@ -405,6 +459,7 @@ impl StepValues {
         covariance_repairs: u32,
     ) -> FilterRun {
         let nx = self.nx;
+        let failure = failure.or_else(|| self.overflow(state_names));
         let n = self.completed.max(1) as f64;
         let sums = &self.sq_err_sum;
         // The first step where Σ_{j≤k} e_j² > thr²·(K+1) per state: the crossing is certain.
@@ -733,6 +788,32 @@ mod tests {
         assert_eq!(r.status.step(), Some(1));
         assert_eq!(r.status.label(), "diverged");
         assert_eq!(r.nees_mean, None);
+    }
+
+    #[test]
+    fn a_run_whose_rmse_or_mean_nees_overflows_failed_numerically() {
+        // Each squared error (1e308) is finite; their sum over two steps is not.
+        let mut v = StepValues::new(2, 2);
+        for _ in 0..3 {
+            v.record(&[1.0, 1e154], 2.0, f64::NAN, 0);
+        }
+        let r = v.finish(None, None, &["a", "b"], 0);
+        assert_eq!(r.status.label(), "numerical_failure", "{:?}", r.status);
+        assert_eq!(r.status.step(), Some(1));
+        assert!(
+            r.status.detail().unwrap().contains("of b"),
+            "{:?}",
+            r.status
+        );
+        // Finite errors, NEES whose sum overflows at step 2.
+        let mut v = StepValues::new(1, 3);
+        v.record(&[1.0], f64::NAN, f64::NAN, 0);
+        for _ in 0..3 {
+            v.record(&[1.0], 1e308, f64::NAN, 0);
+        }
+        let r = v.finish(None, None, &["a"], 0);
+        assert_eq!(r.status.label(), "numerical_failure", "{:?}", r.status);
+        assert_eq!(r.status.step(), Some(2));
     }
 
     #[test]

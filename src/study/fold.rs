@@ -133,7 +133,16 @@ impl Aggregator<'_> {
             self.accumulate(scenario, scale, run, fi, fr)?;
         }
         if let (Some(tr), Some(w)) = (&r.trace, self.estimates.as_mut()) {
-            write_estimates(w, plan, sname, noise, run, tr, self.states.len())?;
+            // A filter that failed numerically is marked failed from its failing step on.
+            let failed_from: Vec<Option<usize>> = r
+                .filters
+                .iter()
+                .map(|f| match f.status {
+                    RunStatus::NumericalFailure { step, .. } => Some(step),
+                    _ => None,
+                })
+                .collect();
+            write_estimates(w, plan, sname, noise, run, tr, &failed_from)?;
         }
         if let Some(tr) = r.trace.as_ref().filter(|_| run < plan.trace_runs) {
             self.write_traces(sname, noise, run, tr)?;
@@ -203,7 +212,7 @@ impl Aggregator<'_> {
         seed: u64,
         fr: &FilterRun,
     ) -> Result<(), OutputError> {
-        let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
+        let left_out = fr.status.left_out();
         let mut row = key.to_vec();
         row.extend([
             Value::I64(Some(run as i64)),
@@ -212,7 +221,11 @@ impl Aggregator<'_> {
             Value::I64(fr.status.step().map(|s| s as i64)),
             Value::Str(fr.status.detail().unwrap_or("")),
         ]);
-        row.extend(fr.rmse.iter().map(|v| Value::F64((!failed).then_some(*v))));
+        row.extend(
+            fr.rmse
+                .iter()
+                .map(|v| Value::F64((!left_out).then_some(*v))),
+        );
         row.extend([
             Value::F64(fr.nees_mean),
             Value::F64(fr.nis_mean),
@@ -237,6 +250,7 @@ impl Aggregator<'_> {
     ) -> Result<(), OutputError> {
         let plan = self.plan;
         let failed = matches!(fr.status, RunStatus::NumericalFailure { .. });
+        let left_out = fr.status.left_out();
         let (_, _, cell) = self.cell.as_mut().expect("fold opens the cell");
         cell.acc[fi].fold(&fr.steps);
         if let Some(c) = &fr.consistency {
@@ -245,13 +259,14 @@ impl Aggregator<'_> {
         if let Some(c) = cell.credibility.get_mut(fi) {
             c.push(&fr.steps)?;
         }
+        // A missing run is neither a completed run nor a failure (`runs_failed`).
         if failed {
             cell.failed[fi] += 1;
-        } else {
+        } else if !left_out {
             cell.rmse[fi].push(&fr.rmse)?;
         }
         if let Some(thr) = &plan.rmse_thresholds {
-            let rmse: Vec<f64> = if failed {
+            let rmse: Vec<f64> = if left_out {
                 vec![f64::NAN; self.states.len()]
             } else {
                 fr.rmse.clone()
@@ -596,7 +611,8 @@ impl Aggregator<'_> {
                     Value::F64(t.upper),
                     Value::F64(t.dof),
                     Value::F64(t.p_value),
-                    Value::Bool(Some(t.pass)),
+                    // A test that could not be computed neither passed nor failed.
+                    Value::Bool(t.computed().then_some(t.pass)),
                     Value::Str(t.direction.map_or("", |d| d.label())),
                     Value::F64(Some(alpha)),
                     Value::I64(Some(sums.runs() as i64)),
@@ -700,8 +716,9 @@ pub(super) fn write_estimates(
     noise: f64,
     run: usize,
     tr: &RunTrace,
-    nq: usize,
+    failed_from: &[Option<usize>],
 ) -> Result<(), OutputError> {
+    let nq = plan.layout().quantities.len();
     let ntri = nq * (nq + 1) / 2;
     let nz = plan.layout().measurements.len();
     let ztri = nz * (nz + 1) / 2;
@@ -730,6 +747,7 @@ pub(super) fn write_estimates(
                 Value::Str(&f.label),
             ];
             row.extend_from_slice(&w.variant_keys[fi]);
+            row.push(Value::Bool(Some(failed_from[fi].is_some_and(|f| f <= k))));
             row.extend(estimate(&tr.est[fi][k * nq..(k + 1) * nq]));
             row.extend(f64s(&tr.cov[fi][k * ntri..(k + 1) * ntri]));
             row.extend(f64s(&x.nu[k * nz..(k + 1) * nz]));

@@ -291,6 +291,96 @@ def test_estimates_of_another_world_are_refused(world, tmp_path):
         kfmc.check(gate, estimates=est, seed=99, out=tmp_path / "y")
 
 
+def test_failed_at_marks_the_failed_column_and_only_marked_runs_count_as_failed(world, tmp_path):
+    sim, own, runs, _ = world
+    est = kfmc.Estimates(sim, "mine")
+    for i, (key, (x, P, nu, S, A)) in enumerate(runs):
+        if i == 1:
+            continue  # left out: missing, not failed
+        est.add_run(*key, x=x, P=P, nu=nu, S=S, A=A, failed_at=7 if i == 2 else None)
+    table = est.to_polars()
+    assert table["failed"].dtype == pl.Boolean
+    k2 = runs[2][0]
+    marked = table.filter(pl.col("failed"))
+    assert marked.select(KEYS).unique().rows() == [k2]
+    assert marked["step"].min() == 7
+    study = kfmc.score(sim, est, out=tmp_path / "s", quiet=True)
+    assert study.report["runs_missing"] == {"mine": 1}
+    mine = study.table("runs").filter(pl.col("filter") == "mine")
+    assert (mine["status"] == "numerical_failure").sum() == 1
+    assert (mine["status"] == "missing").sum() == 1
+    missing = mine.filter(pl.col("status") == "missing")
+    assert missing.select(KEYS).rows() == [runs[1][0]]
+    # Missing runs are in neither count of the summary.
+    summary = study.table("summary").filter(pl.col("filter") == "mine")
+    k1 = runs[1][0]
+    cell = summary.filter((pl.col("scenario") == k1[0]) & (pl.col("noise_scale") == k1[1]))
+    assert set(cell["runs"]) == {L1["runs"] - 1 - (k2[:2] == k1[:2])}
+    assert set(cell["runs_failed"]) == {int(k2[:2] == k1[:2])}
+    # A gate that tolerates every failure is still incomplete on a missing run.
+    gate = dict(
+        with_external(L1),
+        check={"max_failed_runs": 1.0, "assert": [{"kind": "consistent", "filter": "mine"}]},
+    )
+    r = kfmc.check(gate, estimates=est, out=tmp_path / "gate")
+    name = f"consistent[{k1[0]} noise={k1[1]:g} mine]"
+    (case,) = [c for c in r.cases if c["name"] == name]
+    assert case["incomplete"] and "missing" in case["detail"], case
+    assert "failed numerically" not in r.report, r.report
+
+
+def test_the_gate_holds_tables_in_memory_to_the_world_stamp(world, tmp_path):
+    """A pyarrow Table read from a file of another seed carries that seed in its schema
+    metadata and is refused; a table without a stamp needs allow_unstamped=True; a
+    kfmc.Estimates carries its simulation's stamp. With only a `white` assertion the gate
+    passed on the wrong world."""
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    sim, own, runs, _ = world
+    gate = dict(with_external(L1), check={"assert": [{"kind": "white", "filter": "mine"}]})
+    other = kfmc.simulate(with_external(L1), out=tmp_path / "other", seed=99, quiet=True)
+    theirs = build(other, runs).write(tmp_path / "theirs.parquet")
+    table = pq.read_table(theirs)
+    assert table.schema.metadata[b"kfmc.master_seed"] == b"99"
+    with pytest.raises(kfmc.EstimatesError, match="another simulation.*master_seed = 99"):
+        kfmc.check(gate, estimates=table, out=tmp_path / "a")
+    with pytest.raises(kfmc.EstimatesError, match="another simulation"):
+        kfmc.score(sim, table, out=tmp_path / "a2", quiet=True)
+    # Unstamped: refused by the gate unless allowed, as the command refuses the file.
+    bare = pq.read_table(theirs).replace_schema_metadata(None)
+    for unstamped in (bare, pl.from_arrow(bare)):
+        with pytest.raises(kfmc.EstimatesError, match="carries no world stamp.*allow_unstamped=True"):
+            kfmc.check(gate, estimates=unstamped, out=tmp_path / "b")
+    # Stamped with this world, or allowed: judged (passed or failed, never refused).
+    ours = pq.read_table(build(sim, runs).write(tmp_path / "ours.parquet"))
+    judged = [
+        kfmc.check(gate, estimates=ours, out=tmp_path / "c"),
+        kfmc.check(gate, estimates=own, out=tmp_path / "d", allow_unstamped=True),
+        kfmc.check(gate, estimates=build(sim, runs), out=tmp_path / "e"),
+    ]
+    assert all(r.exit_code in (0, 3) for r in judged), [r.report for r in judged]
+    assert len({r.report for r in judged}) == 1
+
+
+def test_a_filter_without_innovations_is_not_judged_rather_than_left_out(world, tmp_path):
+    sim, own, runs, _ = world
+    est = kfmc.Estimates(sim, "mine")
+    for key, (x, P, nu, S, A) in runs:
+        est.add_run(*key, x=x, P=P, A=A)
+    study = kfmc.score(sim, est, out=tmp_path / "s", quiet=True)
+    v = study.verdict()
+    mine = v.filter(pl.col("filter") == "mine")
+    assert mine.height == len(L1["scenarios"]) * len(L1["noise"]["scales"])
+    assert set(mine["note"]) == {"not judged: no innovations"}
+    assert mine["pass"].null_count() == mine.height and mine["p_value"].null_count() == mine.height
+    kf = v.filter(pl.col("filter") == "kf")
+    assert kf["note"].null_count() == kf.height and kf["pass"].null_count() == 0
+    gate = dict(with_external(L1), check={"assert": [{"kind": "consistent", "filter": "mine"}]})
+    r = kfmc.check(gate, estimates=est, out=tmp_path / "gate")
+    assert r.exit_code == 4 and "not judged: no innovations" in r.report, r.report
+
+
 def merwe(n, alpha=1.0, beta=2.0, kappa=0.0):
     lam = alpha**2 * (n + kappa) - n
     wm = np.full(2 * n + 1, 0.5 / (n + lam))
@@ -608,7 +698,7 @@ def test_estimates_streamed_to_a_path_are_the_file_write_writes(world, tmp_path,
 
     sim, own, runs, _ = world
     # Small groups, so that these 32 runs make several.
-    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", 77 * 100)
+    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", len(own.columns) * 100)
     whole = build(sim, runs, **options)
     assert whole.buffered_rows == len(whole) == own.height
     whole.write(tmp_path / "whole.parquet")
@@ -656,7 +746,7 @@ def test_a_streamed_table_scores_and_an_abandoned_one_leaves_no_file(world, tmp_
     import gc
 
     sim, own, runs, _ = world
-    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", 77 * 100)
+    monkeypatch.setattr(importlib.import_module("kfmc._estimates"), "_GROUP_VALUES", len(own.columns) * 100)
     whole = build(sim, runs)
     # Scoring a streamed table closes it and reads its file.
     est = build(sim, runs, path=tmp_path / "s.parquet")

@@ -18,7 +18,8 @@ use crate::common::{f64s, read};
 use kfmc::linalg::Matrix;
 use polars::prelude::*;
 
-const KEYS: [&str; 5] = ["scenario", "noise_scale", "run", "step", "filter"];
+/// The key columns, and the boolean `failed` that marks a failed run: no value column.
+const KEYS: [&str; 6] = ["scenario", "noise_scale", "run", "step", "filter", "failed"];
 
 /// The tables `kfmc score` writes that depend on the estimates.
 const TABLES: [&str; 6] = [

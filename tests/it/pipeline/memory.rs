@@ -300,7 +300,20 @@ fn reference_cell_tests(
     }
     let lags = runs[0].lag_prod.len();
     let w_sq: f64 = runs.iter().map(|r| r.w_sq).sum();
-    if lags > 0 && nis_dof > 0 && w_sq > 0.0 {
+    // Sums that are not finite, or innovations all zero, leave the test not computed.
+    let prods: Vec<f64> = (0..lags)
+        .map(|l| runs.iter().map(|r| r.lag_prod[l]).sum())
+        .collect();
+    let any_pairs = (0..lags).any(|l| runs.iter().map(|r| r.lag_pairs[l]).sum::<u64>() > 0);
+    let finite = w_sq.is_finite() && prods.iter().all(|p| p.is_finite());
+    if lags > 0 && nis_dof > 0 && any_pairs && (!finite || w_sq <= 0.0) {
+        out.push(TestResult::not_computed(
+            "innovation_whiteness",
+            None,
+            None,
+            Some(lags as f64),
+        ));
+    } else if lags > 0 && nis_dof > 0 && w_sq > 0.0 {
         let variance = w_sq / nis_dof as f64;
         let crit = normal_quantile(1.0 - alpha / (2.0 * lags as f64));
         let mut worst: Option<(f64, f64, f64)> = None;
@@ -341,16 +354,15 @@ fn reference_cell_tests(
         }
     }
     // The model-free test stands in only for a filter that exposes no transition on any run;
-    // a NaN statistic or p-value leaves no verdict.
+    // a test not computed (a NaN statistic or p-value) leaves no verdict.
     let nees = nees.or_else(|| {
         (runs.len() >= 20 && runs.iter().all(|r| r.rho_sum.is_none()))
             .then(|| out.iter().find(|t| t.test == "nees_run_average_t").cloned())
             .flatten()
     });
-    let judged = |t: &TestResult| t.statistic.is_finite() && t.p_value.is_some_and(f64::is_finite);
     if let (Some(a), Some(b)) = (&nees, &nis)
-        && judged(a)
-        && judged(b)
+        && a.computed()
+        && b.computed()
     {
         let (pa, pb) = (a.p_value.unwrap_or(0.0), b.p_value.unwrap_or(0.0));
         let pass = pa > alpha / 2.0 && pb > alpha / 2.0;
