@@ -128,6 +128,9 @@ pub struct UnitResult {
 pub struct ConsistencyOptions {
     /// Innovation-whiteness lags 1..=L.
     pub lags: usize,
+    /// Steps 1..=B whose innovations stay out of the whiteness sums (and out of their lag
+    /// products with later steps).
+    pub whiteness_burn_in: usize,
     /// Whether the prior is not an independent draw (x̂_0 = x_0, or a batch estimate from the
     /// same measurements), so a burn-in is needed until it is forgotten.
     pub burn_in: bool,
@@ -221,6 +224,7 @@ pub fn wrap_angle(e: f64, degrees: bool) -> f64 {
 /// step's innovation.
 #[derive(Clone, Copy)]
 struct WindowStep<'s, const NX: usize, const NZ: usize> {
+    k: usize,
     chol: &'s SmallCholesky<NX>,
     p: &'s Matrix<NX, NX>,
     p_prev: &'s Matrix<NX, NX>,
@@ -233,6 +237,8 @@ struct WindowStep<'s, const NX: usize, const NZ: usize> {
 /// Consistency sums from one starting step on: W_k for ρ, the whitened-innovation lags, …
 struct Window<const NX: usize, const NZ: usize> {
     first: usize,
+    /// The first step whose innovation enters the whiteness sums.
+    white_from: usize,
     w: Matrix<NX, NX>,
     started: bool,
     sums: RunConsistency,
@@ -240,9 +246,10 @@ struct Window<const NX: usize, const NZ: usize> {
 }
 
 impl<const NX: usize, const NZ: usize> Window<NX, NZ> {
-    fn new(first: usize, lags: usize) -> Self {
+    fn new(first: usize, lags: usize, white_from: usize) -> Self {
         Window {
             first,
+            white_from,
             w: Matrix::<NX, NX>::zeros(),
             started: false,
             sums: RunConsistency {
@@ -260,6 +267,7 @@ impl<const NX: usize, const NZ: usize> Window<NX, NZ> {
     /// Adds step k.
     fn observe(&mut self, step: &WindowStep<'_, NX, NZ>) {
         let WindowStep {
+            k,
             chol,
             p,
             p_prev,
@@ -289,7 +297,10 @@ impl<const NX: usize, const NZ: usize> Window<NX, NZ> {
             s.nis_sum += inn.nis;
             s.nis_dof += inn.dof as u64;
             s.nis_n += 1;
+        }
+        if let Some(inn) = innovation.filter(|_| k >= self.white_from) {
             s.w_sq += inn.whitened.norm_squared();
+            s.w_n += inn.dof as u64;
             for (l, (w_old, av_old)) in self.recent.iter().rev().enumerate() {
                 s.lag_prod[l] += w_old.dot(&inn.whitened);
                 s.lag_pairs[l] += (av_old.0 & inn.available.0).count_ones() as u64;
@@ -432,7 +443,8 @@ where
     }
     // Truth mode: one window from step 1 and one from the end of the burn-in (G_k tracks the
     // prior's share of P_k); sampled mode: the prior is real, so every step from 1 counts.
-    let mut from_start = opts.map(|_| Window::<NQ, NZ>::new(1, lags));
+    let white_from = opts.map_or(1, |o| o.whiteness_burn_in + 1);
+    let mut from_start = opts.map(|_| Window::<NQ, NZ>::new(1, lags, white_from));
     let mut after_burn_in: Option<Window<NQ, NZ>> = None;
     let p0_q = eval.covariance(prior.x0_hat, prior.p0);
     let mut g = opts.filter(|o| o.burn_in).map(|_| p0_q);
@@ -529,10 +541,11 @@ where
                 if let (Some(gm), Some(a)) = (g.as_mut(), a.as_ref()) {
                     *gm = a * *gm * a.transpose();
                     if after_burn_in.is_none() && chol.solve(gm).trace() <= BURN_IN_THRESHOLD {
-                        after_burn_in = Some(Window::new(k, lags));
+                        after_burn_in = Some(Window::new(k, lags, white_from));
                     }
                 }
                 let step = WindowStep {
+                    k,
                     chol: &chol,
                     p: p_now,
                     p_prev: &p_prev,

@@ -185,6 +185,7 @@ fn stage(
     p.consistency = Some(ConsistencyPlan {
         alpha: plan.alpha,
         whiteness_lags: 0,
+        whiteness_burn_in: 0,
         subsets: Vec::new(),
     });
     p.filters = grid

@@ -688,7 +688,14 @@ pub(crate) fn validate_into(
         .unwrap_or_default();
     let rmse_thresholds = rmse_thresholds(&mut c, &spec, configured.is_some(), states.len());
     let runs = spec.runs.unwrap_or(100);
-    let consistency = consistency_table(&mut c, &spec, runs);
+    // The shortest scenario bounds the whiteness burn-in.
+    let shortest = configured.as_deref().and_then(|s| {
+        s.scenarios()
+            .iter()
+            .min_by_key(|s| s.steps)
+            .map(|s| (s.steps, s.name.clone()))
+    });
+    let consistency = consistency_table(&mut c, &spec, runs, shortest);
     let targets = Targets {
         spec: &spec,
         names: &names,
@@ -1082,8 +1089,14 @@ struct Consistency {
     plan: Option<ConsistencyPlan>,
 }
 
-/// `[consistency]`: α, the whiteness lags and the subsets evaluated on the first runs.
-fn consistency_table(c: &mut Checker, spec: &Spec, runs: u64) -> Consistency {
+/// `[consistency]`: α, the whiteness lags and burn-in, and the subsets evaluated on the first
+/// runs. `shortest`: the (steps, name) of the shortest scenario, when the system is known.
+fn consistency_table(
+    c: &mut Checker,
+    spec: &Spec,
+    runs: u64,
+    shortest: Option<(usize, String)>,
+) -> Consistency {
     let cs = spec.consistency.as_deref();
     let alpha = cs.and_then(|c| c.alpha).unwrap_or(0.05);
     if !(alpha > 0.0 && alpha < 1.0) {
@@ -1098,6 +1111,25 @@ fn consistency_table(c: &mut Checker, spec: &Spec, runs: u64) -> Consistency {
             format!(
                 "{whiteness_lags} lags; at most {}",
                 limits::MAX_WHITENESS_LAGS
+            ),
+        );
+    }
+    let whiteness_burn_in = cs.and_then(|c| c.whiteness_burn_in).unwrap_or(0);
+    if whiteness_burn_in > 0 && whiteness_lags == 0 {
+        c.err(
+            "consistency.whiteness_burn_in",
+            "drops steps from a whiteness test that whiteness_lags = 0 does not compute",
+        );
+    }
+    // Without a burn-in, lags beyond the run are the lags' business, not this key's.
+    if let Some((steps, name)) = shortest
+        && whiteness_burn_in > 0
+        && whiteness_burn_in.saturating_add(whiteness_lags) >= steps as u64
+    {
+        c.err(
+            "consistency.whiteness_burn_in",
+            format!(
+                "{whiteness_burn_in} steps dropped and {whiteness_lags} lags leave no lag pair in scenario {name:?} ({steps} steps)"
             ),
         );
     }
@@ -1129,6 +1161,7 @@ fn consistency_table(c: &mut Checker, spec: &Spec, runs: u64) -> Consistency {
         plan: cs.map(|_| ConsistencyPlan {
             alpha,
             whiteness_lags: whiteness_lags as usize,
+            whiteness_burn_in: whiteness_burn_in as usize,
             subsets,
         }),
     }

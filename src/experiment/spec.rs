@@ -117,6 +117,8 @@ pub struct ConsistencySpec {
     pub alpha: Option<f64>,
     /// Innovation-whiteness lags 1..=L (default 5).
     pub whiteness_lags: Option<u64>,
+    /// Steps 1..=B left out of the whiteness sums (default 0).
+    pub whiteness_burn_in: Option<u64>,
     /// The same tests again on the first `runs` runs at their own α (`[[consistency.subsets]]`).
     #[serde(default)]
     pub subsets: Vec<TableOf<ConsistencySubsetSpec>>,

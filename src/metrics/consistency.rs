@@ -543,6 +543,8 @@ pub struct CellSums {
     /// Σ initial NEES, `None` once a run has none.
     initial: Option<f64>,
     w_sq: f64,
+    /// Components in `w_sq`.
+    w_n: u64,
     /// Per lag, sized by the first counted run.
     lag_prod: Option<Vec<f64>>,
     lag_pairs: Vec<u64>,
@@ -572,6 +574,7 @@ impl CellSums {
             nis_sum: -0.0,
             initial: Some(-0.0),
             w_sq: -0.0,
+            w_n: 0,
             lag_prod: None,
             lag_pairs: Vec::new(),
             per_run_sum: vec![-0.0; 1 + bias_states],
@@ -623,6 +626,7 @@ impl CellSums {
         self.nis_sum += r.nis_sum;
         self.initial = self.initial.and_then(|a| r.initial_nees.map(|x| a + x));
         self.w_sq += r.w_sq;
+        self.w_n += r.w_n;
         let prod = self.lag_prod.get_or_insert_with(|| {
             self.lag_pairs = vec![0; r.lag_prod.len()];
             vec![-0.0; r.lag_prod.len()]
@@ -767,7 +771,7 @@ impl CellSums {
             self.lag_prod.as_deref().unwrap_or(&[]),
             &self.lag_pairs,
             self.w_sq,
-            self.nis_dof,
+            self.w_n,
             alpha,
         ));
 
@@ -1131,6 +1135,7 @@ mod tests {
             lag_prod: vec![0.1 * i, -0.1],
             lag_pairs: vec![9, 8],
             w_sq: 10.0,
+            w_n: 10,
             initial_nees: Some(2.0 + i),
         };
         let runs: Vec<_> = (0..25).map(|i| run(i as f64 / 10.0)).collect();
@@ -1163,6 +1168,7 @@ mod tests {
                     lag_prod: vec![0.1 * i, -0.1],
                     lag_pairs: vec![9, 8],
                     w_sq: 10.0,
+                    w_n: 10,
                     initial_nees: None,
                 }
             })
@@ -1236,6 +1242,7 @@ mod tests {
                     lag_prod: vec![3.0 * (x * 1.3).sin(), 2.0 * (x * 0.4).cos()],
                     lag_pairs: vec![38, 36],
                     w_sq: 40.0 + (x * 0.7).sin(),
+                    w_n: 40,
                     initial_nees: None,
                 }
             })

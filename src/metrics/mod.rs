@@ -259,8 +259,10 @@ pub struct RunConsistency {
     pub lag_prod: Vec<f64>,
     /// Per lag: number of component pairs in `lag_prod`.
     pub lag_pairs: Vec<u64>,
-    /// Σ ‖w_k‖².
+    /// Σ ‖w_k‖² over the steps after the whiteness burn-in.
     pub w_sq: f64,
+    /// Components in `w_sq`: `nis_dof` less the whiteness burn-in's.
+    pub w_n: u64,
     /// NEES of x̂_0 under P_0, when x̂_0 is an estimate whose covariance is under test.
     pub initial_nees: Option<f64>,
 }

@@ -78,6 +78,10 @@ pub struct ConsistencyPlan {
     pub alpha: f64,
     /// Whiteness lags 1..=L.
     pub whiteness_lags: usize,
+    /// Steps 1..=B whose innovations are left out of the whiteness sums
+    /// (`consistency.whiteness_burn_in`): the transient of a prior that does not scale with
+    /// the noise is correlated in time even when the gain is right.
+    pub whiteness_burn_in: usize,
     /// Extra (runs, α) evaluations of the same tests on the first `runs` runs of each cell.
     pub subsets: Vec<(usize, f64)>,
 }
@@ -93,6 +97,7 @@ impl ConsistencyPlan {
         Self {
             alpha,
             whiteness_lags: Self::DEFAULT_WHITENESS_LAGS,
+            whiteness_burn_in: 0,
             subsets: Vec::new(),
         }
     }
@@ -200,6 +205,7 @@ impl RunSettings {
     ) -> ConsistencyOptions {
         ConsistencyOptions {
             lags,
+            whiteness_burn_in: self.consistency.as_ref().map_or(0, |c| c.whiteness_burn_in),
             burn_in: self.initial != InitialMode::Sampled,
             initial_nees: self.initial == InitialMode::BatchLs,
             blocks: block_masks(layout),

@@ -91,6 +91,7 @@ const KEYS: &[&str] = &[
     "beta",
     "kappa",
     "whiteness_lags",
+    "whiteness_burn_in",
     "subsets",
     "assert",
     "filter",

@@ -471,6 +471,7 @@ fn random_cell(rng: &mut Pcg64, runs: usize, n: usize) -> Vec<RunConsistency> {
                 } else {
                     3.0 * k * rng.random_range(0.5..1.5)
                 },
+                w_n: 3 * steps,
                 initial_nees: match flavour {
                     1 | 3 => Some(rng.random_range(0.0..20.0)),
                     _ => None,

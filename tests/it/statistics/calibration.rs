@@ -54,6 +54,7 @@ fn null_cell(
                 r.nis_dof += p as u64;
                 r.nis_n += 1;
                 r.w_sq += nis;
+                r.w_n += p as u64;
                 for l in 0..lags.min(history.len()) {
                     let old = &history[history.len() - 1 - l];
                     r.lag_prod[l] += old.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>();

@@ -282,3 +282,113 @@ fn the_credibility_columns_do_not_depend_on_the_thread_count() {
         "tables differ between 1 and 2 threads"
     );
 }
+
+/// The book's table of one step's NCI spread (`statistics/credibility.md`): per n, the
+/// standard deviation (dB) at M = 5, 20, 200 and 1,000 runs (`None` where M < n).
+fn book_nci_spread() -> Vec<(usize, [Option<f64>; 4])> {
+    let page =
+        std::fs::read_to_string(common::repo().join("docs/src/statistics/credibility.md")).unwrap();
+    let header = "| n | M = 5 | M = 20 | M = 200 | M = 1,000 |";
+    let at = page
+        .find(header)
+        .unwrap_or_else(|| panic!("credibility.md has no table `{header}`"));
+    page[at..]
+        .lines()
+        .skip(2)
+        .take_while(|l| l.starts_with('|'))
+        .map(|l| {
+            let cells: Vec<&str> = l.split('|').map(str::trim).collect();
+            let n = cells[1].parse().expect("n");
+            let v = |i: usize| cells[2 + i].parse::<f64>().ok();
+            (n, [v(0), v(1), v(2), v(3)])
+        })
+        .collect()
+}
+
+/// One step's NCI (dB) from M errors e_i ~ N(0, I_n) with P = I, written from the definition
+/// independently of `kfmc::metrics::credibility` (Σ̂ inverted, not factored).
+fn nci_by_inverse(e: &[nalgebra::DVector<f64>]) -> f64 {
+    let m = e.len() as f64;
+    let n = e[0].len();
+    let mut s = nalgebra::DMatrix::<f64>::zeros(n, n);
+    for x in e {
+        s += x * x.transpose() / m;
+    }
+    let inv = s.try_inverse().unwrap();
+    e.iter()
+        .map(|x| {
+            (x.norm_squared() / (x.transpose() * &inv * x)[(0, 0)])
+                .log10()
+                .abs()
+        })
+        .sum::<f64>()
+        * 10.0
+        / m
+}
+
+#[test]
+fn the_books_per_step_nci_spread_is_what_a_credible_filter_gives() {
+    use kfmc::metrics::credibility::{asymptotic_nci_sd, simulate_spread};
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    const MS: [usize; 4] = [5, 20, 200, 1000];
+    // A standard deviation from R replications has a relative standard error of about
+    // √((κ − 1)/(4R)) (κ the kurtosis, under 4 here): 1.6 % at R = 3,000. The book's values
+    // come from 20,000 replications at another seed, so 4 standard errors of the difference
+    // and the table's rounding (3 significant digits) bound the gap.
+    const R: usize = 3000;
+    let book = book_nci_spread();
+    assert_eq!(
+        book.iter().map(|r| r.0).collect::<Vec<_>>(),
+        vec![2, 3, 6, 9],
+        "{book:?}"
+    );
+    let mut sd = std::collections::HashMap::new();
+    for (n, row) in &book {
+        for (m, stated) in MS.iter().zip(row) {
+            let got = simulate_spread(*m, *n, R, 99).map(|s| s.nci_sd);
+            assert_eq!(got.is_some(), stated.is_some(), "n = {n}, M = {m}");
+            let (Some(got), Some(stated)) = (got, *stated) else {
+                continue;
+            };
+            assert!(
+                (got - stated).abs() <= 0.07 * got + 0.0005,
+                "n = {n}, M = {m}: the book says {stated}, a credible filter gives {got:.4}"
+            );
+            sd.insert((*n, *m), got);
+        }
+    }
+    // Second method at large M: the closed-form limit. At M = 1,000 the finite-M excess is
+    // under 2 % (the example's 20,000 replications), so 4 standard errors and 2 % bound it.
+    for n in [2, 3, 6, 9] {
+        let limit = asymptotic_nci_sd(1000, n);
+        let got = sd[&(n, 1000)];
+        assert!(
+            (got / limit - 1.0).abs() < 0.085,
+            "n = {n}, M = 1,000: {got:.4} by simulation, {limit:.4} in the limit"
+        );
+    }
+    // The spread depends on n: at M = 200 one step's NCI spreads 3.4× more in two
+    // dimensions than in nine, so a single value for every n cannot stand for both.
+    assert!(sd[&(2, 200)] > 3.0 * sd[&(9, 200)], "{sd:?}");
+    // Second method at small M, where no limit holds: the definition written independently,
+    // at its own seed.
+    for (m, n) in [(5usize, 2usize), (20, 9)] {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(4242);
+        let values: Vec<f64> = (0..R)
+            .map(|_| {
+                let e: Vec<nalgebra::DVector<f64>> = (0..m)
+                    .map(|_| nalgebra::DVector::from_fn(n, |_, _| StandardNormal.sample(&mut rng)))
+                    .collect();
+                nci_by_inverse(&e)
+            })
+            .collect();
+        let mean = values.iter().sum::<f64>() / R as f64;
+        let own = (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (R - 1) as f64).sqrt();
+        let got = sd[&(n, m)];
+        assert!(
+            (got / own - 1.0).abs() < 0.07,
+            "M = {m}, n = {n}: {got:.4} from kfmc, {own:.4} from the definition"
+        );
+    }
+}
