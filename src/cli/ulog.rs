@@ -25,6 +25,21 @@ pub enum UlogCommand {
     /// ulog_summary.parquet. Exit 0 when all pass, 3 when one fails (or regressed against
     /// --baseline), 4 when none fails but one is incomplete.
     Nis(Nis),
+    /// Write flight logs of a simulated filter with a known S (ULog, as PX4 writes them):
+    /// the test set (consistent, over-confident, over-conservative, correlated, a reset,
+    /// non-stationary, a primary switch, the innovations topics, a low gate, an hour), or
+    /// --count consistent ten-minute flights.
+    Simulate(SimulateLogs),
+}
+
+/// The arguments of `kfmc ulog simulate`.
+#[derive(Debug, clap::Args)]
+pub struct SimulateLogs {
+    /// The folder the logs are written into (created if needed).
+    pub dir: PathBuf,
+    /// Write this many consistent flights (`flight_000.ulg`, …) instead of the test set.
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<u64>::new().range(1..=10_000))]
+    pub count: Option<u64>,
 }
 
 /// The arguments of `kfmc ulog inspect`.
@@ -108,7 +123,9 @@ fn alpha(text: &str) -> Result<f64, String> {
 fn tolerance(text: &str) -> Result<f64, String> {
     match text.trim().parse::<f64>() {
         Ok(t) if t >= 0.0 && t.is_finite() => Ok(t),
-        _ => Err(format!("`{text}` is not a relative tolerance ≥ 0 (0.2 = 20 %)")),
+        _ => Err(format!(
+            "`{text}` is not a relative tolerance ≥ 0 (0.2 = 20 %)"
+        )),
     }
 }
 
@@ -123,6 +140,29 @@ impl Ulog {
                 Ok(())
             }
             UlogCommand::Nis(n) => n.execute(),
+            UlogCommand::Simulate(s) => {
+                use crate::ulog::simulate::{Flight, write};
+                let flights = match s.count {
+                    None => Flight::presets(),
+                    Some(n) => (0..n)
+                        .map(|i| Flight::consistent(&format!("flight_{i:03}"), 1000 + i))
+                        .collect(),
+                };
+                std::fs::create_dir_all(&s.dir).map_err(|e| {
+                    anyhow::Error::from(e).context(format!("creating {}", s.dir.display()))
+                })?;
+                for f in &flights {
+                    let p = write(f, &s.dir).map_err(|e| {
+                        anyhow::Error::from(e).context(format!(
+                            "writing {} into {}",
+                            f.name,
+                            s.dir.display()
+                        ))
+                    })?;
+                    outln!("{}", p.display());
+                }
+                Ok(())
+            }
         }
     }
 }

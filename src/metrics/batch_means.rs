@@ -209,7 +209,9 @@ pub fn plan(y: &[&[f64]], w: &[&[f64]]) -> Plan {
     let m = batch_length(&lengths);
     // A τ̂ longer than m/TAU_MULTIPLE makes the series incomplete whatever its value, so the
     // window need not reach past it.
-    let cap = m.map_or(1, |m| ((m as f64 / TAU_MULTIPLE) * SOKAL_C).ceil() as usize + 1);
+    let cap = m.map_or(1, |m| {
+        ((m as f64 / TAU_MULTIPLE) * SOKAL_C).ceil() as usize + 1
+    });
     let tau = integrated_time(y, cap).max(if w.is_empty() { 1.0 } else { ar1_time(w) });
     let incomplete = match m {
         None => Some(format!(

@@ -16,6 +16,7 @@ pub mod render;
 pub mod report;
 pub mod rmse;
 pub mod trajectory;
+pub mod ulog;
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -57,11 +58,15 @@ pub enum FigureKind {
     /// traced runs' covariances (traces.parquet `P_<qi>_<qj>`).
     #[value(name = "block_consistency")]
     BlockConsistency,
+    /// NIS over time per aid source with its χ² band and the gate (`kfmc ulog nis` folders,
+    /// ulog_samples.parquet).
+    #[value(name = "ulog_nis")]
+    UlogNis,
 }
 
 impl FigureKind {
     /// Every kind, in drawing order.
-    pub const ALL: [FigureKind; 10] = [
+    pub const ALL: [FigureKind; 11] = [
         FigureKind::Trajectory,
         FigureKind::States,
         FigureKind::Errors,
@@ -72,6 +77,7 @@ impl FigureKind {
         FigureKind::Tuning,
         FigureKind::Route,
         FigureKind::BlockConsistency,
+        FigureKind::UlogNis,
     ];
 
     /// The file-name prefix and CLI name.
@@ -87,6 +93,7 @@ impl FigureKind {
             FigureKind::Tuning => "tuning",
             FigureKind::Route => "route",
             FigureKind::BlockConsistency => "block_consistency",
+            FigureKind::UlogNis => "ulog_nis",
         }
     }
 
@@ -103,6 +110,8 @@ impl FigureKind {
             FigureKind::Tuning => rmse::tuning_series(t),
             FigureKind::Route => trajectory::route_series(t),
             FigureKind::BlockConsistency => blocks::block_consistency_series(t),
+            // A study's tables have no flight logs; a `ulog nis` folder is drawn by `ulog`.
+            FigureKind::UlogNis => Ok(Vec::new()),
         }
     }
 }
@@ -695,6 +704,9 @@ pub struct PlotOptions {
 
 /// Draws every figure the tables of `dir` support; returns the files written.
 pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotError> {
+    if crate::output::folder::verify(dir)?.kind() == crate::output::manifest::StudyKind::Ulog {
+        return ulog::plot_all(dir, opts);
+    }
     let tables = Tables::load(dir)?;
     let out = opts.out.clone().unwrap_or_else(|| dir.join("figures"));
     let figures = all_figures(&tables, &opts.only)?;

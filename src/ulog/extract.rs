@@ -332,7 +332,8 @@ pub fn read(path: &Path) -> Result<Extract, UlogError> {
     }
     let have_aid: std::collections::BTreeSet<(u8, String)> = aid.keys().cloned().collect();
     x.series = aid.into_values().collect();
-    x.series.extend(pair_innovations(&topics, &mut x.pairing, &have_aid));
+    x.series
+        .extend(pair_innovations(&topics, &mut x.pairing, &have_aid));
     x.series
         .sort_by(|a, b| (a.instance, &a.source).cmp(&(b.instance, &b.source)));
     Ok(x)
@@ -457,9 +458,10 @@ fn pair_innovations(
             });
             let repeat = series.records.last().is_some_and(|r| {
                 r.axes.len() == axes.len()
-                    && r.axes.iter().zip(&axes).all(|(a, b)| {
-                        a.innovation == b.innovation && a.variance == b.variance
-                    })
+                    && r.axes
+                        .iter()
+                        .zip(&axes)
+                        .all(|(a, b)| a.innovation == b.innovation && a.variance == b.variance)
             });
             if repeat {
                 series.stale += 1;

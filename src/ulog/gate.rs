@@ -62,7 +62,12 @@ pub fn read_baseline(path: &Path) -> Result<Baseline, NisError> {
             .iter()
             .collect())
     };
-    let (log, source, test, verdict) = (strs("log")?, strs("source")?, strs("test")?, strs("verdict")?);
+    let (log, source, test, verdict) = (
+        strs("log")?,
+        strs("source")?,
+        strs("test")?,
+        strs("verdict")?,
+    );
     let (instance, axis) = (ints("instance")?, ints("axis")?);
     let primary: Vec<bool> = col("primary")?
         .bool()
@@ -108,7 +113,8 @@ fn key_of(r: &SummaryRow) -> (Option<i64>, bool, String, Option<i64>) {
 }
 
 fn key_name(k: &(Option<i64>, bool, String, Option<i64>)) -> String {
-    let inst = k.0.map_or("primary".to_string(), |i| format!("instance {i}"));
+    let inst =
+        k.0.map_or("primary".to_string(), |i| format!("instance {i}"));
     let axis = k.3.map_or(String::new(), |a| format!("[{a}]"));
     format!("{inst} {}{axis}", k.2)
 }
@@ -120,7 +126,11 @@ pub fn mann_whitney_greater(a: &[f64], b: &[f64]) -> Option<f64> {
     if a.is_empty() || b.is_empty() {
         return None;
     }
-    let mut all: Vec<(f64, bool)> = a.iter().map(|v| (*v, true)).chain(b.iter().map(|v| (*v, false))).collect();
+    let mut all: Vec<(f64, bool)> = a
+        .iter()
+        .map(|v| (*v, true))
+        .chain(b.iter().map(|v| (*v, false)))
+        .collect();
     all.sort_by(|x, y| x.0.total_cmp(&y.0));
     let n = all.len();
     let (mut rank_a, mut ties) = (0.0, 0.0);
@@ -172,7 +182,11 @@ pub fn compare(rows: &[SummaryRow], base: &Baseline, opts: &NisOptions) -> Vec<C
     let mut out = Vec::new();
     let fmt = |v: Option<f64>| v.map_or("—".into(), |v| format!("{v:.4}"));
     // The same flights.
-    for b in base.rows.iter().filter(|b| my_logs.contains(b.log.as_str())) {
+    for b in base
+        .rows
+        .iter()
+        .filter(|b| my_logs.contains(b.log.as_str()))
+    {
         let name = format!("regression[{} {}]", b.log, key_name(&b.key));
         let now = mine.iter().find(|r| r.log == b.log && key_of(r) == b.key);
         let Some(r) = now else {
@@ -220,7 +234,11 @@ pub fn compare(rows: &[SummaryRow], base: &Baseline, opts: &NisOptions) -> Vec<C
             now.entry(key_of(r)).or_default().push(s);
         }
     }
-    for b in base.rows.iter().filter(|b| !my_logs.contains(b.log.as_str())) {
+    for b in base
+        .rows
+        .iter()
+        .filter(|b| !my_logs.contains(b.log.as_str()))
+    {
         if let Some(s) = b.statistic.filter(|s| s.is_finite()) {
             then.entry(b.key.clone()).or_default().push(s);
         }
@@ -231,7 +249,10 @@ pub fn compare(rows: &[SummaryRow], base: &Baseline, opts: &NisOptions) -> Vec<C
     let keys: std::collections::BTreeSet<&Key> = now.keys().chain(then.keys()).collect();
     for k in keys {
         let name = format!("regression[folder {}]", key_name(k));
-        let (a, b) = (now.get(k).cloned().unwrap_or_default(), then.get(k).cloned().unwrap_or_default());
+        let (a, b) = (
+            now.get(k).cloned().unwrap_or_default(),
+            then.get(k).cloned().unwrap_or_default(),
+        );
         if a.len() < 3 || b.len() < 3 {
             out.push(CaseResult {
                 kind: "regression".into(),

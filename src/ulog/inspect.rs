@@ -28,7 +28,11 @@ pub fn render(path: &Path, x: &Extract) -> String {
         let _ = writeln!(
             s,
             "  damage: {}{} bytes skipped, {} unreadable samples",
-            if x.stats.truncated { "the log is cut off; " } else { "" },
+            if x.stats.truncated {
+                "the log is cut off; "
+            } else {
+                ""
+            },
             x.stats.corrupt_bytes,
             x.stats.bad_data
         );
@@ -120,7 +124,11 @@ pub fn render(path: &Path, x: &Extract) -> String {
     let _ = writeln!(
         s,
         "  gates: {}",
-        if gates.is_empty() { "(none in the log)".into() } else { gates.join(", ") }
+        if gates.is_empty() {
+            "(none in the log)".into()
+        } else {
+            gates.join(", ")
+        }
     );
     if x.parameter_changes > 0 {
         let _ = writeln!(s, "  parameters changed in flight: {}", x.parameter_changes);
@@ -152,7 +160,11 @@ pub fn render(path: &Path, x: &Extract) -> String {
                 Family::AidSource => format!("estimator_aid_src_{}", v.source),
                 Family::Innovations => "estimator_innovations + _innovation_variances".into(),
             },
-            if v.stale > 0 { format!(", {} stale repeats dropped", v.stale) } else { String::new() }
+            if v.stale > 0 {
+                format!(", {} stale repeats dropped", v.stale)
+            } else {
+                String::new()
+            }
         );
     }
     for (i, p) in &x.pairing {
@@ -161,7 +173,8 @@ pub fn render(path: &Path, x: &Extract) -> String {
             "  pairing, instance {i}: {} of {} innovation records have a variance record of the same update ({}); {} variance records",
             p.paired,
             p.innovations,
-            p.rate().map_or("—".into(), |r| format!("{:.0} %", 100.0 * r)),
+            p.rate()
+                .map_or("—".into(), |r| format!("{:.0} %", 100.0 * r)),
             p.variances
         );
     }

@@ -68,9 +68,10 @@ impl std::str::FromStr for InstanceSelection {
         match s.trim() {
             "primary" => Ok(InstanceSelection::Primary),
             "all" => Ok(InstanceSelection::All),
-            n => n.parse::<u8>().map(InstanceSelection::One).map_err(|_| {
-                format!("`{s}` is not `primary`, `all` or an instance number 0-255")
-            }),
+            n => n
+                .parse::<u8>()
+                .map(InstanceSelection::One)
+                .map_err(|_| format!("`{s}` is not `primary`, `all` or an instance number 0-255")),
         }
     }
 }
@@ -311,9 +312,10 @@ pub fn list_logs(path: &Path) -> Result<Vec<(String, PathBuf)>, NisError> {
         source,
     })?;
     if !meta.is_dir() {
-        let name = path
-            .file_name()
-            .map_or_else(|| path.display().to_string(), |n| n.to_string_lossy().into_owned());
+        let name = path.file_name().map_or_else(
+            || path.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        );
         return Ok(vec![(name, path.to_path_buf())]);
     }
     let mut out = Vec::new();
@@ -330,11 +332,7 @@ pub fn list_logs(path: &Path) -> Result<Vec<(String, PathBuf)>, NisError> {
             let Ok(t) = e.file_type() else { continue };
             if t.is_dir() {
                 stack.push(p);
-            } else if t.is_file()
-                && p
-                    .extension()
-                    .is_some_and(|x| x.eq_ignore_ascii_case("ulg"))
-            {
+            } else if t.is_file() && p.extension().is_some_and(|x| x.eq_ignore_ascii_case("ulg")) {
                 let name = p
                     .strip_prefix(path)
                     .unwrap_or(&p)
@@ -532,7 +530,11 @@ fn judge_log(
                 .and_then(|i| x.pairing.get(&i))
                 .and_then(extract::Pairing::rate)
                 .filter(|_| family == "innovations");
-            let stretches = pts.iter().filter_map(|p| p.stretch).max().map_or(0, |s| s + 1);
+            let stretches = pts
+                .iter()
+                .filter_map(|p| p.stretch)
+                .max()
+                .map_or(0, |s| s + 1);
             let base = SummaryRow {
                 log: name.to_string(),
                 instance: *sel,
@@ -631,7 +633,11 @@ fn judge_log(
                 }
                 row.detail = format!(
                     "approximate: only the diagonal of S is logged, so the sum over {axes} axes is χ²({axes}) only if their innovations are uncorrelated; descriptive, not part of the verdict{}",
-                    if row.detail.is_empty() { String::new() } else { format!("; {}", row.detail) }
+                    if row.detail.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; {}", row.detail)
+                    }
                 );
                 pending.push(Pending {
                     row,
@@ -661,7 +667,11 @@ fn judge_log(
         test: TEST_VERDICT.into(),
         alpha: opts.alpha,
         level: Some(opts.alpha),
-        samples: rows.iter().filter(|r| r.test == TEST_NIS_MEAN).map(|r| r.samples).sum(),
+        samples: rows
+            .iter()
+            .filter(|r| r.test == TEST_NIS_MEAN)
+            .map(|r| r.samples)
+            .sum(),
         samples_included: rows
             .iter()
             .filter(|r| r.test == TEST_NIS_MEAN)
@@ -827,11 +837,16 @@ fn case_of(row: &SummaryRow) -> Option<CaseResult> {
                 row.batches.unwrap_or(0),
                 row.batch_length.unwrap_or(0),
                 fmt(row.tau),
-                row.effective_samples.map_or("—".into(), |e| format!("{e:.0}")),
+                row.effective_samples
+                    .map_or("—".into(), |e| format!("{e:.0}")),
                 fmt(row.p_value),
                 fmt(row.level),
                 row.level.map_or(1.0, |l| (row.alpha / l).round()),
-                if row.direction.is_empty() { String::new() } else { format!(", {}", row.direction) }
+                if row.direction.is_empty() {
+                    String::new()
+                } else {
+                    format!(", {}", row.direction)
+                }
             ),
         }),
     }
@@ -865,10 +880,13 @@ pub fn nis(
     }
     let logs = list_logs(path)?;
     // The baseline is read before the folder is touched: it may live in the folder.
-    let baseline = opts.baseline.as_deref().map(gate::read_baseline).transpose()?;
+    let baseline = opts
+        .baseline
+        .as_deref()
+        .map(gate::read_baseline)
+        .transpose()?;
     let folder = StudyFolder::open(&opts.out, StudyKind::Ulog, opts.force)?;
-    let mut samples =
-        TableWriter::create(folder.dir(), "ulog_samples", schema::ulog_samples())?;
+    let mut samples = TableWriter::create(folder.dir(), "ulog_samples", schema::ulog_samples())?;
     let mut rows: Vec<SummaryRow> = Vec::new();
     let n = logs.len();
     for (i, (name, file)) in logs.iter().enumerate() {
@@ -880,13 +898,15 @@ pub fn nis(
         rows.extend(judge_log(name, &x, opts, &mut samples)?);
     }
     progress(n, n);
-    let mut summary =
-        TableWriter::create(folder.dir(), "ulog_summary", schema::ulog_summary())?;
+    let mut summary = TableWriter::create(folder.dir(), "ulog_summary", schema::ulog_summary())?;
     for r in &rows {
         summary.push(&r.values())?;
     }
     let mut cases: Vec<CaseResult> = rows.iter().filter_map(case_of).collect();
-    for r in rows.iter().filter(|r| r.test == TEST_VERDICT && r.verdict == "incomplete") {
+    for r in rows
+        .iter()
+        .filter(|r| r.test == TEST_VERDICT && r.verdict == "incomplete")
+    {
         cases.push(CaseResult {
             kind: TEST_VERDICT.into(),
             name: format!("verdict[{}]", r.log),
@@ -913,7 +933,10 @@ pub fn nis(
         opts.alpha,
         opts.holdoff_s,
         opts.include_ground,
-        opts.baseline.as_ref().map(|b| b.display().to_string()).unwrap_or_default(),
+        opts.baseline
+            .as_ref()
+            .map(|b| b.display().to_string())
+            .unwrap_or_default(),
         opts.tolerance
     );
     let manifest = Manifest {

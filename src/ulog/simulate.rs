@@ -56,6 +56,8 @@ pub struct Flight {
     pub reset_inflation: f64,
     /// The topics written.
     pub topics: Topics,
+    /// The gate γ of every source (its `EKF2_*_GATE` parameter).
+    pub gate: f32,
     /// Seed of the innovations.
     pub seed: u64,
 }
@@ -77,13 +79,14 @@ impl Flight {
             reset_transient_s: 0.0,
             reset_inflation: 1.0,
             topics: Topics::AidSource,
+            gate: 5.0,
             seed,
         }
     }
 
     /// The flights of the test set: consistent, over-confident, over-conservative, correlated,
     /// non-stationary with a reset, a primary switch, the innovations topics, and a long
-    /// flight.
+    /// flight, and a consistent flight with gates of 2 (whose rejection rate can be tested).
     pub fn presets() -> Vec<Flight> {
         let base = |n: &str, s: u64| Flight::consistent(n, s);
         vec![
@@ -120,6 +123,10 @@ impl Flight {
                 ..base("innovation_topics", 8)
             },
             Flight {
+                gate: 2.0,
+                ..base("low_gate", 10)
+            },
+            Flight {
                 duration_s: 3700.0,
                 air: (20.0, 3680.0),
                 rho: 0.5,
@@ -129,10 +136,10 @@ impl Flight {
     }
 }
 
-/// The sources written: (aid-source name, axes, true S, gate parameter, gate).
-const SOURCES: [(&str, usize, f64, &str, f32); 2] = [
-    ("gnss_vel", 3, 0.09, "EKF2_GPS_V_GATE", 5.0),
-    ("baro_hgt", 1, 0.25, "EKF2_BARO_GATE", 5.0),
+/// The sources written: (aid-source name, axes, true S, gate parameter).
+const SOURCES: [(&str, usize, f64, &str); 2] = [
+    ("gnss_vel", 3, 0.09, "EKF2_GPS_V_GATE"),
+    ("baro_hgt", 1, 0.25, "EKF2_BARO_GATE"),
 ];
 
 /// Writes `flight` as `<dir>/<name>.ulg`; returns the path.
@@ -159,9 +166,12 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
     w.info_text("sys_name", "kfmc")?;
     w.info_text("ver_hw", "KFMC_SIMULATED")?;
     // v1.15.0 for the aid-source layout, v1.13.0 for the innovations topics.
-    w.info_u32("ver_sw_release", if v15 { 0x010F_00FF } else { 0x010D_00FF })?;
-    for (_, _, _, param, gate) in SOURCES {
-        w.param_f32(param, gate)?;
+    w.info_u32(
+        "ver_sw_release",
+        if v15 { 0x010F_00FF } else { 0x010D_00FF },
+    )?;
+    for (_, _, _, param) in SOURCES {
+        w.param_f32(param, flight.gate)?;
     }
     w.param_i32("EKF2_LOG_VERBOSE", 1)?;
     w.subscribe(0, 0, "vehicle_land_detected")?;
@@ -253,9 +263,14 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
             let transient = flight
                 .reset_at_s
                 .is_some_and(|r| i == 0 && t >= r && t < r + flight.reset_transient_s);
-            let factor = drift * if transient { flight.reset_inflation } else { 1.0 };
+            let factor = drift
+                * if transient {
+                    flight.reset_inflation
+                } else {
+                    1.0
+                };
             let mut values: Vec<Vec<(f64, f64)>> = Vec::new();
-            for (s, (_, axes, s_true, _, _)) in SOURCES.iter().enumerate() {
+            for (s, (_, axes, s_true, _)) in SOURCES.iter().enumerate() {
                 let mut v = Vec::with_capacity(*axes);
                 for a in 0..*axes {
                     let x = &mut state[usize::from(i)][s][a];
@@ -266,10 +281,24 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
                 values.push(v);
             }
             if v15 {
-                write_aid(&mut w, 10 + 2 * u16::from(i), i, ts, &values[0], SOURCES[0].4)?;
-                write_aid(&mut w, 11 + 2 * u16::from(i), i, ts, &values[1], SOURCES[1].4)?;
+                write_aid(
+                    &mut w,
+                    10 + 2 * u16::from(i),
+                    i,
+                    ts,
+                    &values[0],
+                    flight.gate,
+                )?;
+                write_aid(
+                    &mut w,
+                    11 + 2 * u16::from(i),
+                    i,
+                    ts,
+                    &values[1],
+                    flight.gate,
+                )?;
             } else {
-                write_innovations(&mut w, 40 + 3 * u16::from(i), ts, &values, k)?;
+                write_innovations(&mut w, 40 + 3 * u16::from(i), ts, &values, k, flight.gate)?;
             }
         }
         if k % 1000 == 0 {
@@ -304,7 +333,10 @@ fn write_aid<W: std::io::Write>(
             ("innovation_variance", Put::Array(&s)),
             ("test_ratio", Put::Array(&ratio)),
             ("estimator_instance", Put::Scalar(f64::from(instance))),
-            ("innovation_rejected", Put::Scalar(f64::from(u8::from(rejected)))),
+            (
+                "innovation_rejected",
+                Put::Scalar(f64::from(u8::from(rejected))),
+            ),
             ("fused", Put::Scalar(f64::from(u8::from(!rejected)))),
         ],
     )
@@ -319,12 +351,13 @@ fn write_innovations<W: std::io::Write>(
     ts: u64,
     v: &[Vec<(f64, f64)>],
     k: u64,
+    gate: f32,
 ) -> std::io::Result<()> {
     let (g, b) = (&v[0], &v[1]);
     let field = |f: &dyn Fn(&(f64, f64)) -> f64| -> [Vec<f64>; 3] {
         [vec![f(&g[0]), f(&g[1])], vec![f(&g[2])], vec![f(&b[0])]]
     };
-    let g2 = f64::from(SOURCES[0].4).powi(2);
+    let g2 = f64::from(gate).powi(2);
     let topics: [(u16, [Vec<f64>; 3]); 3] = [
         (id, field(&|x| x.0)),
         (id + 1, field(&|x| x.1)),

@@ -319,6 +319,11 @@ fn flatten(
                     };
                     let start = base.checked_add(offset)?;
                     let size = flatten(base_ty, &sub, start, depth + 1, formats, out)?;
+                    if size == 0 {
+                        // A format without bytes cannot be a field (and an array of a
+                        // billion of them would only cost time).
+                        return None;
+                    }
                     offset = offset.checked_add(size)?;
                     if offset > usize::from(u16::MAX) {
                         return None;
@@ -360,9 +365,11 @@ pub enum InfoValue {
 impl InfoValue {
     fn decode(ty: &str, b: &[u8]) -> InfoValue {
         match split_array(ty) {
-            Some(("char", Some(_))) => {
-                InfoValue::Text(String::from_utf8_lossy(b).trim_end_matches('\0').to_string())
-            }
+            Some(("char", Some(_))) => InfoValue::Text(
+                String::from_utf8_lossy(b)
+                    .trim_end_matches('\0')
+                    .to_string(),
+            ),
             Some((t, None)) => match FieldType::parse(t).and_then(|t| t.decode(b)) {
                 Some(v) => InfoValue::Number(v),
                 None => InfoValue::Other,
@@ -556,13 +563,26 @@ impl<R: Read + Seek> Reader<R> {
             }
             let known = matches!(
                 head[2],
-                b'B' | b'F' | b'I' | b'M' | b'P' | b'Q' | b'A' | b'R' | b'D' | b'L' | b'C' | b'S'
+                b'B' | b'F'
+                    | b'I'
+                    | b'M'
+                    | b'P'
+                    | b'Q'
+                    | b'A'
+                    | b'R'
+                    | b'D'
+                    | b'L'
+                    | b'C'
+                    | b'S'
                     | b'O'
             );
             if !known {
                 // A damaged header: continue at the appended data, or at the next sync
                 // marker after its first byte.
-                let skipped = self.appended.first().map(|&next| next.saturating_sub(start));
+                let skipped = self
+                    .appended
+                    .first()
+                    .map(|&next| next.saturating_sub(start));
                 if self.to_appended()? {
                     self.stats.corrupt_bytes += skipped.unwrap_or(0);
                 } else {
@@ -648,7 +668,11 @@ impl<R: Read + Seek> Reader<R> {
                 sub,
                 payload: &self.buf[2..],
             }),
-            Step::Logging { level, timestamp, text } => Some(Message::Logging {
+            Step::Logging {
+                level,
+                timestamp,
+                text,
+            } => Some(Message::Logging {
                 level,
                 timestamp,
                 text: std::str::from_utf8(&self.buf[text.0..text.1])
@@ -671,7 +695,9 @@ impl<R: Read + Seek> Reader<R> {
                     // Bit 0 of the first byte is DATA_APPENDED; any other bit is a feature
                     // this reader does not know.
                     let unknown = u64::from(incompat[0] & !1) << 56
-                        | incompat[1..].iter().fold(0u64, |a, b| a << 8 | u64::from(*b));
+                        | incompat[1..]
+                            .iter()
+                            .fold(0u64, |a, b| a << 8 | u64::from(*b));
                     if unknown != 0 {
                         return Err(UlogError::Incompatible {
                             path: self.path.clone(),
@@ -819,7 +845,11 @@ enum Step {
 /// At most 80 characters of `s`, for a message.
 fn shorten(s: &str) -> String {
     let t: String = s.chars().take(80).collect();
-    if t.len() < s.len() { format!("{t}…") } else { t }
+    if t.len() < s.len() {
+        format!("{t}…")
+    } else {
+        t
+    }
 }
 
 #[cfg(test)]
@@ -840,16 +870,30 @@ mod tests {
                 .1,
         );
         let l = resolve("outer", &f).unwrap();
-        let names: Vec<(&str, usize)> = l.fields.iter().map(|f| (f.name.as_str(), f.offset)).collect();
+        let names: Vec<(&str, usize)> = l
+            .fields
+            .iter()
+            .map(|f| (f.name.as_str(), f.offset))
+            .collect();
         assert_eq!(
             names,
-            [("timestamp", 0), ("s[0].a", 8), ("s[0].b", 12), ("s[1].a", 14), ("s[1].b", 18), ("d", 23)]
+            [
+                ("timestamp", 0),
+                ("s[0].a", 8),
+                ("s[0].b", 12),
+                ("s[1].a", 14),
+                ("s[1].b", 18),
+                ("d", 23)
+            ]
         );
         assert_eq!(l.size, 31);
         // A circle or an unknown type is refused, not followed.
         f.insert("loop".to_string(), split_format("loop:loop x;").unwrap().1);
         assert!(resolve("loop", &f).is_none());
-        f.insert("huge".to_string(), split_format("huge:double[100000] x;").unwrap().1);
+        f.insert(
+            "huge".to_string(),
+            split_format("huge:double[100000] x;").unwrap().1,
+        );
         assert!(resolve("huge", &f).is_none());
     }
 }
