@@ -115,7 +115,7 @@ fn instance(text: &str) -> Result<InstanceSelection, String> {
 
 fn alpha(text: &str) -> Result<f64, String> {
     match text.trim().parse::<f64>() {
-        Ok(a) if a > 0.0 && a < 1.0 => Ok(a),
+        Ok(a) if a > 0.0 && a < 1.0 && !a.is_nan() => Ok(a),
         _ => Err(format!("`{text}` is not a level in (0, 1)")),
     }
 }

@@ -115,8 +115,8 @@ pub fn render(cells: &[Cell], alpha: f64) -> String {
             format!("{:.1} % [{:.1}, {:.1}]", 100.0 * r, 100.0 * lo, 100.0 * hi)
         }
     };
-    let mut s = format!(
-        "| ρ | samples | judged | false alarms (all) | false alarms (judged) | power, S halved | power, S doubled |\n|---|---|---|---|---|---|---|\n"
+    let mut s = String::from(
+        "| ρ | samples | judged | false alarms (all) | false alarms (judged) | power, S halved | power, S doubled |\n|---|---|---|---|---|---|---|\n",
     );
     for c in cells {
         s.push_str(&format!(

@@ -233,7 +233,7 @@ pub fn read(path: &Path) -> Result<Extract, UlogError> {
     let mut topics = InnovationTopics::default();
     let mut aid: BTreeMap<(u8, String), SourceSeries> = BTreeMap::new();
     let mut last_resets: HashMap<u8, Vec<f64>> = HashMap::new();
-    while let Some(msg) = r.next()? {
+    while let Some(msg) = r.next_message()? {
         match msg {
             Message::Info { key, value } => match (key, value) {
                 ("ver_sw_release", InfoValue::Number(v)) => {

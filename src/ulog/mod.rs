@@ -408,7 +408,7 @@ fn series_points<'a>(
             let settled = r.t_us >= start.saturating_add(hold)
                 && !resets
                     .iter()
-                    .any(|&z| r.t_us >= z && r.t_us < z.saturating_add(hold));
+                    .any(|&z| (z..z.saturating_add(hold)).contains(&r.t_us));
             pts.push(Point {
                 instance: s.instance,
                 primary,
@@ -860,13 +860,13 @@ pub fn nis(
     mut progress: impl FnMut(usize, usize),
 ) -> Result<NisOutcome, NisError> {
     let started = std::time::Instant::now();
-    if !(opts.alpha > 0.0 && opts.alpha < 1.0) {
+    if opts.alpha <= 0.0 || opts.alpha >= 1.0 || opts.alpha.is_nan() {
         return Err(NisError::Usage {
             flag: "--alpha",
             message: format!("{} is not in (0, 1)", opts.alpha),
         });
     }
-    if !(opts.holdoff_s >= 0.0 && opts.holdoff_s < 1e9) {
+    if !(0.0..1e9).contains(&opts.holdoff_s) {
         return Err(NisError::Usage {
             flag: "--holdoff",
             message: format!("{} is not a number of seconds ≥ 0", opts.holdoff_s),

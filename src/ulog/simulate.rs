@@ -211,7 +211,7 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
     for k in 0..=steps {
         let t = k as f64 / flight.rate_hz;
         let ts = us(t);
-        let landed = !(t >= flight.air.0 && t < flight.air.1);
+        let landed = !(flight.air.0..flight.air.1).contains(&t);
         if last_landed != Some(landed) || k % 10 == 0 {
             w.data(
                 0,
@@ -240,7 +240,7 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
         }
         let reset_now = flight
             .reset_at_s
-            .is_some_and(|r| t >= r && t < r + 1.0 / flight.rate_hz);
+            .is_some_and(|r| (r..r + 1.0 / flight.rate_hz).contains(&t));
         if reset_now {
             resets = resets.wrapping_add(1);
         }
@@ -262,7 +262,7 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
         for i in 0..n_inst {
             let transient = flight
                 .reset_at_s
-                .is_some_and(|r| i == 0 && t >= r && t < r + flight.reset_transient_s);
+                .is_some_and(|r| i == 0 && (r..r + flight.reset_transient_s).contains(&t));
             let factor = drift
                 * if transient {
                     flight.reset_inflation
@@ -322,8 +322,6 @@ fn write_aid<W: std::io::Write>(
     let s: Vec<f64> = v.iter().map(|x| x.1).collect();
     let ratio: Vec<f64> = v.iter().map(|x| x.0 * x.0 / x.1 / g2).collect();
     let rejected = ratio.iter().any(|r| *r > 1.0);
-    let put = |x: &[f64]| -> Vec<f64> { x.to_vec() };
-    let (nu, s, ratio) = (put(&nu), put(&s), put(&ratio));
     w.data(
         id,
         &[

@@ -438,7 +438,7 @@ pub struct Stats {
     pub dropouts: (u64, u64),
 }
 
-/// A streaming ULog reader: [`Reader::next`] returns one message at a time; memory does not
+/// A streaming ULog reader: [`Reader::next_message`] returns one message at a time; memory does not
 /// grow with the file.
 pub struct Reader<R> {
     src: R,
@@ -637,7 +637,7 @@ impl<R: Read + Seek> Reader<R> {
     }
 
     /// The next message, `None` at the end of the log.
-    pub fn next(&mut self) -> Result<Option<Message<'_>>, UlogError> {
+    pub fn next_message(&mut self) -> Result<Option<Message<'_>>, UlogError> {
         let step = loop {
             match self.step()? {
                 Step::Skip => {}

@@ -117,7 +117,7 @@ fn a_written_log_reads_back_field_by_field() {
     let mut r = Reader::new(std::io::Cursor::new(bytes), std::path::Path::new("mem")).unwrap();
     assert_eq!(r.start_us, 42);
     let mut seen = Vec::new();
-    while let Some(m) = r.next().unwrap() {
+    while let Some(m) = r.next_message().unwrap() {
         match m {
             Message::Info { key, .. } => seen.push(format!("info {key}")),
             Message::Parameter { name, value, .. } => seen.push(format!("param {name} {value:?}")),
