@@ -118,9 +118,10 @@ fn a_reset_transient_is_left_out_by_the_holdoff_and_caught_without_it() {
     // mean NIS of every axis grows by about 40·24/6,200 = 0.15 (batch means, robust to one
     // bad batch, need not fail on it; the mean shows it).
     let without = judge(dir.path(), &dir.path().join("b"), |o| o.holdoff_s = 0.0);
-    for (a, b) in rows(&with, "reset.ulg", "nis_mean")
-        .iter()
-        .zip(rows(&without, "reset.ulg", "nis_mean"))
+    for (a, b) in
+        rows(&with, "reset.ulg", "nis_mean")
+            .iter()
+            .zip(rows(&without, "reset.ulg", "nis_mean"))
     {
         let grew = b.statistic.unwrap() - a.statistic.unwrap();
         assert!(grew > 0.08, "{grew}");
