@@ -702,6 +702,15 @@ pub struct PlotOptions {
     pub only: Vec<FigureKind>,
 }
 
+/// Writes the HTML report of `dir` (a study's, or a `kfmc ulog nis` folder's) to `out`
+/// (default `<dir>/report.html`); returns the path.
+pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError> {
+    if crate::output::folder::verify(dir)?.kind() == crate::output::manifest::StudyKind::Ulog {
+        return ulog::write_report(dir, out);
+    }
+    report::write_report(dir, out)
+}
+
 /// Draws every figure the tables of `dir` support; returns the files written.
 pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotError> {
     if crate::output::folder::verify(dir)?.kind() == crate::output::manifest::StudyKind::Ulog {

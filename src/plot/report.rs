@@ -779,9 +779,6 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
 
 /// Writes the report of `dir` to `out` (default `<dir>/report.html`); returns the path.
 pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError> {
-    if crate::output::folder::verify(dir)?.kind() == crate::output::manifest::StudyKind::Ulog {
-        return super::ulog::write_report(dir, out);
-    }
     let t = Tables::load(dir)?;
     let html = render_html(&t)?;
     let path = out.map_or_else(|| dir.join("report.html"), Path::to_path_buf);
