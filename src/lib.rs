@@ -38,6 +38,7 @@ pub mod analysis;
 pub mod check;
 pub mod cli;
 pub mod error;
+pub mod exchange;
 pub mod experiment;
 pub mod filter;
 pub mod hash;
@@ -63,6 +64,7 @@ pub mod system;
 pub mod systems;
 pub mod trial;
 pub mod tune;
+pub mod ulog;
 
 /// The TOML crate kfmc parses specs with: a system's own tables arrive as [`toml::Table`],
 /// so a downstream crate can use this one instead of pinning its own.

@@ -30,7 +30,7 @@ LAYERS = [
     ("plugin API", ["system", "trial", "prelude"]),
     ("built-in systems", ["systems"]),
     ("experiment", ["experiment"]),
-    ("commands", ["study", "simulate", "merge", "power", "tune", "check"]),
+    ("commands", ["study", "simulate", "merge", "power", "tune", "check", "ulog"]),
     ("presentation", ["plot", "report"]),
     ("front ends", ["cli"]),
 ]

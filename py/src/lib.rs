@@ -16,6 +16,7 @@
 //! * library errors become `kfmc.Error` subclasses by their kind, with the whole cause chain
 //!   as the message (as the command prints it).
 
+mod ulog;
 use std::panic::AssertUnwindSafe;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -1522,6 +1523,7 @@ fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("StudyError", py.get_type::<StudyError>())?;
     m.add("IncompleteError", py.get_type::<IncompleteError>())?;
     m.add("CheckFailedError", py.get_type::<CheckFailedError>())?;
+    ulog::register(m)?;
     m.add_function(wrap_pyfunction!(cli_main, m)?)?;
     m.add_function(wrap_pyfunction!(validate, m)?)?;
     m.add_function(wrap_pyfunction!(run, m)?)?;

@@ -22,6 +22,7 @@ import polars as pl
 
 from kfmc import _kfmc
 from kfmc._estimates import Estimates, sigma_point_transition
+from kfmc._ulog import ulog_nis
 from kfmc._kfmc import (
     CheckFailedError,
     Error,
@@ -53,6 +54,7 @@ __all__ = [
     "score",
     "sigma_point_transition",
     "simulate",
+    "ulog_nis",
     "validate",
 ]
 

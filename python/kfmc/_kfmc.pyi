@@ -158,3 +158,16 @@ class FilterModel:
 def filter_model(spec: _Spec) -> FilterModel: ...
 def simulation_model(folder: _Path) -> FilterModel: ...
 def estimates_layout(source: Union[_Spec, _Path], *, simulation: bool) -> Dict[str, Any]: ...
+def ulog_nis(
+    path: str,
+    *,
+    out: str,
+    instance: str = "primary",
+    sensors: Sequence[str] = ...,
+    alpha: float = 0.05,
+    holdoff: Optional[float] = None,
+    include_ground: bool = False,
+    baseline: Optional[str] = None,
+    tolerance: Optional[float] = None,
+    force: bool = False,
+) -> Dict[str, Any]: ...

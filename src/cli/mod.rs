@@ -329,6 +329,9 @@ pub enum Command {
     Report(report::Report),
     /// List the registered systems with their sensors, scenarios and filter kinds.
     List,
+    /// PX4 flight logs (ULog): inspect a log, or judge its innovations' NIS with a calibrated
+    /// verdict and a regression gate over a folder of flights.
+    Ulog(ulog::Ulog),
 }
 
 /// The exchange tables `kfmc schema` describes.
@@ -720,6 +723,7 @@ pub mod simulate;
 pub mod slurm;
 pub mod status;
 pub mod tune;
+pub mod ulog;
 pub mod validate;
 
 /// Lists the tables a command wrote with their row counts.
@@ -753,5 +757,6 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
         Command::Plot(c) => c.execute(),
         Command::Report(c) => c.execute(),
         Command::List => list::execute(registry),
+        Command::Ulog(c) => c.execute(),
     }
 }

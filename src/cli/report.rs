@@ -16,7 +16,7 @@ impl Report {
     /// Runs the command.
     pub(super) fn execute(self) -> anyhow::Result<()> {
         let Self { dir, out } = self;
-        let path = crate::plot::report::write_report(&dir, out.as_deref())
+        let path = crate::plot::write_report(&dir, out.as_deref())
             .map_err(KfmcError::from)
             .map_err(|e| {
                 anyhow::Error::from(e).context(format!("writing the report of {}", dir.display()))

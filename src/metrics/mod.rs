@@ -7,6 +7,7 @@
 //!   factors; `nees_mean` averages k = 1..=K (k = 0 is the prior, not a filter output) and
 //!   `nis_mean` the steps with a measurement update.
 
+pub mod batch_means;
 pub mod blocks;
 pub mod consistency;
 pub mod credibility;

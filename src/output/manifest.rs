@@ -173,6 +173,8 @@ pub enum StudyKind {
     Power,
     /// A tuning search and its stages (`kfmc tune`).
     Tune,
+    /// NIS verdicts from flight logs (`kfmc ulog nis`).
+    Ulog,
 }
 
 impl StudyKind {
@@ -184,6 +186,7 @@ impl StudyKind {
             StudyKind::Score => "score",
             StudyKind::Power => "power",
             StudyKind::Tune => "tune",
+            StudyKind::Ulog => "ulog nis",
         }
     }
 
@@ -199,6 +202,7 @@ impl StudyKind {
             }
             StudyKind::Power => "the rejection rates of a `kfmc power` study",
             StudyKind::Tune => "a `kfmc tune` search (tuning.parquet and its tune_* stages)",
+            StudyKind::Ulog => "the NIS verdicts of `kfmc ulog nis` on flight logs",
         }
     }
 }

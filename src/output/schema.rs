@@ -100,7 +100,7 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 16] = [
+pub const TABLES: [&str; 18] = [
     "runs",
     "steps",
     "run_steps",
@@ -117,6 +117,8 @@ pub const TABLES: [&str; 16] = [
     "measurements",
     "initial",
     "power",
+    "ulog_samples",
+    "ulog_summary",
 ];
 
 /// The columns that identify a row of the table `name` (`runs`, `steps`, …): a table kfmc
@@ -172,6 +174,8 @@ pub fn row_keys(name: &str) -> Option<&'static [&'static str]> {
         "estimates" => &["scenario", "noise_scale", "run", "step", "filter"],
         "truth" | "measurements" => &["scenario", "noise_scale", "run", "step"],
         "initial" => &["scenario", "noise_scale", "run"],
+        "ulog_samples" => &["log", "instance", "source", "axis", "t_sample"],
+        "ulog_summary" => &["log", "instance", "primary", "source", "axis", "test"],
         _ => return None,
     })
 }
@@ -478,4 +482,68 @@ pub fn initial(states: &[&str]) -> Vec<ColumnDef> {
     c.extend(per("est_", states, Dtype::F64));
     c.extend(covariance_columns(states));
     c
+}
+
+/// `ulog_samples.parquet` (`kfmc ulog nis`): one row per log × instance × source × axis ×
+/// sample of the judged series: the innovation, its variance S, NIS = ν²/S, PX4's test ratio,
+/// the gate and its flags, and whether the sample entered the verdict (`included`: in the air,
+/// after the instance's start and resets' hold-off) in which `stretch`.
+pub fn ulog_samples() -> Vec<ColumnDef> {
+    vec![
+        col("log", Dtype::Str),
+        col("instance", Dtype::I64),
+        col("primary", Dtype::Bool),
+        col("source", Dtype::Str),
+        col("axis", Dtype::I64),
+        col("t_sample", Dtype::F64),
+        col("innovation", Dtype::F64),
+        col("innovation_variance", Dtype::F64),
+        col("nis", Dtype::F64),
+        col("test_ratio", Dtype::F64),
+        col("gate", Dtype::F64),
+        col("rejected", Dtype::Bool),
+        col("fused", Dtype::Bool),
+        col("in_air", Dtype::Bool),
+        col("included", Dtype::Bool),
+        col("stretch", Dtype::I64),
+    ]
+}
+
+/// `ulog_summary.parquet` (`kfmc ulog nis`): one row per log × instance × source × axis ×
+/// test (`nis_mean`, `rejection_rate`; `nis_sum_approximate` per source) and a `verdict` row
+/// per log; the batch-means test's numbers and the verdict.
+pub fn ulog_summary() -> Vec<ColumnDef> {
+    vec![
+        col("log", Dtype::Str),
+        col("instance", Dtype::I64),
+        col("primary", Dtype::Bool),
+        col("source", Dtype::Str),
+        col("axis", Dtype::I64),
+        col("test", Dtype::Str),
+        col("samples", Dtype::I64),
+        col("samples_included", Dtype::I64),
+        col("stretches", Dtype::I64),
+        col("tau", Dtype::F64),
+        col("effective_samples", Dtype::F64),
+        col("batches", Dtype::I64),
+        col("batch_length", Dtype::I64),
+        col("statistic", Dtype::F64),
+        col("expected", Dtype::F64),
+        col("lower", Dtype::F64),
+        col("upper", Dtype::F64),
+        col("dof", Dtype::F64),
+        col("p_value", Dtype::F64),
+        col("level", Dtype::F64),
+        col("alpha", Dtype::F64),
+        col("verdict", Dtype::Str),
+        col("direction", Dtype::Str),
+        col("gate", Dtype::F64),
+        col("gate_from", Dtype::Str),
+        col("rejected_fraction", Dtype::F64),
+        col("rejection_expected", Dtype::F64),
+        col("pairing_rate", Dtype::F64),
+        col("family", Dtype::Str),
+        col("firmware", Dtype::Str),
+        col("detail", Dtype::Str),
+    ]
 }

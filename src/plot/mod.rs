@@ -16,6 +16,7 @@ pub mod render;
 pub mod report;
 pub mod rmse;
 pub mod trajectory;
+pub mod ulog;
 
 use std::path::{Path, PathBuf};
 
@@ -56,11 +57,15 @@ pub enum FigureKind {
     /// traced runs' covariances (traces.parquet `P_<qi>_<qj>`).
     #[value(name = "block_consistency")]
     BlockConsistency,
+    /// NIS over time per aid source with its χ² band and the gate (`kfmc ulog nis` folders,
+    /// ulog_samples.parquet).
+    #[value(name = "ulog_nis")]
+    UlogNis,
 }
 
 impl FigureKind {
     /// Every kind, in drawing order.
-    pub const ALL: [FigureKind; 10] = [
+    pub const ALL: [FigureKind; 11] = [
         FigureKind::Trajectory,
         FigureKind::States,
         FigureKind::Errors,
@@ -71,6 +76,7 @@ impl FigureKind {
         FigureKind::Tuning,
         FigureKind::Route,
         FigureKind::BlockConsistency,
+        FigureKind::UlogNis,
     ];
 
     /// The file-name prefix and CLI name.
@@ -86,6 +92,7 @@ impl FigureKind {
             FigureKind::Tuning => "tuning",
             FigureKind::Route => "route",
             FigureKind::BlockConsistency => "block_consistency",
+            FigureKind::UlogNis => "ulog_nis",
         }
     }
 
@@ -102,6 +109,8 @@ impl FigureKind {
             FigureKind::Tuning => rmse::tuning_series(t),
             FigureKind::Route => trajectory::route_series(t),
             FigureKind::BlockConsistency => blocks::block_consistency_series(t),
+            // A study's tables have no flight logs; a `ulog nis` folder is drawn by `ulog`.
+            FigureKind::UlogNis => Ok(Vec::new()),
         }
     }
 }
@@ -694,6 +703,15 @@ pub struct PlotOptions {
     pub only: Vec<FigureKind>,
 }
 
+/// Writes the HTML report of `dir` (a study's, or a `kfmc ulog nis` folder's) to `out`
+/// (default `<dir>/report.html`); returns the path.
+pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError> {
+    if crate::output::folder::verify(dir)?.kind() == crate::output::manifest::StudyKind::Ulog {
+        return report::write_html(dir, out, || ulog::render_html(dir));
+    }
+    report::write_report(dir, out)
+}
+
 /// Draws every figure the tables of `dir` support; returns the files written.
 pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotError> {
     let out = opts.out.clone().unwrap_or_else(|| dir.join("figures"));
@@ -705,31 +723,13 @@ pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotErro
         Some(_) if dir.is_dir() => Some(crate::output::folder::StudyFolder::lock(dir)?),
         _ => None,
     };
-    let tables = Tables::load(dir)?;
-    let figures = all_figures(&tables, &opts.only)?;
-    // A kind asked for by name that the data cannot give is an error, not an empty success.
-    let lacking: Vec<&str> = opts
-        .only
-        .iter()
-        .filter(|k| !figures.iter().any(|f| f.kind == **k))
-        .map(|k| k.name())
-        .collect();
-    if !lacking.is_empty() {
-        let mut available: Vec<&str> = all_figures(&tables, &[])?
-            .iter()
-            .map(|f| f.kind.name())
-            .collect();
-        available.dedup();
-        return Err(PlotError::NoFigures {
-            path: dir.to_path_buf(),
-            lacking: lacking.join(", "),
-            available: if available.is_empty() {
-                "none".into()
-            } else {
-                available.join(", ")
-            },
-        });
-    }
+    let ulog_folder =
+        crate::output::folder::verify(dir)?.kind() == crate::output::manifest::StudyKind::Ulog;
+    let figures = if ulog_folder {
+        ulog::figures(dir, &opts.only)?
+    } else {
+        study_figures(dir, &opts.only)?
+    };
     if let (Some(held), Some(rel)) = (&held, &inside) {
         let files: Vec<String> = figures
             .iter()
@@ -756,6 +756,35 @@ pub fn plot_all(dir: &Path, opts: &PlotOptions) -> Result<Vec<PathBuf>, PlotErro
         written.push(path);
     }
     Ok(written)
+}
+
+/// The figures of a study folder's tables; a kind asked for by name that the data cannot
+/// give is an error, not an empty success.
+fn study_figures(dir: &Path, only: &[FigureKind]) -> Result<Vec<Figure>, PlotError> {
+    let tables = Tables::load(dir)?;
+    let figures = all_figures(&tables, only)?;
+    let lacking: Vec<&str> = only
+        .iter()
+        .filter(|k| !figures.iter().any(|f| f.kind == **k))
+        .map(|k| k.name())
+        .collect();
+    if !lacking.is_empty() {
+        let mut available: Vec<&str> = all_figures(&tables, &[])?
+            .iter()
+            .map(|f| f.kind.name())
+            .collect();
+        available.dedup();
+        return Err(PlotError::NoFigures {
+            path: dir.to_path_buf(),
+            lacking: lacking.join(", "),
+            available: if available.is_empty() {
+                "none".into()
+            } else {
+                available.join(", ")
+            },
+        });
+    }
+    Ok(figures)
 }
 
 #[cfg(test)]

@@ -39,7 +39,7 @@ fn num(v: Option<f64>) -> String {
 
 /// An SVG from plotters, ready to sit inside HTML: no XML prolog and no namespace URL (inline
 /// SVG in HTML5 needs neither, and the report must not name any URL).
-fn inline_svg(svg: &str) -> String {
+pub fn inline_svg(svg: &str) -> String {
     let s = match svg.find("<svg") {
         Some(i) => &svg[i..],
         None => svg,
@@ -49,7 +49,7 @@ fn inline_svg(svg: &str) -> String {
 }
 
 /// Any table as an HTML table, every cell escaped.
-fn html_table(t: &Table) -> Result<String, PlotError> {
+pub fn html_table(t: &Table) -> Result<String, PlotError> {
     let names = t.names();
     let mut cols: Vec<Vec<String>> = Vec::new();
     for n in &names {
@@ -535,7 +535,8 @@ pub fn reproduce_command(t: &Tables) -> Option<String> {
     Some(c)
 }
 
-const STYLE: &str = "\
+/// The report's style sheet.
+pub const STYLE: &str = "\
 *{box-sizing:border-box}\
 body{font-family:'DejaVu Sans',Verdana,sans-serif;max-width:1320px;margin:0 auto;padding:0 1.2rem 3rem;color:#1f2328;line-height:1.45;font-size:16px}\
 h1{font-size:1.7rem;margin:1.2rem 0 .3rem}h2{font-size:1.35rem;margin-top:2.2rem;border-bottom:1px solid #d0d7de;padding-bottom:.2rem}h3{font-size:1.1rem;margin-top:1.6rem}\
@@ -778,6 +779,18 @@ pub fn render_html(t: &Tables) -> Result<String, PlotError> {
 
 /// Writes the report of `dir` to `out` (default `<dir>/report.html`); returns the path.
 pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError> {
+    write_html(dir, out, || render_html(&Tables::load(dir)?))
+}
+
+/// Writes the report that `render` draws from the folder `dir` to `out` (default
+/// `<dir>/report.html`), by the rules every report follows: inside the folder under its lock
+/// and listed in its manifest before it is written, outside it only over a file that is a
+/// kfmc report.
+pub(crate) fn write_html(
+    dir: &Path,
+    out: Option<&Path>,
+    render: impl Fn() -> Result<String, PlotError>,
+) -> Result<PathBuf, PlotError> {
     use crate::output::folder;
     let path = out.map_or_else(|| dir.join("report.html"), Path::to_path_buf);
     match folder::relative_inside(dir, &path).filter(|_| dir.is_dir()) {
@@ -785,7 +798,7 @@ pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError
         // written.
         Some(rel) => {
             let held = folder::StudyFolder::lock(dir)?;
-            let html = render_html(&Tables::load(dir)?)?;
+            let html = render()?;
             held.claim_files(&[rel], &is_kfmc_report)?;
             folder::write_atomic(&path, html.as_bytes()).map_err(|source| PlotError::Io {
                 action: "cannot write the report",
@@ -794,7 +807,7 @@ pub fn write_report(dir: &Path, out: Option<&Path>) -> Result<PathBuf, PlotError
             })?;
         }
         None => {
-            let html = render_html(&Tables::load(dir)?)?;
+            let html = render()?;
             folder::write_file(&path, html.as_bytes(), &is_kfmc_report)?;
         }
     }

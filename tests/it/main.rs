@@ -94,6 +94,12 @@ mod exchange {
     mod variants;
 }
 
+/// PX4 flight logs: the ULog reader and its fuzz, the one-log NIS verdict and its gate.
+mod ulog {
+    mod nis;
+    mod reader;
+}
+
 /// The book and README: runnable blocks, specs, links, the tables reference.
 mod docs {
     mod readme_snippets;

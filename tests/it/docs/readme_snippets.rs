@@ -592,6 +592,8 @@ fn tables_reference() -> String {
         ("measurements", schema::measurements(&["<z>"], &["<u>"])),
         ("initial", schema::initial(q)),
         ("power", kfmc::power::columns()),
+        ("ulog_samples", schema::ulog_samples()),
+        ("ulog_summary", schema::ulog_summary()),
     ];
     let documented: Vec<&str> = tables.iter().map(|(t, _)| *t).collect();
     assert_eq!(

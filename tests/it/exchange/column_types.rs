@@ -197,6 +197,7 @@ fn a_bool_value_column_in_memory_is_refused_naming_the_column() {
     let source = kfmc::score::EstimatesSource::Stream(kfmc::score::TableStream {
         name: "<estimates 0>".into(),
         batches: Box::new(vec![Ok(df)].into_iter()),
+        metadata: Vec::new(),
     });
     let e =
         kfmc::check::attach_estimates_from(&mut plan, [Ok(source)], kfmc::check::Unstamped::Warn)
