@@ -590,7 +590,9 @@ enum ColumnClass {
     Text,
     /// No values at all (a column of nulls).
     Null,
-    /// Anything else: bool, decimal, map, struct, list, dates, binary, dictionary, …
+    /// Booleans (the `failed` column).
+    Bool,
+    /// Anything else: decimal, map, struct, list, dates, binary, dictionary, …
     Other,
 }
 
@@ -604,6 +606,7 @@ fn arrow_class(dtype: &ArrowDataType) -> (ColumnClass, String) {
         }
         A::Utf8 | A::LargeUtf8 | A::Utf8View => ColumnClass::Text,
         A::Null => ColumnClass::Null,
+        A::Boolean => ColumnClass::Bool,
         _ => ColumnClass::Other,
     };
     let name = match dtype {
@@ -644,6 +647,8 @@ fn polars_class(dtype: &DataType) -> (ColumnClass, String) {
         ColumnClass::Text
     } else if dtype.is_null() {
         ColumnClass::Null
+    } else if dtype.is_bool() {
+        ColumnClass::Bool
     } else {
         ColumnClass::Other
     };
@@ -652,8 +657,8 @@ fn polars_class(dtype: &DataType) -> (ColumnClass, String) {
 
 /// Refuses a column whose type the estimates format does not take, naming the file, the
 /// column and its type. The keys keep their documented types (`scenario` and `filter`
-/// strings, `run` and `step` integers, `noise_scale`, `q_scale` and `r_scale` numbers); a
-/// value column is float64 or float32 (or all null): a bool, integer or string there is a
+/// strings, `run` and `step` integers, `noise_scale`, `q_scale` and `r_scale` numbers,
+/// `failed` bool); a value column is float64 or float32 (or all null): a bool, integer or string there is a
 /// writer's mistake that a conversion would hide (`True` scored as 1.0), and a decimal, map
 /// or other nested column is not a number at all.
 fn check_column_class(
@@ -668,6 +673,7 @@ fn check_column_class(
         "noise_scale" | "q_scale" | "r_scale" => {
             (matches!(class, Float | Integer | Null), "a float64 column")
         }
+        FAILED_COLUMN => (matches!(class, Bool | Null), "a bool column"),
         _ => (
             matches!(class, Float | Null),
             "a value column: float64 or float32",

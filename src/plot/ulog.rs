@@ -195,4 +195,3 @@ pub fn render_html(dir: &Path) -> Result<String, PlotError> {
     );
     Ok(h)
 }
-

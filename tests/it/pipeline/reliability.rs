@@ -535,7 +535,7 @@ fn inputs_that_are_not_regular_files_are_refused_at_once() {
     let (code, err) = limited(&["summary", study.to_str().unwrap()]);
     assert_eq!(code, 1, "{err}");
     assert!(
-        err.contains("summary.parquet") && err.contains("not a regular file"),
+        err.contains("summary.parquet") && err.contains("is a FIFO (named pipe)"),
         "{err}"
     );
 }

@@ -332,7 +332,10 @@ fn only_runs_marked_failed_count_against_max_failed_runs() {
         .unwrap();
     let (code, _, err, _) = check(&e, "bad_failed", &bad, "");
     assert_eq!(code, 1, "{err}");
-    assert!(err.contains("column `failed` must be boolean"), "{err}");
+    assert!(
+        err.contains("column `failed` holds float64 values; it must be a bool column"),
+        "{err}"
+    );
 }
 
 #[test]
