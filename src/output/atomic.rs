@@ -211,6 +211,37 @@ pub fn sync_file(path: &Path) -> std::io::Result<()> {
     open_regular(path)?.sync_all()
 }
 
+/// Opens an input file the user named (a spec, an estimates file, a table to read) for
+/// reading: a symbolic link is followed (the user chose the path), but the open never waits
+/// on a FIFO (`O_NONBLOCK`) and anything but a regular file is refused once opened (a FIFO,
+/// a terminal or a device may never end). Inside a result folder use [`open_regular`], which
+/// follows no link.
+pub fn open_input(path: &Path) -> std::io::Result<File> {
+    OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .and_then(|f| {
+            let t = f.metadata()?.file_type();
+            if t.is_file() {
+                Ok(f)
+            } else {
+                Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    format!("it is {}, not a regular file", type_name(t)),
+                ))
+            }
+        })
+}
+
+/// Reads the whole of the regular file at `path` as UTF-8 text ([`open_input`]).
+pub fn read_input_to_string(path: &Path) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut text = String::new();
+    open_input(path)?.read_to_string(&mut text)?;
+    Ok(text)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -260,35 +291,4 @@ mod tests {
         assert!(e.contains("FIFO"), "{e}");
         assert_eq!(std::fs::read_to_string(&target).unwrap(), "keep");
     }
-}
-
-/// Opens an input file the user named (a spec, an estimates file, a table to read) for
-/// reading: a symbolic link is followed (the user chose the path), but the open never waits
-/// on a FIFO (`O_NONBLOCK`) and anything but a regular file is refused once opened (a FIFO,
-/// a terminal or a device may never end). Inside a result folder use [`open_regular`], which
-/// follows no link.
-pub fn open_input(path: &Path) -> std::io::Result<File> {
-    OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_NONBLOCK)
-        .open(path)
-        .and_then(|f| {
-            let t = f.metadata()?.file_type();
-            if t.is_file() {
-                Ok(f)
-            } else {
-                Err(std::io::Error::new(
-                    std::io::ErrorKind::InvalidInput,
-                    format!("it is {}, not a regular file", type_name(t)),
-                ))
-            }
-        })
-}
-
-/// Reads the whole of the regular file at `path` as UTF-8 text ([`open_input`]).
-pub fn read_input_to_string(path: &Path) -> std::io::Result<String> {
-    use std::io::Read;
-    let mut text = String::new();
-    open_input(path)?.read_to_string(&mut text)?;
-    Ok(text)
 }

@@ -272,8 +272,7 @@ pub fn write(flight: &Flight, dir: &Path) -> std::io::Result<std::path::PathBuf>
             let mut values: Vec<Vec<(f64, f64)>> = Vec::new();
             for (s, (_, axes, s_true, _)) in SOURCES.iter().enumerate() {
                 let mut v = Vec::with_capacity(*axes);
-                for a in 0..*axes {
-                    let x = &mut state[usize::from(i)][s][a];
+                for x in state[usize::from(i)][s].iter_mut().take(*axes) {
                     *x = flight.rho * *x + innov * rng.sample::<f64, _>(normal);
                     let nu = *x * (s_true * factor).sqrt();
                     v.push((nu, s_true * flight.s_scale));

@@ -540,7 +540,7 @@ impl<R: Read + Seek> Reader<R> {
             let n = fill(&mut self.src, &mut head).map_err(|e| self.io(e))?;
             let start = self.pos;
             if n < 3 {
-                if !self.to_appended()? {
+                if !self.next_appended()? {
                     self.stats.truncated |= n > 0;
                     self.done = true;
                 }
@@ -553,7 +553,7 @@ impl<R: Read + Seek> Reader<R> {
             if self.appended.first().is_some_and(|&next| self.pos > next) {
                 // The message runs past the start of the appended data: the logger stopped
                 // there, and the rest of the log continues at that offset.
-                self.to_appended()?;
+                self.next_appended()?;
                 continue;
             }
             if k < size {
@@ -583,7 +583,7 @@ impl<R: Read + Seek> Reader<R> {
                     .appended
                     .first()
                     .map(|&next| next.saturating_sub(start));
-                if self.to_appended()? {
+                if self.next_appended()? {
                     self.stats.corrupt_bytes += skipped.unwrap_or(0);
                 } else {
                     self.resync(start + 1)?;
@@ -595,7 +595,7 @@ impl<R: Read + Seek> Reader<R> {
     }
 
     /// Moves to the next appended-data offset; false when there is none.
-    fn to_appended(&mut self) -> Result<bool, UlogError> {
+    fn next_appended(&mut self) -> Result<bool, UlogError> {
         if self.appended.is_empty() {
             return Ok(false);
         }
@@ -689,36 +689,34 @@ impl<R: Read + Seek> Reader<R> {
             return Ok(Step::End);
         };
         match kind {
-            b'B' => {
-                if self.buf.len() >= 40 {
-                    let incompat = &self.buf[8..16];
-                    // Bit 0 of the first byte is DATA_APPENDED; any other bit is a feature
-                    // this reader does not know.
-                    let unknown = u64::from(incompat[0] & !1) << 56
-                        | incompat[1..]
-                            .iter()
-                            .fold(0u64, |a, b| a << 8 | u64::from(*b));
-                    if unknown != 0 {
-                        return Err(UlogError::Incompatible {
-                            path: self.path.clone(),
-                            flags: unknown,
-                        });
-                    }
-                    if incompat[0] & 1 != 0 {
-                        let mut offs: Vec<u64> = (0..3)
-                            .map(|i| {
-                                u64::from_le_bytes(
-                                    self.buf[16 + 8 * i..24 + 8 * i]
-                                        .try_into()
-                                        .expect("8 bytes"),
-                                )
-                            })
-                            .filter(|&o| o > self.pos)
-                            .collect();
-                        offs.sort_unstable();
-                        offs.dedup();
-                        self.appended = offs;
-                    }
+            b'B' if self.buf.len() >= 40 => {
+                let incompat = &self.buf[8..16];
+                // Bit 0 of the first byte is DATA_APPENDED; any other bit is a feature
+                // this reader does not know.
+                let unknown = u64::from(incompat[0] & !1) << 56
+                    | incompat[1..]
+                        .iter()
+                        .fold(0u64, |a, b| a << 8 | u64::from(*b));
+                if unknown != 0 {
+                    return Err(UlogError::Incompatible {
+                        path: self.path.clone(),
+                        flags: unknown,
+                    });
+                }
+                if incompat[0] & 1 != 0 {
+                    let mut offs: Vec<u64> = (0..3)
+                        .map(|i| {
+                            u64::from_le_bytes(
+                                self.buf[16 + 8 * i..24 + 8 * i]
+                                    .try_into()
+                                    .expect("8 bytes"),
+                            )
+                        })
+                        .filter(|&o| o > self.pos)
+                        .collect();
+                    offs.sort_unstable();
+                    offs.dedup();
+                    self.appended = offs;
                 }
             }
             b'F' => {
@@ -776,11 +774,9 @@ impl<R: Read + Seek> Reader<R> {
                     None => self.stats.bad_formats.push(shorten(&name)),
                 }
             }
-            b'R' => {
-                if self.buf.len() >= 2 {
-                    self.subs
-                        .remove(&u16::from_le_bytes([self.buf[0], self.buf[1]]));
-                }
+            b'R' if self.buf.len() >= 2 => {
+                self.subs
+                    .remove(&u16::from_le_bytes([self.buf[0], self.buf[1]]));
             }
             b'D' => {
                 self.in_data = true;
@@ -806,13 +802,11 @@ impl<R: Read + Seek> Reader<R> {
                     });
                 }
             }
-            b'O' => {
-                if self.buf.len() >= 2 {
-                    let ms = u16::from_le_bytes([self.buf[0], self.buf[1]]);
-                    self.stats.dropouts.0 += 1;
-                    self.stats.dropouts.1 += u64::from(ms);
-                    return Ok(Step::Dropout(ms));
-                }
+            b'O' if self.buf.len() >= 2 => {
+                let ms = u16::from_le_bytes([self.buf[0], self.buf[1]]);
+                self.stats.dropouts.0 += 1;
+                self.stats.dropouts.1 += u64::from(ms);
+                return Ok(Step::Dropout(ms));
             }
             // Multi-part information, default parameters and sync markers carry nothing
             // kfmc reads.
