@@ -24,6 +24,7 @@ __all__ = [
     "filter_model",
     "simulation_model",
     "estimates_layout",
+    "ulog_nis",
 ]
 
 __version__: str
