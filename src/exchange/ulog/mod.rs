@@ -34,7 +34,7 @@ pub const MAGIC: [u8; 7] = [0x55, 0x4c, 0x6f, 0x67, 0x01, 0x12, 0x35];
 pub const SYNC_MAGIC: [u8; 8] = [0x2F, 0x73, 0x13, 0x20, 0x25, 0x0C, 0xBB, 0x12];
 
 /// Nesting depth of formats inside formats that the reader follows.
-const MAX_NESTING: usize = 8;
+pub const MAX_NESTING: usize = 8;
 
 /// Flattened fields a format may have once nested formats are expanded.
 const MAX_FIELDS: usize = 1 << 14;
