@@ -19,9 +19,19 @@
 //! effective samples; shorter series are **incomplete**, never a pass.
 //!
 //! τ̂ is the larger of two estimates, so that it errs long: Sokal's automatic-window estimate
-//! from the series' own autocorrelation (window M, the first with M ≥ 5·τ̂(M)), and the τ of
-//! the NIS of an AR(1) innovation, (1 + r²)/(1 − r²), at an upper bound r = r̂ + 2√((1 − r̂²)/N)
-//! of the whitened innovation's lag-1 autocorrelation. Both are pooled over stretches.
+//! from the NIS series' own autocorrelation (window M, the first with M ≥ 5·τ̂(M)), and the τ
+//! of the NIS of an AR(1) innovation, (1 + r²)/(1 − r²), at an upper bound of the whitened
+//! innovation's lag-1 correlation r. Both are pooled over stretches.
+//!
+//! r is estimated **at the scale the null hypothesis claims**, E(w²) = 1: r̃ = 1 − ½·mean(Δw²).
+//! The sample lag-1 autocorrelation, 1 − ½·mean(Δw²)/mean((w − w̄)²), divides by the sample
+//! variance, which is the quantity under test: a series whose NIS happens to average low
+//! looks less correlated, so near the minimum length the judged series would be mostly those
+//! with a low mean (60–90 % of them fail a consistent filter). The squared increments carry the
+//! series' fast part, nearly independent of its level, so selecting on r̃ leaves the mean NIS
+//! of a consistent filter's judged series unbiased. Under an alternative the scale is wrong
+//! on purpose: S too small shrinks τ̂ (any failure is then a true one), S too large inflates it
+//! by S/S_true, so an over-conservative filter needs that much more flight to be judged.
 //!
 //! The false-alarm rate and power of this verdict on AR(1) innovations of known ρ are measured
 //! by [`crate::ulog::calibration`] (the docs' table).
@@ -77,28 +87,30 @@ pub fn integrated_time(stretches: &[&[f64]], max_lag: usize) -> f64 {
 }
 
 /// The NIS's integrated autocorrelation time if the whitened innovations `w` followed an
-/// AR(1) at the upper bound r̂ + 2√((1 − r̂²)/N) of their lag-1 autocorrelation:
-/// (1 + r²)/(1 − r²), the autocorrelation of w² at lag k being r^{2k} for Gaussian w.
+/// AR(1), (1 + r²)/(1 − r²) (the autocorrelation of w² at lag k is r^{2k} for Gaussian w), at
+/// an upper bound r = r̃ + 2·sd(r̃) of r̃ = 1 − ½·mean(Δw²), the lag-1 correlation at the
+/// null hypothesis' scale E(w²) = 1 (increments paired inside stretches; see the module
+/// documentation for why not the sample autocorrelation).
 pub fn ar1_time(stretches: &[&[f64]]) -> f64 {
-    let n: usize = stretches.iter().map(|s| s.len()).sum();
-    if n < 3 {
+    let d: Vec<f64> = stretches
+        .iter()
+        .flat_map(|s| s.windows(2).map(|p| (p[1] - p[0]).powi(2)))
+        .collect();
+    let n = d.len();
+    if n < 2 {
         return 1.0;
     }
-    let mean = stretches.iter().flat_map(|s| s.iter()).sum::<f64>() / n as f64;
-    let (mut num, mut den) = (0.0, 0.0);
-    for s in stretches {
-        for (i, w) in s.iter().enumerate() {
-            den += (w - mean).powi(2);
-            if i + 1 < s.len() {
-                num += (w - mean) * (s[i + 1] - mean);
-            }
-        }
-    }
-    if den.is_nan() || den <= 0.0 {
+    let mean = d.iter().sum::<f64>() / n as f64;
+    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    if !mean.is_finite() || !var.is_finite() {
         return 1.0;
     }
-    let r = (num / den).clamp(0.0, 1.0);
-    let up = (r + 2.0 * ((1.0 - r * r).max(0.0) / n as f64).sqrt()).min(0.999_999);
+    // Successive increments of an AR(1) correlate by −(1 − r)/2, so their squares by at most
+    // 1/4 (Gaussian), and the variance of mean(Δw²) is at most 1 + 2·(1/4) = 1.5 times the
+    // independent one; the sample variance of Δw² keeps heavy tails in the bound.
+    let sd = (1.5 * var / n as f64).sqrt() / 2.0;
+    let r = (1.0 - mean / 2.0).max(0.0);
+    let up = (r + 2.0 * sd).clamp(0.0, 0.999_999);
     (1.0 + up * up) / (1.0 - up * up)
 }
 
@@ -201,8 +213,9 @@ impl Plan {
 }
 
 /// The batch plan of a series of NIS values `y` and its whitened innovations `w` (same
-/// stretches, or empty when only the NIS is known): τ̂, the batch length, and whether the
-/// batches are long enough (m ≥ [`TAU_MULTIPLE`]·τ̂).
+/// stretches, w scaled so that a consistent filter has E(w²) = 1; empty when only the NIS is
+/// known): τ̂, the batch length, and whether the batches are long enough
+/// (m ≥ [`TAU_MULTIPLE`]·τ̂).
 pub fn plan(y: &[&[f64]], w: &[&[f64]]) -> Plan {
     let lengths: Vec<usize> = y.iter().map(|s| s.len()).collect();
     let samples: usize = lengths.iter().sum();

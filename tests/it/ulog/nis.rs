@@ -185,7 +185,7 @@ fn the_one_log_verdict_is_calibrated_on_ar1_innovations() {
             lo <= alpha,
             "ρ = {rho}, n = {n}: false alarms {fa} (CP lower {lo})"
         );
-        if c.judged >= 100 {
+        if c.judged >= 100 && c.judged_doubled >= 100 {
             let (h, _) = c.power_halved();
             let (d, _) = c.power_doubled();
             assert!(h > 0.95 && d > 0.95, "ρ = {rho}, n = {n}: power {h} {d}");
@@ -199,6 +199,27 @@ fn the_one_log_verdict_is_calibrated_on_ar1_innovations() {
     // 3,000 samples at ρ = 0.99 (τ ≈ 100) are about 30 effective samples: incomplete.
     let c = kfmc::ulog::calibration::cell(0.99, 3000, 50, 1, alpha);
     assert_eq!(c.judged, 0);
+}
+
+#[test]
+fn among_judged_series_at_the_border_of_the_minimum_false_alarms_stay_at_alpha() {
+    // Where a series is only sometimes long enough (ρ = 0.9 at 1,000 samples, ρ = 0.99 at
+    // 10,000: about 100 effective samples), the judged series must be as calibrated as the
+    // others: false alarms among them ≤ α within the rate's Clopper–Pearson 95 % interval.
+    // A τ̂ estimated with the sample variance judged mostly series whose mean NIS happened
+    // to be low, and 60–90 % of those failed (59 % of 59 and 94 % of 18 on these seeds). At
+    // the border few series are judged (a few %), hence the replications; at least 5 must be.
+    let alpha = 0.05;
+    for (rho, n, reps) in [(0.9, 1000, 1000), (0.99, 10_000, 400)] {
+        let c = kfmc::ulog::calibration::cell(rho, n, reps, 48, alpha);
+        assert!(c.judged >= 5, "ρ = {rho}, n = {n}: {} judged", c.judged);
+        let (fj, (lo, _)) = c.false_alarm_rate_judged();
+        assert!(
+            lo <= alpha,
+            "ρ = {rho}, n = {n}: false alarms among {} judged {fj} (CP lower {lo})",
+            c.judged
+        );
+    }
 }
 
 #[test]
