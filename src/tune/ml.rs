@@ -171,6 +171,7 @@ pub fn simulated_series(
     let (n_scales, n_runs) = (plan.noise_scales.len(), plan.runs);
     let units = plan.scenarios.len() * n_scales * n_runs;
     let n = plan.layout().quantities.len();
+    let p = plan.layout().measurements.len();
     let mut out = Vec::with_capacity(units);
     crate::runner::execute::<_, KfmcError>(
         units,
@@ -192,11 +193,17 @@ pub fn simulated_series(
                 path: plan.spec_path.clone(),
                 message: format!("the {} system gave no prior to start from", plan.kind),
             })?;
+            let mut z = tr.z;
+            // No sensor reports at step 0 (measurements.parquet has nulls there): the run
+            // starts from its prior.
+            for v in z.iter_mut().take(p) {
+                *v = f64::NAN;
+            }
             out.push(Series {
                 x0: DVector::from_vec(x0),
                 p0: from_lower_triangle(&p0, n),
                 u: tr.u,
-                z: tr.z,
+                z,
             });
             Ok(())
         },

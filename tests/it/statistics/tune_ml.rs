@@ -229,6 +229,7 @@ fn intervals_cover_the_truth_at_their_nominal_rate_over_40_replications() {
     let mut covered = 0;
     let mut z2 = 0.0;
     let mut log_err = [0.0f64; 4];
+    let mut se_sum = [0.0f64; 4];
     let settings = SearchSettings {
         starts: vec![1.0],
         ..SearchSettings::default()
@@ -246,6 +247,7 @@ fn intervals_cover_the_truth_at_their_nominal_rate_over_40_replications() {
             let e = est.theta[i] - truth.ln();
             z2 += (e / se).powi(2);
             log_err[i] += e;
+            se_sum[i] += se;
         }
     }
     let total = 4 * reps as usize;
@@ -255,11 +257,15 @@ fn intervals_cover_the_truth_at_their_nominal_rate_over_40_replications() {
         "{covered}/{total} intervals cover the truth"
     );
     assert!((0.6..=1.5).contains(&z2), "mean z² = {z2}");
-    // No element is biased in ln units beyond 4 standard errors of the mean (its spread
-    // is about √(mean z²)·se; se ≈ 0.1 here, so 4·0.1/√40 ≈ 0.065).
-    for (i, e) in log_err.iter().enumerate() {
-        let mean = e / reps as f64;
-        assert!(mean.abs() < 0.065, "element {i}: mean ln error {mean}");
+    // No element is biased in ln units beyond 4 standard errors of the mean error (the
+    // error's spread is its mean se, checked through z² above).
+    for i in 0..4 {
+        let mean = log_err[i] / reps as f64;
+        let se_mean = se_sum[i] / reps as f64 / (reps as f64).sqrt();
+        assert!(
+            mean.abs() < 4.0 * se_mean,
+            "element {i}: mean ln error {mean}, its standard error {se_mean}"
+        );
     }
 }
 
@@ -352,7 +358,24 @@ fn a_mistuned_start_converges_back_and_its_intervals_hold_the_truth() {
         })
         .unwrap();
     let mem = prepare(&plan8, &ml_options(), &NullObserver).unwrap();
-    assert_eq!(mem.series, prepared.series);
+    // Compared by bits (NaN marks a component that did not report, and NaN ≠ NaN).
+    let bits = |series: &[Series]| -> Vec<Vec<u64>> {
+        series
+            .iter()
+            .map(|s| {
+                s.x0.iter()
+                    .chain(s.p0.iter())
+                    .chain(&s.u)
+                    .chain(&s.z)
+                    .map(|v| v.to_bits())
+                    .collect()
+            })
+            .collect()
+    };
+    assert!(
+        bits(&mem.series) == bits(&prepared.series),
+        "the simulated runs differ from the file's"
+    );
     let toml = std::fs::read_to_string(out.join("tuned.toml")).unwrap();
     let doc: toml::Table = toml.parse().unwrap();
     let q = doc["model"]["q"].as_array().unwrap();
@@ -367,14 +390,16 @@ fn a_mistuned_start_converges_back_and_its_intervals_hold_the_truth() {
 #[test]
 fn the_tables_are_the_same_bits_on_one_and_two_threads() {
     let dir = tempfile::tempdir().unwrap();
+    let (_d, spec) = spec_in_tempdir(&CV_SPEC.replace("OUT", "unused"));
     let mut bytes = Vec::new();
     for threads in ["1", "2"] {
         let out = dir.path().join(format!("t{threads}"));
-        let (_d, spec) = spec_in_tempdir(&CV_SPEC.replace("OUT", &out.display().to_string()));
         let o = kfmc()
             .args([
                 "tune",
                 spec.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
                 "--runs",
                 "6",
                 "--threads",
@@ -389,10 +414,7 @@ fn the_tables_are_the_same_bits_on_one_and_two_threads() {
         assert_eq!(names, ["tune_trace.parquet", "tuned.parquet"]);
         bytes.push((tables, std::fs::read(out.join("tuned.toml")).unwrap()));
     }
-    assert!(
-        bytes[0] == bytes[1],
-        "the tables differ between 1 and 2 threads"
-    );
+    assert!(bytes[0] == bytes[1], "the tables differ between 1 and 2 threads");
 }
 
 /// Runs `kfmc tune` on `spec` with `args`, expecting a failure; returns stderr.
