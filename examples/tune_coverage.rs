@@ -17,6 +17,7 @@
 use std::path::PathBuf;
 
 use kfmc::experiment::Overrides;
+use kfmc::experiment::tune_spec::NoiseMatrix;
 use kfmc::power::clopper_pearson;
 use kfmc::runner::NullObserver;
 use kfmc::tune::estimate::SearchSettings;
@@ -62,10 +63,12 @@ fn main() {
         if names.is_empty() {
             names = prepared.elements.iter().map(|e| e.name.clone()).collect();
             truth = prepared
-                .problem()
-                .start()
+                .elements
                 .iter()
-                .map(|t| t.exp())
+                .map(|e| match e.matrix {
+                    NoiseMatrix::Q => prepared.model.q[(e.row, e.col)],
+                    NoiseMatrix::R => prepared.model.r[(e.row, e.col)],
+                })
                 .collect();
             let m = names.len();
             estimates = vec![Vec::new(); m];

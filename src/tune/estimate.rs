@@ -139,21 +139,34 @@ pub fn estimate(
     let half = settings.bound.ln();
     let lower: Vec<f64> = centre.iter().map(|c| c - half).collect();
     let upper: Vec<f64> = centre.iter().map(|c| c + half).collect();
+    // The starts run in parallel; each keeps its own trace, and both the traces and the
+    // choice of the best are taken in start order, so neither depends on the threads.
+    let searched: Vec<_> = settings
+        .starts
+        .par_iter()
+        .enumerate()
+        .map(|(si, &mult)| {
+            let theta0: Vec<f64> = centre.iter().map(|c| c + mult.ln()).collect();
+            let mut trace = Vec::new();
+            let result = search(
+                problem,
+                settings,
+                si,
+                theta0,
+                &lower,
+                &upper,
+                &mut trace,
+                on_iteration,
+            );
+            (result, trace)
+        })
+        .collect();
     let mut trace = Vec::new();
     let mut best: Option<(Vec<f64>, f64, usize, bool)> = None;
     let mut first_error = None;
-    for (si, &mult) in settings.starts.iter().enumerate() {
-        let theta0: Vec<f64> = centre.iter().map(|c| c + mult.ln()).collect();
-        match search(
-            problem,
-            settings,
-            si,
-            theta0,
-            &lower,
-            &upper,
-            &mut trace,
-            on_iteration,
-        ) {
+    for (si, (result, rows)) in searched.into_iter().enumerate() {
+        trace.extend(rows);
+        match result {
             Ok((theta, value, converged)) => {
                 if best.as_ref().is_none_or(|b| value < b.1) {
                     best = Some((theta, value, si, converged));

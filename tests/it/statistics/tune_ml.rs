@@ -339,9 +339,8 @@ fn a_mistuned_start_converges_back_and_its_intervals_hold_the_truth() {
     let from_truth = prepared
         .search(&SearchSettings::default(), 2, &|_| {})
         .unwrap();
-    for i in 0..4 {
-        let a = from_truth.theta[i].exp();
-        let b = est[i].unwrap();
+    for (i, (t, b)) in from_truth.theta.iter().zip(&est).enumerate() {
+        let (a, b) = (t.exp(), b.unwrap());
         assert!(
             (a - b).abs() <= 1e-5 * a,
             "{i}: {a} from the truth, {b} from the mistuned start"
@@ -414,7 +413,10 @@ fn the_tables_are_the_same_bits_on_one_and_two_threads() {
         assert_eq!(names, ["tune_trace.parquet", "tuned.parquet"]);
         bytes.push((tables, std::fs::read(out.join("tuned.toml")).unwrap()));
     }
-    assert!(bytes[0] == bytes[1], "the tables differ between 1 and 2 threads");
+    assert!(
+        bytes[0] == bytes[1],
+        "the tables differ between 1 and 2 threads"
+    );
 }
 
 /// Runs `kfmc tune` on `spec` with `args`, expecting a failure; returns stderr.
