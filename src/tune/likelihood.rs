@@ -221,7 +221,9 @@ impl Problem<'_> {
             // K = P⁻Hᵀ S⁻¹ (S symmetric: K = (S⁻¹ H P⁻)ᵀ).
             let gain = chol.solve(&pht.transpose()).transpose();
             let a = DMatrix::<f64>::identity(n, n) - &gain * &ha;
-            let mut pnew = &a * &pp * a.transpose() + &gain * &ra * gain.transpose();
+            let at = a.transpose();
+            let gt = gain.transpose();
+            let mut pnew = &a * &pp * &at + &gain * &ra * &gt;
             symmetrise(&mut pnew);
             let xnew = &xp + &gain * &nu_k;
             if m > 0 {
@@ -237,9 +239,10 @@ impl Problem<'_> {
                         ds[(pos, pos)] += scale[i];
                     }
                     let dn = -(&ha * &dxp[i]);
+                    let sd = &s_inv * &ds;
                     out.gradient[i] +=
-                        0.5 * ((&s_inv * &ds).trace() - s_nu.dot(&(&ds * &s_nu))) + s_nu.dot(&dn);
-                    s_ds.push(&s_inv * &ds);
+                        0.5 * (sd.trace() - s_nu.dot(&(&ds * &s_nu))) + s_nu.dot(&dn);
+                    s_ds.push(sd);
                     dnu.push(dn);
                     ds_all.push(ds);
                 }
@@ -258,7 +261,7 @@ impl Problem<'_> {
                 for (i, prm) in self.params.iter().enumerate() {
                     let dk = (&dpp[i] * &hat - &gain * &ds_all[i]) * &s_inv;
                     dx[i] = &dxp[i] + &dk * &nu_k + &gain * &dnu[i];
-                    let mut d = &a * &dpp[i] * a.transpose();
+                    let mut d = &a * &dpp[i] * &at;
                     if prm.matrix == NoiseMatrix::R
                         && let Some(pos) = avail.iter().position(|&j| j == prm.index)
                     {
