@@ -54,3 +54,41 @@ impl RunObserver for ProgressObserver {
         self.cancel.as_ref().is_some_and(CancelToken::is_cancelled)
     }
 }
+
+/// A spinner over an optimiser's iterations (`kfmc tune --method ml`): the start, the
+/// iteration and the objective; hidden as [`ProgressObserver`] is.
+pub struct IterationProgress {
+    bar: ProgressBar,
+}
+
+impl IterationProgress {
+    /// A spinner that draws only when `visible` and stderr is a terminal.
+    pub fn new(visible: bool) -> Self {
+        let bar = ProgressBar::with_draw_target(
+            None,
+            if visible && std::io::stderr().is_terminal() {
+                ProgressDrawTarget::stderr()
+            } else {
+                ProgressDrawTarget::hidden()
+            },
+        );
+        bar.set_style(
+            ProgressStyle::with_template("{elapsed_precise} {spinner} {msg}")
+                .expect("the template is valid"),
+        );
+        IterationProgress { bar }
+    }
+
+    /// Shows one iteration.
+    pub fn show(&self, start: usize, iteration: usize, objective: f64) {
+        self.bar.set_message(format!(
+            "start {start}, iteration {iteration}: −ln L = {objective:.6}"
+        ));
+        self.bar.tick();
+    }
+
+    /// Clears the spinner.
+    pub fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}

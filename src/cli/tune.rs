@@ -1,5 +1,7 @@
-//! `kfmc tune`: search a filter's Q scale (and R scale with --tune-r) for consistency or
-//! minimum RMSE: a coarse log grid, then a refinement; writes tuning.parquet.
+//! `kfmc tune`: the `consistency` method searches a filter's Q scale (and R scale with
+//! --tune-r) for consistency or minimum RMSE on a coarse log grid, then a refinement, and
+//! writes tuning.parquet; the `ml` method estimates named elements of Q and R by maximum
+//! likelihood of the innovations, with intervals, and writes tuned.parquet.
 
 use super::*;
 
@@ -18,6 +20,17 @@ pub struct Tune {
     /// The filter label to tune (default: the first EKF).
     #[arg(long)]
     pub filter: Option<String>,
+    /// The method (default: `tune.method` of the spec, else `consistency`).
+    #[arg(long, value_enum)]
+    pub method: Option<crate::experiment::tune_spec::TuneMethod>,
+    /// The elements the `ml` method estimates, e.g. `--elements 'q[px,px]' 'r[zx,zx]'`
+    /// (default: `tune.elements` of the spec).
+    #[arg(long, num_args = 1..)]
+    pub elements: Vec<String>,
+    /// Tune (`ml`) from this `measurements.parquet` (the layout `kfmc simulate` writes)
+    /// instead of the spec's simulation; an `initial.parquet` beside it gives the priors.
+    #[arg(long, value_name = "FILE")]
+    pub measurements: Option<std::path::PathBuf>,
 }
 
 impl Tune {
@@ -28,8 +41,29 @@ impl Tune {
             objective,
             tune_r,
             filter,
+            method,
+            elements,
+            measurements,
         } = self;
         let plan = study.plan(registry, None)?;
+        let method = method
+            .or_else(|| plan.tune.as_ref().and_then(|t| t.method))
+            .unwrap_or(crate::experiment::tune_spec::TuneMethod::Consistency);
+        if method == crate::experiment::tune_spec::TuneMethod::Ml {
+            let opts = crate::tune::ml::MlOptions {
+                elements: (!elements.is_empty()).then_some(elements),
+                measurements,
+                search: Default::default(),
+                force: study.force,
+                threads: study.threads(study.quiet),
+            };
+            return execute_ml(&plan, &study.spec, study.quiet, &opts);
+        }
+        if !elements.is_empty() || measurements.is_some() {
+            anyhow::bail!(
+                "--elements and --measurements belong to the ml method (--method ml); the consistency method tunes a Q scale and an R scale"
+            );
+        }
         let threads = study.threads(study.quiet);
         let StudyArgs {
             spec, quiet, force, ..
@@ -76,4 +110,96 @@ impl Tune {
         }
         Ok(())
     }
+}
+
+/// `kfmc tune --method ml`: runs the estimate and prints each element with its interval and
+/// every direction the data do not identify.
+fn execute_ml(
+    plan: &crate::experiment::Plan,
+    spec: &std::path::Path,
+    quiet: bool,
+    opts: &crate::tune::ml::MlOptions,
+) -> anyhow::Result<()> {
+    let observer = ProgressObserver::new(!quiet);
+    let spinner = progress::IterationProgress::new(!quiet);
+    let report = crate::tune::ml::tune_ml(plan, opts, &observer, &|row| {
+        spinner.show(row.start, row.iteration, row.objective)
+    });
+    spinner.finish();
+    let report = report
+        .map_err(anyhow::Error::from)
+        .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
+    let est = &report.estimate;
+    let iterations = est
+        .trace
+        .iter()
+        .filter(|r| r.start == est.best_start)
+        .map(|r| r.iteration)
+        .max()
+        .unwrap_or(0);
+    outln!(
+        "kfmc tune {} (ml): {} elements from {} runs, {} scalar measurements ({})",
+        plan.name,
+        report.elements.len(),
+        report.runs,
+        report.measurements,
+        report.data
+    );
+    outln!(
+        "−ln L = {:.6} after {iterations} iterations from the start at ×{} of the spec's values{} → {}",
+        est.objective,
+        opts.search.starts[est.best_start],
+        if est.converged {
+            ""
+        } else {
+            " (not converged)"
+        },
+        report.output.join("tuned.parquet").display()
+    );
+    outln!(
+        "  {:<24} {:>13} {:>13} {:>13}  95 % interval",
+        "element",
+        "spec",
+        "estimate",
+        "std_error"
+    );
+    for (i, e) in report.elements.iter().enumerate() {
+        let (v, se, ci) = est.natural(i);
+        let ci = ci.map_or("not identified".to_string(), |(lo, hi)| {
+            format!("[{lo:.6e}, {hi:.6e}]")
+        });
+        let bound = if est.at_bound[i] {
+            "  (at a bound of the search)"
+        } else {
+            ""
+        };
+        outln!(
+            "  {:<24} {:>13.6e} {:>13.6e} {:>13} {ci}{bound}",
+            e.name,
+            report.spec_values[i],
+            v,
+            se.map_or("—".to_string(), |s| format!("{s:.6e}"))
+        );
+    }
+    for d in &est.flat {
+        let terms: Vec<String> = d
+            .components
+            .iter()
+            .zip(&report.elements)
+            .filter(|(c, _)| c.abs() >= crate::tune::estimate::DIRECTION_SHARE)
+            .map(|(c, e)| format!("{c:+.3}·ln {}", e.name))
+            .collect();
+        outln!(
+            "not identified: the direction {} (information {:.3e}, {:.1e} of the largest {:.3e})",
+            terms.join(" "),
+            d.eigenvalue,
+            d.eigenvalue / d.largest,
+            d.largest
+        );
+    }
+    outln!(
+        "the tuned Q and R, ready to paste: {}",
+        report.output.join(crate::tune::ml::TUNED_TOML).display()
+    );
+    Ok(())
 }

@@ -6,6 +6,7 @@
 
 pub mod plan;
 pub mod spec;
+pub mod tune_spec;
 
 use std::path::Path;
 

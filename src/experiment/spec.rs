@@ -41,6 +41,8 @@ pub struct Spec {
     pub consistency: Option<TableOf<ConsistencySpec>>,
     /// Assertions for `kfmc check`.
     pub check: Option<TableOf<CheckSpec>>,
+    /// `kfmc tune`'s method and tuned elements.
+    pub tune: Option<TableOf<super::tune_spec::TuneSpec>>,
 }
 
 /// `[check]`

@@ -100,7 +100,7 @@ fn filter_keys() -> Vec<ColumnDef> {
 }
 
 /// Table names, in the order they are documented.
-pub const TABLES: [&str; 18] = [
+pub const TABLES: [&str; 20] = [
     "runs",
     "steps",
     "run_steps",
@@ -112,6 +112,8 @@ pub const TABLES: [&str; 18] = [
     "divergence_runs",
     "traces",
     "tuning",
+    "tuned",
+    "tune_trace",
     "estimates",
     "truth",
     "measurements",
@@ -171,6 +173,8 @@ pub fn row_keys(name: &str) -> Option<&'static [&'static str]> {
             "q_scale",
             "r_scale",
         ],
+        "tuned" => &["element"],
+        "tune_trace" => &["start", "iteration"],
         "estimates" => &["scenario", "noise_scale", "run", "step", "filter"],
         "truth" | "measurements" => &["scenario", "noise_scale", "run", "step"],
         "initial" => &["scenario", "noise_scale", "run"],
@@ -408,6 +412,32 @@ pub fn tuning(states: &[&str]) -> Vec<ColumnDef> {
     ];
     c.extend(per("rmse_", states, Dtype::F64));
     c.push(col("objective", Dtype::F64));
+    c
+}
+
+/// `tuned.parquet` (`kfmc tune --method ml`): one row per tuned element of Q or R, with its
+/// standard error and 95 % interval (null where the element is not identified).
+pub fn tuned() -> Vec<ColumnDef> {
+    vec![
+        col("element", Dtype::Str),
+        col("estimate", Dtype::F64),
+        col("std_error", Dtype::F64),
+        col("ci_low", Dtype::F64),
+        col("ci_high", Dtype::F64),
+        col("method", Dtype::Str),
+        col("identifiable", Dtype::Bool),
+    ]
+}
+
+/// `tune_trace.parquet` (`kfmc tune --method ml`): every iteration of every start of the
+/// search, with −ln L and each element's value (a column per element, named as in `tuned`).
+pub fn tune_trace(elements: &[&str]) -> Vec<ColumnDef> {
+    let mut c = vec![
+        col("start", Dtype::I64),
+        col("iteration", Dtype::I64),
+        col("objective", Dtype::F64),
+    ];
+    c.extend(elements.iter().map(|e| col(*e, Dtype::F64)));
     c
 }
 

@@ -55,6 +55,7 @@ mod statistics {
     mod power;
     #[allow(clippy::module_inception)]
     mod statistics;
+    mod tune_ml;
     mod unjudgeable;
     mod whiteness_scale;
 }

@@ -89,6 +89,8 @@ pub struct Plan {
     /// Whether a run that never crosses its divergence threshold records the largest
     /// multiplier (`divergence.never_crossed = "largest_scale"`) instead of null.
     pub never_crossed_largest: bool,
+    /// `[tune]`: `kfmc tune`'s method and elements, when the spec has the table.
+    pub tune: Option<crate::experiment::tune_spec::TunePlan>,
 }
 
 impl std::ops::Deref for Plan {
@@ -486,6 +488,8 @@ pub(crate) fn validate_into(
     let check = check_table(&mut c, &spec, runs as usize, consistency.alpha);
     check_sizes(&mut c, &spec, runs, filters.len(), configured.as_deref());
     let name = experiment_name(&mut c, &spec, &path);
+    let tune =
+        crate::experiment::tune_spec::validate(&mut c, spec.tune.as_deref(), configured.as_deref());
 
     let system = match configured {
         Some(s) if c.is_clean() => s,
@@ -568,6 +572,7 @@ pub(crate) fn validate_into(
             .and_then(|c| c.per_step_runs)
             .unwrap_or(false),
         never_crossed_largest,
+        tune,
     })
 }
 

@@ -584,6 +584,8 @@ fn tables_reference() -> String {
         ("divergence_runs", schema::divergence_runs()),
         ("traces", schema::traces(q, &["<u>"], &["<z>"], &["<w>"])),
         ("tuning", schema::tuning(q)),
+        ("tuned", schema::tuned()),
+        ("tune_trace", schema::tune_trace(&["<element>"])),
         (
             "estimates",
             schema::with_variant_columns(kfmc::score::estimate_columns(q, &["<z>"]), [true; 2]),

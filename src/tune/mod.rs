@@ -1,11 +1,16 @@
-//! `kfmc tune`: searches a filter's Q scale (and R scale, when asked) for consistency or for
-//! minimum RMSE.
+//! `kfmc tune`: the methods that tune a filter's noise covariances.
 //!
-//! Each stage is an ordinary study whose filter variants are the candidate scales, so every
-//! candidate sees the same truths and measurements (paired comparison) and the stage's
-//! tables are kept for inspection. Stage 1 is a coarse log grid (half-decades from 10⁻³ to
-//! 10³: 13 points, or 13 × 13 with the R scale); stage 2 refines around the best point
-//! (±½ decade: 11 points, or 7 × 7),
+//! * `consistency` (this file, the default): searches a filter's Q scale (and R scale, when
+//!   asked) for consistency or for minimum RMSE, on a grid.
+//! * `ml` ([`ml`]): the maximum-likelihood estimate of named elements of Q and R from the
+//!   innovations alone ([`likelihood`]), with intervals from the observed information
+//!   ([`estimate`]), for linear systems.
+//!
+//! The `consistency` search: each stage is an ordinary study whose filter variants are the
+//! candidate scales, so every candidate sees the same truths and measurements (paired
+//! comparison) and the stage's tables are kept for inspection. Stage 1 is a coarse log grid
+//! (half-decades from 10⁻³ to 10³: 13 points, or 13 × 13 with the R scale); stage 2 refines
+//! around the best point (±½ decade: 11 points, or 7 × 7),
 //! separately for each truth-noise scale, because each scale has its own best tuning (the
 //! seeds' noise cases are four different truths).
 //!
@@ -14,6 +19,13 @@
 //!   (zero for a perfectly calibrated filter);
 //! * `rmse`: Σ_states RMSE_state / min over the candidates of RMSE_state, so every state
 //!   counts equally whatever its units.
+//!
+//! The two-scalar search has two equations: with more unknowns it is flat along a set of
+//! solutions (only the overall balance of Q against R is fixed), which is why `ml` exists.
+
+pub mod estimate;
+pub mod likelihood;
+pub mod ml;
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
