@@ -442,9 +442,9 @@ class Model:
             full = np.zeros((len(zb), nz))
             full[:, rows] = zb
             preds = np.asarray(_companion(z_pred, len(zb), len(rows), "z_pred"), dtype=np.float64)
-            full_p = np.zeros((len(preds), nz))
-            full_p[:, rows] = preds
-            got = np.array(self._raw.residual_many(full.tolist(), full_p.tolist()), dtype=np.float64)
+            full_pred = np.zeros((len(preds), nz))
+            full_pred[:, rows] = preds
+            got = np.array(self._raw.residual_many(full.tolist(), full_pred.tolist()), dtype=np.float64)
             return got.reshape(len(zb), nz)[:, rows]
         full_z, full_p = [0.0] * nz, [0.0] * nz
         zs = _vector(z, len(rows), "z")
@@ -658,6 +658,8 @@ class Run(Tuple[Tuple[str, float, int], pl.DataFrame, pl.DataFrame, pl.DataFrame
     ``(key, truth, measurements, initial)`` of the key ``(scenario, noise_scale, run)`` and
     the run's rows of each table, with its arrays as attributes. Rows are steps (0 to K);
     columns follow the tables' order (the states of ``initial``'s ``est_*`` columns)."""
+
+    __slots__ = ()
 
     def __new__(
         cls,
@@ -1127,7 +1129,7 @@ def power(
     folder, answer = _pythonic(
         lambda: _kfmc.power(
             _spec(spec),
-            _count(replications, "replications"),
+            _count(replications, "replications") or 0,
             out=target,
             runs=_count(runs, "runs"),
             seed=_count(seed, "seed"),
