@@ -20,7 +20,7 @@ import pytest
 
 import kfmc
 
-from test_api import L1, SIGINT_SCRIPT, assert_same_tables, l1_world  # noqa: F401 (fixture)
+from test_api import SIGINT_SCRIPT, assert_same_tables, l1_world  # noqa: F401 (fixture)
 
 
 def small(name: str, runs: int = 4) -> dict:
