@@ -19,6 +19,7 @@
 mod check;
 mod errors;
 mod estimates;
+mod folder;
 mod model;
 mod progress;
 mod spec;
@@ -32,7 +33,7 @@ use errors::{
 };
 use estimates::score;
 use model::{FilterModel, estimates_layout, filter_model, simulation_model};
-use spec::{describe, load_toml, schema};
+use spec::{describe, load_toml, schema, to_toml_text};
 use study::{power, run, simulate, validate};
 
 /// The console script `kfmc`: the command line with argv (program name first); returns the
@@ -64,6 +65,11 @@ fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(describe, m)?)?;
     m.add_function(wrap_pyfunction!(schema, m)?)?;
     m.add_function(wrap_pyfunction!(load_toml, m)?)?;
+    m.add_function(wrap_pyfunction!(to_toml_text, m)?)?;
+    m.add_function(wrap_pyfunction!(folder::summary, m)?)?;
+    m.add_function(wrap_pyfunction!(folder::plot, m)?)?;
+    m.add_function(wrap_pyfunction!(folder::report, m)?)?;
+    m.add_function(wrap_pyfunction!(folder::list, m)?)?;
     m.add_function(wrap_pyfunction!(filter_model, m)?)?;
     m.add_function(wrap_pyfunction!(simulation_model, m)?)?;
     m.add_function(wrap_pyfunction!(estimates_layout, m)?)?;

@@ -52,6 +52,16 @@ impl FilterModel {
     }
 }
 
+/// Row `i` of a batch's companion, or its only row (one `u` for every state); empty when
+/// there is none (an h that does not read the input).
+fn row(rows: &[Vec<f64>], i: usize) -> &[f64] {
+    match rows {
+        [] => &[],
+        [only] => only,
+        _ => rows.get(i).map_or(&[], Vec::as_slice),
+    }
+}
+
 /// A matrix as Python's nested lists.
 type Rows = Vec<Vec<f64>>;
 
@@ -125,6 +135,35 @@ impl FilterModel {
     /// z − ẑ with the angle components wrapped.
     fn residual(&self, z: Vec<f64>, z_pred: Vec<f64>) -> PyResult<Vec<f64>> {
         self.with(|m| m.model.residual(&z, &z_pred))
+    }
+    /// f of each row of `xs` with the row of `us` beside it (one `u` for every row when
+    /// `us` has one row): one call for a batch of states (sigma points, particles).
+    fn f_many(&self, xs: Vec<Vec<f64>>, us: Vec<Vec<f64>>) -> PyResult<Vec<Vec<f64>>> {
+        self.with(|m| {
+            xs.iter()
+                .enumerate()
+                .map(|(i, x)| m.model.propagate(x, row(&us, i)))
+                .collect()
+        })
+    }
+    /// h of each row of `xs` (with `us` as in [`Self::f_many`]; empty rows when h does not
+    /// read the input).
+    fn h_many(&self, xs: Vec<Vec<f64>>, us: Vec<Vec<f64>>) -> PyResult<Vec<Vec<f64>>> {
+        self.with(|m| {
+            xs.iter()
+                .enumerate()
+                .map(|(i, x)| m.model.measure(x, row(&us, i)))
+                .collect()
+        })
+    }
+    /// The residual of each row of `zs` against the row of `z_preds` (or its one row).
+    fn residual_many(&self, zs: Vec<Vec<f64>>, z_preds: Vec<Vec<f64>>) -> PyResult<Vec<Vec<f64>>> {
+        self.with(|m| {
+            zs.iter()
+                .enumerate()
+                .map(|(i, z)| m.model.residual(z, row(&z_preds, i)))
+                .collect()
+        })
     }
     /// Which components report at `step`.
     fn availability(&self, step: usize) -> PyResult<Vec<bool>> {

@@ -32,44 +32,67 @@ impl RunObserver for Observer {
     }
 }
 
-/// A progress line written through Python's `sys.stderr` (so a terminal and a Jupyter cell
-/// both show it): `\r` redraws it in place.
+/// Progress written through Python's `sys.stderr` (so a terminal and a Jupyter cell both
+/// show it). Where the stream redraws (a terminal, a Jupyter cell) one line is redrawn in
+/// place with `\r`; elsewhere (a log file, CI) plain lines come at long intervals, since a
+/// `\r` there only piles redraws into one unreadable line.
 struct Progress {
     started: Instant,
     last: Option<Instant>,
     shown: bool,
+    redraw: bool,
 }
 
+/// How often each kind of stream gets a new line.
+const REDRAW_EVERY: Duration = Duration::from_millis(250);
+const LINE_EVERY: Duration = Duration::from_secs(10);
+
 impl Progress {
+    fn new(py: Python<'_>) -> Self {
+        Progress {
+            started: Instant::now(),
+            last: None,
+            shown: false,
+            redraw: redraws(py),
+        }
+    }
+
     fn show(&mut self, py: Python<'_>, obs: &Observer, last: bool) {
         let now = Instant::now();
-        if !last
-            && self
-                .last
-                .is_some_and(|t| now - t < Duration::from_millis(250))
-        {
+        let every = if self.redraw {
+            REDRAW_EVERY
+        } else {
+            LINE_EVERY
+        };
+        if !last && self.last.is_some_and(|t| now - t < every) {
             return;
         }
-        self.last = Some(now);
         let (done, total) = (
             obs.done.load(Ordering::Relaxed),
             obs.total.load(Ordering::Relaxed),
         );
         let elapsed = (now - self.started).as_secs_f64();
-        // A study done within half a second prints nothing: a loop of short calls stays quiet.
-        if total == 0 || (!self.shown && elapsed < 0.5) {
+        // A study done within half a second (a second without redraws) prints nothing: a
+        // loop of short calls stays quiet.
+        let quiet_for = if self.redraw { 0.5 } else { 1.0 };
+        if total == 0 || (!self.shown && elapsed < quiet_for) {
             return;
         }
+        self.last = Some(now);
+        let (start, end) = if self.redraw { ("\r", "") } else { ("", "\n") };
         let text = if last {
             if !self.shown {
                 return;
             }
-            format!("\r{done}/{total} runs in {elapsed:.1} s\n")
+            format!("{start}{done}/{total} runs in {elapsed:.1} s\n")
         } else {
-            format!(
-                "\r{done}/{total} runs  {:.0} runs/s  {elapsed:.0} s",
-                done as f64 / elapsed.max(1e-9)
-            )
+            let rate = done as f64 / elapsed.max(1e-9);
+            let eta = if done == 0 {
+                "?".to_string()
+            } else {
+                format!("{:.0} s", total.saturating_sub(done) as f64 / rate)
+            };
+            format!("{start}{done}/{total} runs  {rate:.0} runs/s  {elapsed:.0} s  ETA {eta}{end}")
         };
         self.shown = true;
         // Progress is best effort: a closed or replaced stderr does not stop the study.
@@ -78,6 +101,24 @@ impl Progress {
             let _ = stderr.call_method0("flush");
         }
     }
+}
+
+/// Whether Python's `sys.stderr` redraws a `\r` line in place: a terminal, or a Jupyter
+/// cell's stream (ipykernel's, which is not a tty).
+fn redraws(py: Python<'_>) -> bool {
+    let Ok(stderr) = py.import("sys").and_then(|s| s.getattr("stderr")) else {
+        return false;
+    };
+    let tty = stderr
+        .call_method0("isatty")
+        .and_then(|t| t.extract::<bool>())
+        .unwrap_or(false);
+    let jupyter = stderr
+        .get_type()
+        .getattr("__module__")
+        .and_then(|m| m.extract::<String>())
+        .is_ok_and(|m| m.starts_with("ipykernel"));
+    tty || jupyter
 }
 
 /// Runs `job` on its own thread while the caller waits in released-GIL slices; between
@@ -100,11 +141,7 @@ pub(crate) fn run_study<T: Send + 'static>(
         .map_err(|e| Error::new_err(format!("cannot start the study's thread: {e}")))?;
     // Best effort: without it SIGTERM keeps Python's default (the process ends at once).
     let sigterm = SigtermStop::install(py).ok().flatten();
-    let mut progress = (!quiet).then(|| Progress {
-        started: Instant::now(),
-        last: None,
-        shown: false,
-    });
+    let mut progress = (!quiet).then(|| Progress::new(py));
     let mut interrupt: Option<PyErr> = None;
     loop {
         let finished = py.detach(|| {

@@ -69,6 +69,15 @@ fn to_toml(v: &Bound<'_, PyAny>, key: &str, depth: usize) -> PyResult<toml::Valu
             "None has no TOML form: leave the key out to take its default",
         ));
     }
+    // numpy scalars and arrays (and anything else with numpy's `tolist`, a pandas Series)
+    // become the Python values they hold; a 0-d array gives its scalar.
+    if let Ok(tolist) = v.getattr("tolist")
+        && tolist.is_callable()
+        && let Ok(plain) = tolist.call0()
+        && !plain.get_type().is(v.get_type())
+    {
+        return to_toml(&plain, key, depth + 1);
+    }
     Err(spec_err(&format!(
         "a {} has no TOML form (use bool, int, float, str, list or dict)",
         v.get_type().name()?
@@ -79,13 +88,16 @@ fn to_toml(v: &Bound<'_, PyAny>, key: &str, depth: usize) -> PyResult<toml::Valu
 /// validated.
 pub(crate) fn load_spec(spec: &Bound<'_, PyAny>, registry: &Registry) -> PyResult<(Plan, PathBuf)> {
     let loaded = if let Ok(d) = spec.cast::<PyDict>() {
-        let toml::Value::Table(table) = to_toml(d.as_any(), "", 0)? else {
-            unreachable!("a dict is a table");
-        };
-        let text = toml::to_string(&table)
-            .map_err(|e| SpecError::new_err(format!("<dict>: cannot write it as TOML: {e}")))?;
+        let text = dict_to_toml(d)?;
         let path = PathBuf::from("<dict>");
-        (experiment::parse_with(&text, &path, registry), path)
+        // The TOML text is ours, not the caller's: its line numbers would point nowhere.
+        let parsed = experiment::parse_with(&text, &path, registry).map_err(|mut e| {
+            for problem in &mut e.0 {
+                problem.message = without_position(&problem.message);
+            }
+            e
+        });
+        (parsed, path)
     } else if let Ok(text) = spec.extract::<String>()
         && text.contains('\n')
     {
@@ -107,6 +119,50 @@ pub(crate) fn load_spec(spec: &Bound<'_, PyAny>, registry: &Registry) -> PyResul
         (Ok(plan), path) => Ok((plan, path)),
         (Err(e), _) => Err(Failure::from(e).into_py()),
     }
+}
+
+/// A dict spec as TOML text.
+fn dict_to_toml(d: &Bound<'_, PyDict>) -> PyResult<String> {
+    let toml::Value::Table(table) = to_toml(d.as_any(), "", 0)? else {
+        unreachable!("a dict is a table");
+    };
+    toml::to_string(&table)
+        .map_err(|e| SpecError::new_err(format!("<dict>: cannot write it as TOML: {e}")))
+}
+
+/// `message` without the ` (line N, column M)` positions the TOML parser gives.
+fn without_position(message: &str) -> String {
+    let mut out = String::with_capacity(message.len());
+    let mut rest = message;
+    while let Some(at) = rest.find(" (line ") {
+        out.push_str(&rest[..at]);
+        let tail = &rest[at..];
+        let end = tail.find(')').map(|e| e + 1);
+        let is_position = end.is_some_and(|e| {
+            let inner = &tail[" (line ".len()..e - 1];
+            inner.split_once(", column ").is_some_and(|(l, c)| {
+                [l, c]
+                    .iter()
+                    .all(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+            })
+        });
+        match end {
+            Some(e) if is_position => rest = &tail[e..],
+            _ => {
+                out.push_str(" (line ");
+                rest = &tail[" (line ".len()..];
+            }
+        }
+    }
+    out.push_str(rest);
+    out
+}
+
+/// A dict spec written as the TOML text `kfmc validate` reads (numpy values as the numbers
+/// they hold); raises `SpecError` for a value TOML cannot hold.
+#[pyfunction]
+pub(crate) fn to_toml_text(spec: &Bound<'_, PyDict>) -> PyResult<String> {
+    guarded(|| dict_to_toml(spec))
 }
 
 /// The overrides every study command takes, applied and checked against the limits.

@@ -110,8 +110,11 @@ pub(crate) fn run<'py>(
             shard: None,
             checkpoints: Some(kfmc::study::Checkpoints {
                 every,
+                // Python has no `restart=`: `force=True` is its word for "whatever is there".
                 existing: if resume {
                     kfmc::study::ExistingCheckpoint::Resume
+                } else if force {
+                    kfmc::study::ExistingCheckpoint::Discard
                 } else {
                     kfmc::study::ExistingCheckpoint::Refuse
                 },
@@ -239,7 +242,8 @@ pub(crate) fn power(
 /// The gate keywords of `check` and `power` (`sequential=…, looks=…, spending=…,
 /// futility=…, futility_rho=…`) as the library's [`kfmc::sequential::GateOverrides`], the
 /// flags of `kfmc check` and `kfmc power` in Python's spelling: `looks` is a count of even
-/// looks (≥ 1) or the looks' run counts, `spending` `"obrien-fleming"` or `"pocock"`.
+/// looks (≥ 1) or the looks' run counts, `spending` `"obrien-fleming"` (or the spec's
+/// `"obrien_fleming"`) or `"pocock"`.
 pub(crate) fn gate_overrides(
     sequential: bool,
     looks: Option<&Bound<'_, PyAny>>,
@@ -260,11 +264,11 @@ pub(crate) fn gate_overrides(
     };
     let spending = match spending {
         None => None,
-        Some("obrien-fleming") => Some(Spending::OBrienFleming),
+        Some("obrien-fleming" | "obrien_fleming") => Some(Spending::OBrienFleming),
         Some("pocock") => Some(Spending::Pocock),
         Some(other) => {
             return Err(SpecError::new_err(format!(
-                "spending: `{other}` is not one of obrien-fleming, pocock"
+                "spending: `{other}` is not one of obrien-fleming (obrien_fleming), pocock"
             )));
         }
     };

@@ -1,19 +1,33 @@
 """kfmc: judge state estimators (Kalman filters etc.) statistically.
 
-A thin, typed layer over the compiled kfmc library (``kfmc._kfmc``): every call runs the
-same Rust code as the ``kfmc`` command, and the tables it writes are read as polars
-DataFrames. A *spec* is a path to a TOML file, a ``dict`` with the TOML's structure, or TOML
-text (a ``str`` containing a newline).
+The API, each function the ``kfmc`` command of the same name:
 
-The functions release the GIL while the library works. A study runs on its own thread;
-Ctrl-C stops it at its next window exactly as SIGINT stops ``kfmc run`` (nothing committed,
-the checkpoint kept, so ``run(..., resume=True)`` continues it) and is re-raised as
-``KeyboardInterrupt``; no signal handler is installed.
+* :func:`run` a Monte Carlo study of kfmc's filters → :class:`Study` (its Parquet tables as
+  polars DataFrames); :func:`summary`, :func:`plot`, :func:`report` of a study's folder;
+* :func:`simulate` every run's world for a filter of yours → :class:`Simulation`
+  (:meth:`Simulation.runs` yields each :class:`Run`: ``x0``, ``P0``, ``z``, ``u``,
+  ``truth`` as numpy arrays), :class:`Estimates` to collect its output, :func:`score` it;
+* :func:`check` a spec's ``[check]`` assertions → :class:`CheckResult`; :func:`power`;
+* :func:`validate`, :func:`describe`, :func:`schema`, :func:`model`, :func:`list`,
+  :func:`to_toml`; :func:`examples` the specs bundled with the wheel (name → path).
+
+A *spec* is a path to a TOML file, a ``dict`` with the TOML's structure (numpy scalars and
+arrays allowed), or TOML text (a ``str`` containing a newline). Without ``out=`` a call's
+tables go to a temporary folder that lives as long as the object returned.
+
+The functions release the GIL while the library works. Ctrl-C (and SIGTERM) stops a study at
+its next window as SIGINT stops ``kfmc run``: the checkpoint kept, so
+``run(..., out=..., resume=True)`` continues it. Errors are :class:`Error` (a
+``ValueError``) and its subclasses.
 """
 
 from __future__ import annotations
 
+import builtins
+import numbers
 import os
+import re
+import tempfile
 from pathlib import Path
 from typing import Any, Callable, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
@@ -45,15 +59,22 @@ __all__ = [
     "SpecError",
     "Study",
     "StudyError",
+    "Run",
     "check",
     "describe",
+    "examples",
+    "list",
     "model",
+    "plot",
     "power",
+    "report",
     "run",
     "schema",
     "score",
     "sigma_point_transition",
     "simulate",
+    "summary",
+    "to_toml",
     "ulog_nis",
     "validate",
 ]
@@ -80,6 +101,66 @@ def _path(p: Optional[PathLike]) -> Optional[str]:
     return None if p is None else os.fspath(p)
 
 
+def _out(out: Optional[PathLike], resume: bool = False) -> Tuple[str, Optional["tempfile.TemporaryDirectory[str]"]]:
+    """The folder a call writes: ``out``, or a new temporary folder (returned too, for the
+    result to hold: it is removed when the result is let go)."""
+    if out is not None:
+        return os.fspath(out), None
+    if resume:
+        raise Error(
+            "resume=True continues the checkpoint of an interrupted run in its folder: pass "
+            "out= (the folder of that run); without out= a call writes a new temporary folder"
+        )
+    scratch = tempfile.TemporaryDirectory(prefix="kfmc-")
+    return os.path.join(scratch.name, "study"), scratch
+
+
+def _count(value: Any, name: str) -> Optional[int]:
+    """An integer keyword (``runs``, ``seed``, …) checked here, so that a negative or
+    non-integer value is a :class:`SpecError` naming it (not a bare ``OverflowError``)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise SpecError(f"{name}={value!r}: not an integer")
+    if value < 0:
+        raise SpecError(f"{name}={value!r}: not an integer ≥ 0")
+    return int(value)
+
+
+#: The command's flags as the Python arguments that do the same, for the library's messages.
+_FLAGS = [
+    ("`kfmc run SPEC --restart`", "`force=True`"),
+    ("`kfmc run SPEC --resume`", "`resume=True` (with the same out=)"),
+    ("`--restart`", "`force=True`"),
+    ("`--resume`", "`resume=True`"),
+    ("`--force`", "`force=True`"),
+    ("`--allow-large`", "`allow_large=True`"),
+    ("`--seed`", "`seed=`"),
+    ("`--runs`", "`runs=`"),
+    ("`--out`", "`out=`"),
+    ("`--replications`", "`replications=`"),
+    ("`--sequential`", "`sequential=True`"),
+    ("`--looks`", "`looks=`"),
+    ("`--against`", "`against=`"),
+    ("--allow-large", "allow_large=True"),
+]
+
+
+def _pythonic(call: Callable[[], Any]) -> Any:
+    """``call()``, with the library's messages naming Python's arguments where they name the
+    command's flags."""
+    try:
+        return call()
+    except Error as e:
+        message = str(e)
+        new = message
+        for flag, keyword in _FLAGS:
+            new = new.replace(flag, keyword)
+        if new == message:
+            raise
+        raise type(e)(new) from None
+
+
 class Study:
     """A result folder written by :func:`run`, :func:`score` or :func:`check`.
 
@@ -87,11 +168,19 @@ class Study:
     columns the command writes (``kfmc schema`` and the book's table pages list them).
     """
 
-    def __init__(self, folder: PathLike, report: Optional[Mapping[str, Any]] = None) -> None:
+    def __init__(
+        self, folder: PathLike, report: Optional[Mapping[str, Any]] = None, *, _scratch: Any = None
+    ) -> None:
         #: The folder.
         self.folder: Path = Path(folder)
         #: What the command reported: runs, wall_s, cells_resumed, tables (name, rows).
         self.report: Dict[str, Any] = dict(report or {})
+        # The temporary folder of a call without out=, removed with this object.
+        self._scratch = _scratch
+
+    def summary(self, *, noise_scale: Optional[float] = None) -> str:
+        """:func:`summary` of this folder: the RMSE table as ``kfmc summary`` prints it."""
+        return summary(self, noise_scale=noise_scale)
 
     def __repr__(self) -> str:
         return f"kfmc.Study({str(self.folder)!r})"
@@ -188,17 +277,17 @@ class Model:
     @property
     def states(self) -> List[str]:
         """The state names, in the order of every vector and matrix."""
-        return list(self._raw.states)
+        return builtins.list(self._raw.states)
 
     @property
     def inputs(self) -> List[str]:
         """The input names (the ``u_*`` columns of ``measurements``)."""
-        return list(self._raw.inputs)
+        return builtins.list(self._raw.inputs)
 
     @property
     def measurements(self) -> List[str]:
         """The measurement component names (the ``z_*`` columns)."""
-        return list(self._raw.measurements)
+        return builtins.list(self._raw.measurements)
 
     @property
     def dt_s(self) -> float:
@@ -275,8 +364,8 @@ class Model:
     def _rows(self, sensor: Sensor) -> List[int]:
         names = self.measurements
         if sensor is None:
-            return list(range(len(names)))
-        wanted = [sensor] if isinstance(sensor, str) else list(sensor)
+            return builtins.list(range(len(names)))
+        wanted = [sensor] if isinstance(sensor, str) else builtins.list(sensor)
         rows = []
         for s in wanted:
             if s not in names:
@@ -296,7 +385,14 @@ class Model:
 
     def f(self, x: Vector, u: Vector) -> np.ndarray:
         """``f(x_{k-1}, u_k)``: the noise-free transition into step k, with the input of
-        step k (row k of ``measurements``)."""
+        step k (row k of ``measurements``). ``x`` may be a batch, m × n (one state a row:
+        sigma points, particles), with one ``u`` for all or m × inputs; the result is then
+        m × n, made in one call into the library."""
+        n, nu = len(self.states), len(self.inputs)
+        xs = _batch(x, n, "x")
+        if xs is not None:
+            got = self._raw.f_many(xs, _companion(u, len(xs), nu, "u"))
+            return np.array(got, dtype=np.float64).reshape(len(xs), n)
         return np.array(
             self._raw.f(_vector(x, len(self.states), "x"), _vector(u, len(self.inputs), "u")),
             dtype=np.float64,
@@ -304,8 +400,18 @@ class Model:
 
     def h(self, x: Vector, sensor: Sensor = None, *, u: Optional[Vector] = None) -> np.ndarray:
         """``h(x_k, u_k)``: the noise-free measurement, all components or those named by
-        ``sensor``. ``u`` is needed only when h reads the input (the planar IMU set)."""
+        ``sensor``. ``u`` is needed only when h reads the input (the planar IMU set). ``x``
+        may be a batch, m × n, as for :meth:`f`: the result is m × components."""
         rows = self._rows(sensor)
+        xs = _batch(x, len(self.states), "x")
+        if xs is not None:
+            if u is None:
+                self._u_for_h(None)
+                us: List[List[float]] = []
+            else:
+                us = _companion(u, len(xs), len(self.inputs), "u")
+            got = np.array(self._raw.h_many(xs, us), dtype=np.float64)
+            return got.reshape(len(xs), len(self.measurements))[:, rows]
         z = self._raw.h(_vector(x, len(self.states), "x"), self._u_for_h(u))
         return np.array([z[i] for i in rows], dtype=np.float64)
 
@@ -326,9 +432,20 @@ class Model:
 
     def residual(self, z: Vector, z_pred: Vector, sensor: Sensor = None) -> np.ndarray:
         """The innovation ``z - ẑ`` as kfmc's filters form it: the components in
-        ``step_convention["wrapped_innovations"]`` wrapped to [−π, π)."""
+        ``step_convention["wrapped_innovations"]`` wrapped to [−π, π). ``z`` may be a batch,
+        m × components (with ``z_pred`` one row for all or m × components): the result is
+        m × components, from one call into the library."""
         rows = self._rows(sensor)
         nz = len(self.measurements)
+        zb = _batch(z, len(rows), "z")
+        if zb is not None:
+            full = np.zeros((len(zb), nz))
+            full[:, rows] = zb
+            preds = np.asarray(_companion(z_pred, len(zb), len(rows), "z_pred"), dtype=np.float64)
+            full_pred = np.zeros((len(preds), nz))
+            full_pred[:, rows] = preds
+            got = np.array(self._raw.residual_many(full.tolist(), full_pred.tolist()), dtype=np.float64)
+            return got.reshape(len(zb), nz)[:, rows]
         full_z, full_p = [0.0] * nz, [0.0] * nz
         zs = _vector(z, len(rows), "z")
         ps = _vector(z_pred, len(rows), "z_pred")
@@ -349,6 +466,26 @@ def _vector(v: Vector, n: int, what: str) -> List[float]:
     if a.ndim != 1 or a.shape[0] != n:
         raise Error(f"{what} must be a vector of {n} numbers; got shape {a.shape}")
     return a.tolist()
+
+
+def _batch(v: Vector, n: int, what: str) -> Optional[List[List[float]]]:
+    """The rows of ``v`` when it is a batch (m × n), else None (a single vector)."""
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim != 2:
+        return None
+    if a.shape[1] != n:
+        raise Error(f"{what} must be a vector of {n} numbers or a batch m × {n} (one vector a row); got shape {a.shape}")
+    return a.tolist()
+
+
+def _companion(v: Vector, m: int, n: int, what: str) -> List[List[float]]:
+    """The argument beside a batch of m rows: one vector for all of them, or m rows."""
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim == 1 and a.shape[0] == n:
+        return [a.tolist()]
+    if a.ndim == 2 and a.shape == (m, n):
+        return a.tolist()
+    raise Error(f"{what} must be a vector of {n} numbers or {m} × {n} beside a batch of {m}; got shape {a.shape}")
 
 
 def _matrix(rows: Sequence[Sequence[float]], r: int, c: int) -> np.ndarray:
@@ -373,12 +510,16 @@ class Simulation:
     same names are available on the simulation itself (``sim.F``, ``sim.f(x, u)``, …).
     """
 
-    def __init__(self, folder: PathLike, report: Optional[Mapping[str, Any]] = None) -> None:
+    def __init__(
+        self, folder: PathLike, report: Optional[Mapping[str, Any]] = None, *, _scratch: Any = None
+    ) -> None:
         #: The folder.
         self.folder: Path = Path(folder)
         #: What the command reported: runs, wall_s, tables (name, rows).
         self.report: Dict[str, Any] = dict(report or {})
         self._model: Optional[Model] = None
+        # The temporary folder of a call without out=, removed with this object.
+        self._scratch = _scratch
 
     @property
     def model(self) -> Model:
@@ -483,10 +624,12 @@ class Simulation:
         m = self.manifest
         return {"kfmc.world_stamp": str(m["world_stamp"]), "kfmc.master_seed": str(m["master_seed"])}
 
-    def runs(self) -> Iterator[Tuple[Tuple[str, float, int], pl.DataFrame, pl.DataFrame, pl.DataFrame]]:
-        """Yields ``((scenario, noise_scale, run), truth, measurements, initial)`` for one run
-        at a time, in the tables' order. Each table is scanned with a filter on the run's
-        keys, so only that run's rows are read into memory."""
+    def runs(self) -> Iterator["Run"]:
+        """Yields each run as a :class:`Run`, one at a time, in the tables' order: its
+        ``x0``, ``P0``, ``z``, ``u`` and ``truth`` as numpy arrays, and its tables; it unpacks
+        as ``(key, truth, measurements, initial)`` (the key ``(scenario, noise_scale, run)``,
+        the tables polars DataFrames). Each table is scanned with a filter on the run's keys,
+        so only that run's rows are read into memory."""
         keys = ["scenario", "noise_scale", "run"]
         files = {n: self.folder / f"{n}.parquet" for n in ("truth", "measurements", "initial")}
         order = (
@@ -500,7 +643,7 @@ class Simulation:
                 & (pl.col("noise_scale") == noise_scale)
                 & (pl.col("run") == run)
             )
-            yield (
+            yield Run(
                 (scenario, noise_scale, run),
                 pl.scan_parquet(files["truth"]).filter(pred).collect(),
                 pl.scan_parquet(files["measurements"]).filter(pred).collect(),
@@ -508,10 +651,93 @@ class Simulation:
             )
 
 
-class CheckResult:
-    """What :func:`check` found: the same cases, report and exit code as ``kfmc check``."""
 
-    def __init__(self, raw: Mapping[str, Any]) -> None:
+
+class Run(Tuple[Tuple[str, float, int], pl.DataFrame, pl.DataFrame, pl.DataFrame]):
+    """One run of a :class:`Simulation` (what :meth:`Simulation.runs` yields): a tuple
+    ``(key, truth, measurements, initial)`` of the key ``(scenario, noise_scale, run)`` and
+    the run's rows of each table, with its arrays as attributes. Rows are steps (0 to K);
+    columns follow the tables' order (the states of ``initial``'s ``est_*`` columns)."""
+
+    __slots__ = ()
+
+    def __new__(
+        cls,
+        key: Tuple[str, float, int],
+        truth: pl.DataFrame,
+        measurements: pl.DataFrame,
+        initial: pl.DataFrame,
+    ) -> "Run":
+        return super().__new__(cls, (key, truth, measurements, initial))
+
+    @property
+    def key(self) -> Tuple[str, float, int]:
+        """``(scenario, noise_scale, run)``."""
+        return self[0]
+
+    @property
+    def states(self) -> List[str]:
+        """The state names, in the order of :attr:`x0`, :attr:`P0` and :attr:`truth`."""
+        return [c[len("est_"):] for c in self[3].columns if c.startswith("est_")]
+
+    @property
+    def x0(self) -> np.ndarray:
+        """The prior x̂₀ kfmc's own filters start from (``initial``'s ``est_*``)."""
+        return self[3].select([f"est_{q}" for q in self.states]).to_numpy()[0].astype(np.float64)
+
+    @property
+    def P0(self) -> np.ndarray:
+        """The prior's covariance P₀ (``initial``'s ``P_*``, its lower triangle mirrored)."""
+        names = self.states
+        row = self[3]
+        n = len(names)
+        p = np.empty((n, n), dtype=np.float64)
+        for i, qi in enumerate(names):
+            for j, qj in enumerate(names[: i + 1]):
+                p[i, j] = p[j, i] = float(row[f"P_{qi}_{qj}"][0])
+        return p
+
+    @property
+    def z(self) -> np.ndarray:
+        """The measurements, steps × components (``z_*``; NaN where a sensor did not report,
+        and on row 0, which has none)."""
+        m = self[2]
+        return _floats(m.select([c for c in m.columns if c.startswith("z_")]))
+
+    @property
+    def u(self) -> np.ndarray:
+        """The inputs, steps × inputs (``u_*``; row k drives the step from k−1 to k)."""
+        m = self[2]
+        return _floats(m.select([c for c in m.columns if c.startswith("u_")]))
+
+    @property
+    def truth(self) -> np.ndarray:
+        """The true states, steps × states (``truth_*``, in the order of :attr:`states`)."""
+        return _floats(self[1].select([f"truth_{q}" for q in self.states]))
+
+    def __repr__(self) -> str:
+        return f"kfmc.Run({self.key!r}, steps={self[2].height})"
+
+
+def _floats(df: pl.DataFrame) -> np.ndarray:
+    """A frame of float columns as a float64 array, nulls as NaN."""
+    return df.cast(pl.Float64).fill_null(float("nan")).to_numpy().astype(np.float64, copy=False).reshape(df.height, df.width)
+
+
+class CheckResult:
+    """What :func:`check` found: the same cases, report and exit code as ``kfmc check``.
+
+    * ``exit_code``: the command's exit code, 0 every assertion holds, 3 one failed, 4 a case
+      could not be judged on the runs the spec declares (incomplete);
+    * ``report``: the readable report ``kfmc check`` prints;
+    * ``junit``: the JUnit XML ``kfmc check --junit`` writes (for a CI's test report);
+    * ``cases``: every case, dicts with ``kind``, ``name``, ``passed``, ``incomplete``,
+      ``detail``; :attr:`failures` those that failed or were incomplete;
+    * ``study``: the :class:`Study` the assertions were judged on; :attr:`ok` is
+      ``exit_code == 0`` and :meth:`raise_for_status` raises for 3 and 4.
+    """
+
+    def __init__(self, raw: Mapping[str, Any], _scratch: Any = None) -> None:
         #: The command's exit code: 0 all hold, 3 an assertion failed, 4 incomplete.
         self.exit_code: int = int(raw["exit_code"])
         #: The readable report ``kfmc check`` prints.
@@ -519,9 +745,9 @@ class CheckResult:
         #: The JUnit XML ``kfmc check --junit`` writes.
         self.junit: str = raw["junit"]
         #: Every case: dicts with kind, name, passed, incomplete, detail.
-        self.cases: List[Dict[str, Any]] = list(raw["cases"])
+        self.cases: List[Dict[str, Any]] = builtins.list(raw["cases"])
         #: The study folder the assertions were judged on.
-        self.study: Study = Study(raw["folder"])
+        self.study: Study = Study(raw["folder"], _scratch=_scratch)
 
     @property
     def ok(self) -> bool:
@@ -547,7 +773,7 @@ class CheckResult:
 def validate(spec: Spec, *, allow_large: bool = False) -> Dict[str, Any]:
     """Checks a spec and returns the plan's summary (cells, runs, filter steps, estimated
     memory and disk) without running it; raises :class:`SpecError`."""
-    return _kfmc.validate(_spec(spec), allow_large=allow_large)
+    return _pythonic(lambda: _kfmc.validate(_spec(spec), allow_large=allow_large))
 
 
 def run(
@@ -560,28 +786,36 @@ def run(
     quiet: bool = False,
     resume: bool = False,
     force: bool = False,
+    allow_large: bool = False,
     checkpoint_every: float = 10.0,
 ) -> Study:
     """Runs a Monte Carlo study (``kfmc run``) and returns its folder.
 
-    ``out``, ``runs`` and ``seed`` override the spec's ``output``, ``runs`` and
-    ``master_seed``; ``threads`` (default all cores) does not change any result. With
-    ``resume=True`` an interrupted run's checkpoint is continued, and the tables come out
-    identical to an uninterrupted run's. A checkpoint follows a complete cell once
-    ``checkpoint_every`` seconds have passed since the last (0: after every cell).
+    The tables go to ``out``, or without it to a temporary folder that lives as long as the
+    returned :class:`Study` (the spec's ``output`` is the command's). ``runs`` and ``seed``
+    override the spec's ``runs`` and ``master_seed``; ``threads`` (default all cores) does
+    not change any result. With ``resume=True`` (and the interrupted run's ``out``) its
+    checkpoint is continued, and the tables come out identical to an uninterrupted run's;
+    ``force=True`` discards a checkpoint instead, and writes into a non-empty folder that is
+    not a kfmc study. A checkpoint follows a complete cell once ``checkpoint_every`` seconds
+    have passed since the last (0: after every cell). ``allow_large`` lifts the size limits.
     """
-    r = _kfmc.run(
-        _spec(spec),
-        out=_path(out),
-        runs=runs,
-        seed=seed,
-        threads=threads,
-        quiet=quiet,
-        resume=resume,
-        force=force,
-        checkpoint_every=checkpoint_every,
+    folder, scratch = _out(out, resume)
+    r = _pythonic(
+        lambda: _kfmc.run(
+            _spec(spec),
+            out=folder,
+            runs=_count(runs, "runs"),
+            seed=_count(seed, "seed"),
+            threads=_count(threads, "threads"),
+            quiet=quiet,
+            resume=resume,
+            force=force,
+            allow_large=allow_large,
+            checkpoint_every=checkpoint_every,
+        )
     )
-    return Study(r["folder"], r)
+    return Study(r["folder"], r, _scratch=scratch)
 
 
 def simulate(
@@ -593,20 +827,50 @@ def simulate(
     threads: Optional[int] = None,
     quiet: bool = False,
     force: bool = False,
+    allow_large: bool = False,
 ) -> Simulation:
     """Writes every run's world (``kfmc simulate``): truth, measurements and priors for a
-    filter outside kfmc, the same runs ``kfmc run`` gives its own filters."""
-    r = _kfmc.simulate(
-        _spec(spec), out=_path(out), runs=runs, seed=seed, threads=threads, quiet=quiet, force=force
+    filter outside kfmc, the same runs ``kfmc run`` gives its own filters. Without ``out``
+    they go to a temporary folder that lives as long as the returned :class:`Simulation`."""
+    folder, scratch = _out(out)
+    r = _pythonic(
+        lambda: _kfmc.simulate(
+            _spec(spec),
+            out=folder,
+            runs=_count(runs, "runs"),
+            seed=_count(seed, "seed"),
+            threads=_count(threads, "threads"),
+            quiet=quiet,
+            force=force,
+            allow_large=allow_large,
+        )
     )
-    return Simulation(r["folder"], r)
+    return Simulation(r["folder"], r, _scratch=scratch)
 
 
 def _is_path(x: Any) -> bool:
     return isinstance(x, (str, os.PathLike))
 
 
+def _plain_keys(x: Any) -> Any:
+    """``x`` with categorical (dictionary-encoded) columns as their values, which the reader
+    takes: pandas ``Categorical`` and polars ``Categorical``/``Enum`` key columns are ordinary
+    choices for ``scenario`` and ``filter``."""
+    if isinstance(x, pl.DataFrame):
+        cats = [c for c, t in x.schema.items() if isinstance(t, (pl.Categorical, pl.Enum))]
+        return x.with_columns(pl.col(c).cast(pl.String) for c in cats) if cats else x
+    if type(x).__module__.startswith("pandas") and hasattr(x, "dtypes"):
+        cats = [c for c, t in x.dtypes.items() if str(t) == "category"]
+        if cats:
+            x = x.copy(deep=False)
+            for c in cats:
+                x[c] = x[c].astype(x[c].cat.categories.dtype)
+        return x
+    return x
+
+
 def _as_stream(x: Any) -> Any:
+    x = _plain_keys(x)
     if isinstance(x, pl.DataFrame):
         return _chunks(x)
     if hasattr(x, "__arrow_c_stream__"):
@@ -680,7 +944,7 @@ def _estimates(
             return (_as_stream(e.to_polars()), e.metadata)
         return _as_stream(e)
 
-    if not isinstance(estimates, (list, tuple)):
+    if not isinstance(estimates, (builtins.list, tuple)):
 
         def lazily(items: Iterable[Any]) -> Iterator[Any]:
             # Each reference is dropped before the next item is asked for (a generator
@@ -732,10 +996,13 @@ def score(
     paths, streams = _estimates(estimates, lambda: Simulation(folder).stamp)
     if not paths and not streams:
         raise EstimatesError("no estimates given")
-    r = _kfmc.score(
-        os.fspath(folder), paths, streams, out=_path(out), threads=threads, quiet=quiet, force=force
+    target, scratch = _out(out)
+    r = _pythonic(
+        lambda: _kfmc.score(
+            os.fspath(folder), paths, streams, out=target, threads=threads, quiet=quiet, force=force
+        )
     )
-    return Study(r["folder"], r)
+    return Study(r["folder"], r, _scratch=scratch)
 
 
 def check(
@@ -746,15 +1013,17 @@ def check(
     runs: Optional[int] = None,
     seed: Optional[int] = None,
     threads: Optional[int] = None,
-    quiet: bool = True,
+    quiet: bool = False,
     replications: Optional[int] = None,
     allow_unstamped: bool = False,
     force: bool = False,
+    allow_large: bool = False,
     sequential: bool = False,
     looks: Union[int, Sequence[int], None] = None,
     spending: Optional[str] = None,
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
+    futility_beta: Optional[float] = None,
 ) -> CheckResult:
     """Runs the study and evaluates its ``[check]`` assertions (``kfmc check``). A failing
     or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
@@ -769,8 +1038,9 @@ def check(
     (``kfmc check --sequential``; the spec's ``[check] sequential = true`` does the same):
     each cell stops at the first look that settles its verdicts, and ``sequential.parquet``
     records every look. ``looks`` (a count of even looks, default 10, or the looks' run
-    counts ending at the runs per cell), ``spending`` (``"obrien-fleming"``, the default, or
-    ``"pocock"``), ``futility`` (a β in (0, 1): non-binding futility bounds) and
+    counts ending at the runs per cell), ``spending`` (``"obrien-fleming"``, the default, also
+    spelled ``"obrien_fleming"`` as in the spec, or ``"pocock"``), ``futility`` (a β in
+    (0, 1): non-binding futility bounds; ``futility_beta``, the spec's name, is the same) and
     ``futility_rho`` (their β-spending exponent, default 2) are ``--looks``, ``--spending``,
     ``--futility`` and ``--futility-rho``: each given one wins over the spec's key. A setting
     without the gate, or settings that make no gate for the study's runs, raise
@@ -782,26 +1052,38 @@ def check(
             s["kfmc.master_seed"] = str(seed)
         return s
 
+    beta = _futility(futility, futility_beta)
     paths, streams = _estimates(estimates, stamp)
-    r = _kfmc.check(
-        _spec(spec),
-        paths,
-        streams,
-        out=_path(out),
-        runs=runs,
-        seed=seed,
-        threads=threads,
-        quiet=quiet,
-        replications=replications,
-        allow_unstamped=allow_unstamped,
-        force=force,
-        sequential=sequential,
-        looks=looks,
-        spending=spending,
-        futility=futility,
-        futility_rho=futility_rho,
+    folder, scratch = _out(out)
+    r = _pythonic(
+        lambda: _kfmc.check(
+            _spec(spec),
+            paths,
+            streams,
+            out=folder,
+            runs=_count(runs, "runs"),
+            seed=_count(seed, "seed"),
+            threads=_count(threads, "threads"),
+            quiet=quiet,
+            replications=_count(replications, "replications"),
+            allow_unstamped=allow_unstamped,
+            force=force,
+            allow_large=allow_large,
+            sequential=sequential,
+            looks=looks,
+            spending=spending,
+            futility=beta,
+            futility_rho=futility_rho,
+        )
     )
-    return CheckResult(r)
+    return CheckResult(r, scratch)
+
+
+def _futility(futility: Optional[float], futility_beta: Optional[float]) -> Optional[float]:
+    """``futility`` (the flag's name) or ``futility_beta`` (the spec's): one of them."""
+    if futility is not None and futility_beta is not None:
+        raise SpecError("futility and futility_beta are one setting (the β of the futility bounds): pass one")
+    return futility if futility is not None else futility_beta
 
 
 def power(
@@ -814,11 +1096,13 @@ def power(
     threads: Optional[int] = None,
     quiet: bool = False,
     force: bool = False,
+    allow_large: bool = False,
     sequential: bool = False,
     looks: Union[int, Sequence[int], None] = None,
     spending: Optional[str] = None,
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
+    futility_beta: Optional[float] = None,
     target_power: Optional[float] = None,
     against: Optional[str] = None,
 ) -> pl.DataFrame:
@@ -830,42 +1114,51 @@ def power(
     --sequential``): rows with ``sequential`` true hold its rejection rate and the runs it used
     (``runs_used_mean``, ``runs_used_p05``, ``runs_used_p95``). ``looks`` is a count of even
     looks (default 10) or the looks' run counts ending at the study's runs per cell;
-    ``spending`` is ``"obrien-fleming"`` (the default) or ``"pocock"``; ``futility`` a β in
-    (0, 1) for non-binding futility stopping, ``futility_rho`` its β-spending exponent
-    (default 2). Invalid settings raise :class:`SpecError` (a ``ValueError``).
+    ``spending`` is ``"obrien-fleming"`` (the default; ``"obrien_fleming"`` too) or
+    ``"pocock"``; ``futility`` (or ``futility_beta``) a β in (0, 1) for non-binding futility
+    stopping, ``futility_rho`` its β-spending exponent (default 2). Without ``out`` the
+    study is written to a temporary folder, removed once the table is read. Invalid settings raise :class:`SpecError` (a ``ValueError``).
 
     With ``target_power=P, against="q_scale=X[,r_scale=Y]"`` (together, as ``kfmc power
     --target-power P --against …``) every test is also evaluated on the first N/10, 2N/10, …
     runs of each cell (rows with those ``runs``), and unless ``quiet`` the smallest N whose
     verdict reaches power P against that variant is printed, as the command prints it. A
     variant no filter of the spec has raises :class:`SpecError` before any run."""
-    folder, answer = _kfmc.power(
-        _spec(spec),
-        replications,
-        out=_path(out),
-        runs=runs,
-        seed=seed,
-        threads=threads,
-        quiet=quiet,
-        force=force,
-        sequential=sequential,
-        looks=looks,
-        spending=spending,
-        futility=futility,
-        futility_rho=futility_rho,
-        target_power=target_power,
-        against=against,
+    beta = _futility(futility, futility_beta)
+    target, scratch = _out(out)
+    folder, answer = _pythonic(
+        lambda: _kfmc.power(
+            _spec(spec),
+            _count(replications, "replications") or 0,
+            out=target,
+            runs=_count(runs, "runs"),
+            seed=_count(seed, "seed"),
+            threads=_count(threads, "threads"),
+            quiet=quiet,
+            force=force,
+            allow_large=allow_large,
+            sequential=sequential,
+            looks=looks,
+            spending=spending,
+            futility=beta,
+            futility_rho=futility_rho,
+            target_power=target_power,
+            against=against,
+        )
     )
     if answer is not None and not quiet:
         print(answer, end="")
-    return pl.read_parquet(Path(folder) / "power.parquet")
+    table = pl.read_parquet(Path(folder) / "power.parquet", memory_map=False)
+    if scratch is not None:
+        scratch.cleanup()
+    return table
 
 
 def describe(spec: Spec) -> Dict[str, Any]:
     """The system's analysis for a spec (``kfmc describe``) as a dict: per scenario F, G, H,
     Q, R, the observability ranks, the steady-state gain, and per filter the tests'
     effective degrees of freedom."""
-    return _kfmc.describe(_spec(spec))
+    return _pythonic(lambda: _kfmc.describe(_spec(spec)))
 
 
 def schema(kind: str, spec: Spec) -> Dict[str, Any]:
@@ -875,3 +1168,44 @@ def schema(kind: str, spec: Spec) -> Dict[str, Any]:
     return _kfmc.schema(kind, _spec(spec))
 
 
+
+
+def _folder(study: Union[Study, Simulation, PathLike]) -> str:
+    return os.fspath(study.folder if isinstance(study, (Study, Simulation)) else study)
+
+
+def summary(study: Union[Study, PathLike], *, noise_scale: Optional[float] = None) -> str:
+    """The RMSE table of a result folder (a :class:`Study` or its path) as ``kfmc summary``
+    prints it; ``noise_scale`` keeps that truth-noise multiplier's rows only."""
+    return _kfmc.summary(_folder(study), noise_scale=noise_scale)
+
+
+def plot(study: Union[Study, PathLike], *, out: Optional[PathLike] = None, format: str = "png") -> List[Path]:  # noqa: A002
+    """Draws every figure the folder's tables support (``kfmc plot``), as ``"png"`` or
+    ``"svg"`` files in ``out`` (default: the folder's ``figures``); returns their paths."""
+    return [Path(p) for p in _kfmc.plot(_folder(study), out=_path(out), format=format)]
+
+
+def report(study: Union[Study, PathLike], *, out: Optional[PathLike] = None) -> Path:
+    """Writes the self-contained HTML report of a folder (``kfmc report``; default
+    ``report.html`` in it) and returns its path."""
+    return Path(_kfmc.report(_folder(study), out=_path(out)))
+
+
+def list() -> Dict[str, Any]:  # noqa: A001 (the command's name)
+    """The registered systems (``kfmc list``): per ``model.kind`` its ``about`` line and its
+    ``sections`` (scenarios, filter kinds, sensors, model keys, …) as name → description."""
+    return _kfmc.list()
+
+
+def to_toml(spec: Mapping[str, Any]) -> str:
+    """A dict spec as TOML text, which ``kfmc validate`` and :func:`run` read as the dict
+    (numpy scalars and arrays written as the numbers they hold)."""
+    return _kfmc.to_toml_text(dict(spec))
+
+
+def examples() -> Dict[str, Path]:
+    """The example specs bundled with the wheel (the repository's ``experiments/``): name
+    (the file's stem, e.g. ``"planar_seed_study"``) → path, sorted by name."""
+    folder = Path(__file__).resolve().parent / "examples"
+    return {p.stem: p for p in sorted(folder.glob("*.toml"))}

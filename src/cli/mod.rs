@@ -165,7 +165,7 @@ pub struct SequentialArgs {
     pub spending: Option<SpendingArg>,
     /// Stop a consistent filter early: non-binding futility bounds spending β (power 1 − β
     /// at the design's drift), by a quadratic β-spending function.
-    #[arg(long, value_name = "BETA")]
+    #[arg(long, value_name = "BETA", alias = "futility-beta")]
     pub futility: Option<f64>,
     /// The exponent ρ of the futility bounds' β-spending β·t^ρ: 2 (default, quadratic) or 1
     /// (linear: a consistent filter stops earlier, at some power near the truth).
@@ -177,6 +177,7 @@ pub struct SequentialArgs {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum SpendingArg {
     /// Lan–DeMets O'Brien–Fleming type: early looks stop only on overwhelming evidence.
+    #[value(alias = "obrien_fleming")]
     ObrienFleming,
     /// Lan–DeMets Pocock type: nearly constant boundaries.
     Pocock,

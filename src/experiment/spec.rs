@@ -61,9 +61,12 @@ pub struct CheckSpec {
     /// The gate's looks: a count of even looks (default 10) or the run counts of the looks,
     /// increasing and ending at the study's runs.
     pub looks: Option<OneOrMany>,
-    /// How the gate spends α over its looks: `obrien_fleming` (default) or `pocock`.
+    /// How the gate spends α over its looks: `obrien_fleming` (default; also spelled
+    /// `obrien-fleming`, as the command's flag) or `pocock`.
     pub spending: Option<String>,
-    /// Stop a consistent filter early: non-binding futility bounds spending β.
+    /// Stop a consistent filter early: non-binding futility bounds spending β (also spelled
+    /// `futility`, as the command's flag and the Python keyword).
+    #[serde(alias = "futility")]
     pub futility_beta: Option<f64>,
     /// The exponent ρ of the futility bounds' β-spending β·t^ρ (default 2; 1 stops a
     /// consistent filter earlier).

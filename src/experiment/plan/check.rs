@@ -602,12 +602,13 @@ fn check_sequential(
         },
     }
     match t.spending.as_deref() {
-        None | Some("obrien_fleming") => {}
+        // The flag's spelling is accepted too: one value, whichever side it was copied from.
+        None | Some("obrien_fleming" | "obrien-fleming") => {}
         Some("pocock") => settings.spending = Spending::Pocock,
         Some(other) => c.err(
             "check.spending",
             format!(
-                "`{other}` is not a spending function: expected \"obrien_fleming\" or \"pocock\""
+                "`{other}` is not a spending function: expected \"obrien_fleming\" (or \"obrien-fleming\") or \"pocock\""
             ),
         ),
     }

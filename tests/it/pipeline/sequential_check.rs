@@ -357,3 +357,33 @@ fn more_looks_than_the_limit_are_refused_at_once_everywhere() {
         started.elapsed()
     );
 }
+
+/// The spec's spellings (`obrien_fleming`, `futility_beta`) and the flags' (`obrien-fleming`,
+/// `--futility`) are each accepted on the other side, and name the same gate: the same
+/// tables byte for byte.
+#[test]
+fn either_spelling_of_spending_and_futility_is_the_same_gate() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spec_of = |check: &str| gate_spec(40, TUNED, &format!("[check]\n{check}\n{ASSERT}"));
+    let canonical =
+        spec_of("sequential = true\nspending = \"obrien_fleming\"\nfutility_beta = 0.2");
+    let flagged = spec_of("sequential = true\nspending = \"obrien-fleming\"\nfutility = 0.2");
+    let bare = spec_of("");
+    let (_d1, canonical) = spec_in_tempdir(&canonical);
+    let (_d2, flagged) = spec_in_tempdir(&flagged);
+    let (_d3, bare) = spec_in_tempdir(&bare);
+    let outs: Vec<_> = (0..4).map(|i| tmp.path().join(format!("t{i}"))).collect();
+    let (a, _) = check(&canonical, &outs[0], &[]);
+    let (b, text) = check(&flagged, &outs[1], &[]);
+    assert_eq!(a, b, "{text}");
+    assert_eq!(table_bytes(&outs[0]), table_bytes(&outs[1]));
+    for (i, spending, futility) in [
+        (2, "obrien_fleming", "--futility-beta"),
+        (3, "obrien-fleming", "--futility"),
+    ] {
+        let flags = ["--sequential", "--spending", spending, futility, "0.2"];
+        let (code, text) = check(&bare, &outs[i], &flags);
+        assert_eq!(code, a, "{flags:?}: {text}");
+        assert_eq!(table_bytes(&outs[0]), table_bytes(&outs[i]), "{flags:?}");
+    }
+}
