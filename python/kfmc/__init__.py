@@ -736,6 +736,11 @@ def score(
     if truth is not None:
         from kfmc._estimates import _truth_input
 
+        if isinstance(simulation, Simulation):
+            raise TypeError(
+                "with truth=…, the first argument is the path of a spec of "
+                'model.kind = "recorded", not a Simulation'
+            )
         paths, streams = _estimates(estimates)
         if not paths and not streams:
             raise EstimatesError("no estimates given")
