@@ -427,7 +427,13 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             "\nerror convention: {}\nfile metadata (the stamp; kfmc score warns and kfmc check refuses without it): {} = {}, {} = {}\n",
             crate::score::ERROR_CONVENTION,
             crate::score::STAMP_KEY,
-            plan.world_stamp(),
+            if plan.system.recorded() {
+                // A recorded world's stamp is its truth table's content hash.
+                "<the truth table's content hash: kfmc stamp --truth TRUTH --spec SPEC FILE>"
+                    .to_string()
+            } else {
+                plan.world_stamp()
+            },
             crate::score::SEED_KEY,
             plan.master_seed
         ));

@@ -12,7 +12,7 @@ pub struct Score {
     #[arg(required_unless_present = "truth", conflicts_with = "truth")]
     pub dir: Option<PathBuf>,
     /// A truth table of runs kfmc did not simulate (Parquet: scenario, noise_scale, run,
-    /// step, t, truth_<q>), judged with `--spec`, a spec of `model.kind = "recorded"`.
+    /// step, t, `truth_<q>`), judged with `--spec`, a spec of `model.kind = "recorded"`.
     #[arg(long, requires = "spec")]
     pub truth: Option<PathBuf>,
     /// The recorded spec of `--truth`: its quantities, runs, scenarios and outside filters.
