@@ -76,6 +76,18 @@ pub fn simulate(
     opts: &ExecOptions,
     observer: &dyn RunObserver,
 ) -> Result<StudyReport, KfmcError> {
+    if plan.system.recorded() {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "model.kind".into(),
+                message: format!(
+                    "`{}` cannot simulate: its truth is recorded; judge its runs with `kfmc score --truth TRUTH --estimates EST --spec SPEC`",
+                    plan.kind
+                ),
+            },
+        ])));
+    }
     let started = Instant::now();
     let started_unix_s = SystemTime::now()
         .duration_since(UNIX_EPOCH)

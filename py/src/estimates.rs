@@ -200,10 +200,48 @@ pub(crate) fn attach(
     })
 }
 
-/// `kfmc score`: `simulation` is a `kfmc simulate` folder; estimates are files and/or
-/// objects with `__arrow_c_stream__`.
+/// The plan of a recorded spec (`model.kind = "recorded"`) with its truth attached: `truth` is
+/// a Parquet file's path or a table with `__arrow_c_stream__` (read whole: the runs' truth is
+/// held in memory either way).
+fn recorded_plan(
+    spec: &std::path::Path,
+    truth: &Bound<'_, PyAny>,
+    out: Option<PathBuf>,
+    registry: &kfmc::system::Registry,
+) -> PyResult<Plan> {
+    let mut plan = kfmc::experiment::load_with(spec, registry)
+        .map_err(|e| Failure::new(Kind::Study, kfmc::error::KfmcError::from(e)).into_py())?;
+    if let Some(out) = out {
+        plan.output = out;
+    }
+    let (files, frames) = if let Ok(path) = truth.extract::<PathBuf>() {
+        (vec![path], Vec::new())
+    } else {
+        let name = "<truth>".to_string();
+        let batches = Batches {
+            name: PathBuf::from(&name),
+            readers: vec![open_stream(truth, &name)?].into_iter(),
+            current: None,
+        };
+        let frames = batches
+            .map(|b| b.map(|df| (name.clone(), df)))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| Failure::new(Kind::Estimates, e).into_py())?;
+        (Vec::new(), frames)
+    };
+    kfmc::check::attach_truth(&mut plan, &files, &frames).map_err(|e| {
+        Failure::new(Kind::Estimates, e)
+            .context("reading the truth".into())
+            .into_py()
+    })?;
+    Ok(plan)
+}
+
+/// `kfmc score`: `simulation` is a `kfmc simulate` folder (or, with `truth`, the recorded
+/// spec the truth is judged with); estimates are files and/or objects with
+/// `__arrow_c_stream__`.
 #[pyfunction]
-#[pyo3(signature = (simulation, paths, streams, *, out=None, threads=None, quiet=false, force=false))]
+#[pyo3(signature = (simulation, paths, streams, *, out=None, threads=None, quiet=false, force=false, truth=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -217,11 +255,16 @@ pub(crate) fn score<'py>(
     threads: Option<usize>,
     quiet: bool,
     force: bool,
+    truth: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let registry = kfmc::systems::builtin();
-        let mut plan = kfmc::simulate::scoring_plan(&simulation, out, &registry)
-            .map_err(|e| Failure::new(Kind::Study, e).into_py())?;
+        let mut plan = match &truth {
+            // A user's own runs: `simulation` is their recorded spec.
+            Some(truth) => recorded_plan(&simulation, truth, out, &registry)?,
+            None => kfmc::simulate::scoring_plan(&simulation, out, &registry)
+                .map_err(|e| Failure::new(Kind::Study, e).into_py())?,
+        };
         attach(&mut plan, &paths, &streams, kfmc::check::Unstamped::Warn)?;
         // Per external filter variant, the runs its estimates leave out (status `missing`).
         let missing = PyDict::new(py);

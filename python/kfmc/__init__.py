@@ -980,9 +980,14 @@ def score(
     quiet: bool = False,
     threads: Optional[int] = None,
     force: bool = False,
+    truth: Any = None,
 ) -> Study:
     """Scores estimates made outside kfmc against a simulation (``kfmc score``): writes the
     tables ``kfmc run`` writes, with kfmc's own filters of the spec run beside them.
+
+    With ``truth`` (a Parquet file's path or a DataFrame: ``scenario``, ``noise_scale``,
+    ``run``, ``step``, ``t``, ``truth_<q>``) the runs are the user's own: ``simulation`` is
+    then the path of a spec of ``model.kind = "recorded"`` (``kfmc score --truth``).
 
     In-memory estimates (the columns ``schema("estimates", spec)`` lists) go to the library
     through the Arrow C stream interface. Their world stamp is checked as a file's: a
@@ -992,6 +997,22 @@ def score(
     an unstamped file is. ``report["runs_missing"]`` counts, per outside filter, the runs
     its estimates leave out (a warning names them too): they are missing, not failures.
     """
+    if truth is not None:
+        from kfmc._estimates import _truth_input
+
+        if isinstance(simulation, Simulation):
+            raise TypeError(
+                "with truth=…, the first argument is the path of a spec of "
+                'model.kind = "recorded", not a Simulation'
+            )
+        paths, streams = _estimates(estimates)
+        if not paths and not streams:
+            raise EstimatesError("no estimates given")
+        r = _kfmc.score(
+            os.fspath(simulation), paths, streams, out=_path(out), threads=threads,
+            quiet=quiet, force=force, truth=_truth_input(truth),
+        )
+        return Study(r["folder"], r)
     folder = simulation.folder if isinstance(simulation, Simulation) else Path(simulation)
     paths, streams = _estimates(estimates, lambda: Simulation(folder).stamp)
     if not paths and not streams:

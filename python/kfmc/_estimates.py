@@ -877,3 +877,22 @@ def sigma_point_transition(
         )
     h = _regression(chi_u, zeta, wm, wc, residual_x, residual_z, "sigmas_update")
     return (np.eye(n) - gain @ h) @ f
+
+
+def _truth_input(truth: Any) -> Any:
+    """A recorded truth for :func:`kfmc.score`: a Parquet file's path as a ``str``, or one
+    table with ``__arrow_c_stream__`` (a polars DataFrame in one chunk, a pyarrow Table; a
+    pandas DataFrame through polars). Its columns: ``scenario``, ``noise_scale``, ``run``,
+    ``step``, ``t`` and ``truth_<q>`` for every state of the recorded spec."""
+    if isinstance(truth, (str, os.PathLike)):
+        return os.fspath(truth)
+    if isinstance(truth, pl.DataFrame):
+        return truth.rechunk()
+    if type(truth).__module__.startswith("pandas"):
+        return pl.from_pandas(truth)
+    if hasattr(truth, "__arrow_c_stream__"):
+        return truth
+    raise TypeError(
+        "truth must be a Parquet file's path, a polars or pandas DataFrame or a pyarrow "
+        f"Table; got {type(truth).__name__}"
+    )

@@ -79,6 +79,7 @@ def score(
     threads: Optional[int] = None,
     quiet: bool = False,
     force: bool = False,
+    truth: Any = None,
 ) -> Dict[str, Any]: ...
 def check(
     spec: _Spec,

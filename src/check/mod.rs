@@ -14,8 +14,8 @@ use crate::error::KfmcError;
 use crate::experiment::Plan;
 
 pub use estimates::{
-    Unstamped, attach_estimates, attach_estimates_from, attach_estimates_with_tables,
-    missing_runs_text,
+    Unstamped, attach_estimates, attach_estimates_from, attach_estimates_with_tables, attach_truth,
+    missing_runs_text, recorded_plan, stamp_estimates,
 };
 pub use judge::evaluate;
 pub use paired::{PairedExcess, paired_excess_test};

@@ -21,6 +21,10 @@ pub struct Check {
     /// warning: nothing then ties them to this spec's runs.
     #[arg(long, requires = "estimates")]
     pub allow_unstamped: bool,
+    /// The truth table of a spec of `model.kind = "recorded"` (a user's own runs): its
+    /// external filters are judged against it, from `--estimates`.
+    #[arg(long, requires = "estimates")]
+    pub truth: Option<PathBuf>,
     /// Replications for the `rejection_rate` assertions (overrides `check.replications`):
     /// they are judged on `kfmc power`'s table, written to `<out>/power`.
     #[arg(long, short = 'R', value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
@@ -40,11 +44,16 @@ impl Check {
             junit,
             estimates,
             allow_unstamped,
+            truth,
             replications,
             sequential,
         } = self;
         let mut plan = study.plan(registry, None)?;
         plan.check_sequential = sequential.settings(plan.check_sequential.as_ref())?;
+        if let Some(truth) = &truth {
+            crate::check::attach_truth(&mut plan, std::slice::from_ref(truth), &[])
+                .map_err(|e| anyhow::Error::from(e).context("reading the truth"))?;
+        }
         if !estimates.is_empty() {
             let unstamped = if allow_unstamped {
                 Unstamped::Warn

@@ -292,6 +292,9 @@ pub enum Command {
     /// `kfmc run` writes (runs, steps, summary, consistency, divergence), with kfmc's own
     /// filters of the spec run beside them on the same runs.
     Score(score::Score),
+    /// Stamp estimates files with the truth table they were made on (a user's own runs,
+    /// `model.kind = "recorded"`): the truth's content hash as their world stamp.
+    Stamp(stamp::Stamp),
     /// Run the study R times with independent master seeds and write power.parquet: per
     /// (cell, filter variant, test) the rejection rate with its 95 % interval and the
     /// statistic's distribution — the false-alarm rate at the true Q and R, the power against
@@ -425,7 +428,13 @@ fn schema_text(table: SchemaTable, plan: &Plan) -> String {
             "\nerror convention: {}\nfile metadata (the stamp; kfmc score warns and kfmc check refuses without it): {} = {}, {} = {}\n",
             crate::score::ERROR_CONVENTION,
             crate::score::STAMP_KEY,
-            plan.world_stamp(),
+            if plan.system.recorded() {
+                // A recorded world's stamp is its truth table's content hash.
+                "<the truth table's content hash: kfmc stamp --truth TRUTH --spec SPEC FILE>"
+                    .to_string()
+            } else {
+                plan.world_stamp()
+            },
             crate::score::SEED_KEY,
             plan.master_seed
         ));
@@ -722,6 +731,7 @@ pub mod schema;
 pub mod score;
 pub mod simulate;
 pub mod slurm;
+pub mod stamp;
 pub mod status;
 pub mod tune;
 pub mod ulog;
@@ -745,6 +755,7 @@ fn dispatch(cli: Cli, registry: &Registry) -> anyhow::Result<()> {
         Command::Run(c) => c.execute(registry),
         Command::Simulate(c) => c.execute(registry),
         Command::Score(c) => c.execute(registry),
+        Command::Stamp(c) => c.execute(registry),
         Command::Power(c) => c.execute(registry),
         Command::Schema(c) => c.execute(registry),
         Command::Merge(c) => c.execute(registry),

@@ -1,18 +1,27 @@
 //! `kfmc score`: score estimates made outside kfmc against a `kfmc simulate` folder: writes the
 //! tables `kfmc run` writes (runs, steps, summary, consistency, divergence), with kfmc's own
-//! filters of the spec run beside them on the same runs.
+//! filters of the spec run beside them on the same runs. With `--truth TRUTH --spec SPEC` the
+//! runs are a user's own (a spec of `model.kind = "recorded"`), judged the same way.
 
 use super::*;
 
 /// The arguments of `kfmc score`.
 #[derive(Debug, clap::Args)]
 pub struct Score {
-    /// A folder written by `kfmc simulate`.
-    pub dir: PathBuf,
+    /// A folder written by `kfmc simulate` (not with `--truth`).
+    #[arg(required_unless_present = "truth", conflicts_with = "truth")]
+    pub dir: Option<PathBuf>,
+    /// A truth table of runs kfmc did not simulate (Parquet: scenario, noise_scale, run,
+    /// step, t, `truth_<q>`), judged with `--spec`, a spec of `model.kind = "recorded"`.
+    #[arg(long, requires = "spec")]
+    pub truth: Option<PathBuf>,
+    /// The recorded spec of `--truth`: its quantities, runs, scenarios and outside filters.
+    #[arg(long, requires = "truth")]
+    pub spec: Option<PathBuf>,
     /// Estimates files (Parquet; `kfmc schema estimates SPEC` lists the columns).
     #[arg(long, required = true, num_args = 1..)]
     pub estimates: Vec<PathBuf>,
-    /// Output folder for the tables (default: DIR/score).
+    /// Output folder for the tables (default: DIR/score; with --truth, the spec's output).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Worker threads; 0 = all cores.
@@ -32,15 +41,32 @@ impl Score {
     pub(super) fn execute(self, registry: &Registry) -> anyhow::Result<()> {
         let Self {
             dir,
+            truth,
+            spec,
             estimates,
             out,
             threads,
             quiet,
             force,
         } = self;
-        let mut plan = crate::simulate::scoring_plan(&dir, out, registry)
-            .map_err(anyhow::Error::from)
-            .map_err(|e| e.context(format!("scoring against {}", dir.display())))?;
+        let (mut plan, against) = match (dir, truth, spec) {
+            (_, Some(truth), Some(spec)) => {
+                let plan = crate::check::recorded_plan(&spec, &truth, out, registry)
+                    .map_err(anyhow::Error::from)
+                    .map_err(|e| e.context(format!("reading the truth {}", truth.display())))?;
+                (plan, truth)
+            }
+            (Some(dir), _, _) => {
+                let plan = crate::simulate::scoring_plan(&dir, out, registry)
+                    .map_err(anyhow::Error::from)
+                    .map_err(|e| e.context(format!("scoring against {}", dir.display())))?;
+                (plan, dir)
+            }
+            _ => {
+                anyhow::bail!("give the folder `kfmc simulate` wrote, or --truth TRUTH --spec SPEC")
+            }
+        };
+        let dir = against;
         attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
         let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
         let observer = ProgressObserver::new(!quiet);

@@ -134,7 +134,7 @@ pub fn check_arrow_column(
 }
 
 /// [`check_arrow_column`] for every column of a table already in memory.
-pub(super) fn check_frame_columns(path: &Path, df: &DataFrame) -> Result<(), OutputError> {
+pub fn check_frame_columns(path: &Path, df: &DataFrame) -> Result<(), OutputError> {
     for c in df.columns() {
         check_column_class(path, c.name(), polars_class(c.dtype()))?;
     }

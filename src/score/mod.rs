@@ -66,7 +66,7 @@ mod replay;
 mod rotation;
 mod rows;
 
-pub use column_types::check_arrow_column;
+pub use column_types::{check_arrow_column, check_frame_columns};
 pub use columns::{
     CovarianceForm, EstimateColumns, EstimatePrecision, covariance_forms_text, estimate_columns,
     estimate_columns_in, estimate_columns_with, key_columns,
@@ -313,6 +313,22 @@ impl EstimateSet {
             .iter()
             .map(|e| (e.label.clone(), e.files.clone()))
             .collect()
+    }
+
+    /// The first external filter variant (as messages name it) whose estimates give run
+    /// `run` of cell `cell` (scenario-major), with its first file.
+    pub fn gives_run(&self, cell: usize, run: usize) -> Option<(String, PathBuf)> {
+        let (base, samples) = *self.cells.get(cell)?;
+        let row = base + (run * samples) as u64;
+        self.externals
+            .iter()
+            .find(|e| e.present[(row / 64) as usize] & (1 << (row % 64)) != 0)
+            .map(|e| {
+                (
+                    e.label.clone(),
+                    e.files.first().cloned().unwrap_or_default(),
+                )
+            })
     }
 
     /// Runs per cell the set was read for.

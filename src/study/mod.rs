@@ -53,6 +53,18 @@ pub fn run_locked(
     opts: &ExecOptions,
     observer: &dyn RunObserver,
 ) -> Result<(StudyReport, StudyFolder), KfmcError> {
+    if plan.system.recorded() && plan.truth.is_none() {
+        return Err(KfmcError::Spec(crate::error::SpecErrors(vec![
+            crate::error::SpecError {
+                file: plan.spec_path.clone(),
+                key_path: "model.kind".into(),
+                message: format!(
+                    "`{}` cannot simulate: its truth is recorded. Judge its runs with `kfmc score --truth TRUTH --estimates EST --spec SPEC` (or `kfmc check SPEC --truth TRUTH --estimates EST`)",
+                    plan.kind
+                ),
+            },
+        ])));
+    }
     if let Some(f) = plan.filters.iter().find(|f| f.external)
         && plan.estimates.is_none()
     {

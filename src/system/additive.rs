@@ -268,7 +268,7 @@ where
     type Run = AdditiveRun<NX, NZ>;
     type ReplayModel = M;
 
-    fn simulate(&self, cell: &Cell, seed: u64) -> AdditiveRun<NX, NZ> {
+    fn simulate(&self, cell: &Cell, _: &Unit, seed: u64) -> AdditiveRun<NX, NZ> {
         let scenario = &self.sys.scenarios[cell.scenario];
         let draws = NoiseDraws::<NX, NZ>::draw(seed, scenario.steps());
         let mut trajectory = simulate(

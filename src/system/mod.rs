@@ -358,6 +358,11 @@ pub trait System: Send + Sync {
     fn presentation_keys(&self) -> &[&str] {
         &[]
     }
+    /// The scenario name a spec without `[[scenarios]]` gets (`recorded` for real runs that
+    /// have none); `None` (the default): the spec must list its scenarios.
+    fn default_scenario(&self) -> Option<&str> {
+        None
+    }
 }
 
 /// A configured system: the world, the filters and the evaluated quantities of one spec.
@@ -387,6 +392,13 @@ pub trait SystemPlan: Send + Sync + Debug {
     /// one [`crate::model::Model`] plus additive noise.
     fn filter_model(&self) -> Option<filter_model::FilterModel<'_>> {
         None
+    }
+    /// Whether the system's truth is recorded, never simulated (`model.kind = "recorded"`):
+    /// its runs exist only with a truth table attached ([`RunSettings::truth`], `kfmc score
+    /// --truth`), and `kfmc run` and `kfmc simulate` refuse it. Such a plan must be a
+    /// [`world::WorldPlan`], whose trial reads the truth in place of simulating.
+    fn recorded(&self) -> bool {
+        false
     }
 }
 

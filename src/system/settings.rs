@@ -173,6 +173,9 @@ pub struct RunSettings {
     /// The estimates of the external filters, once read (`kfmc score`, `kfmc check
     /// --estimates`).
     pub estimates: Option<Arc<EstimateSet>>,
+    /// The truth of a system that cannot simulate ([`super::SystemPlan::recorded`]), read from
+    /// a user's table (`kfmc score --truth`); its runs stand in for simulated ones.
+    pub truth: Option<Arc<crate::exchange::recorded::RecordedTable>>,
 }
 
 impl RunSettings {

@@ -69,8 +69,8 @@ pub(super) trait TrialKit<const NQ: usize, const NU: usize, const NZ: usize> {
     /// The model external filters' rows are replayed on.
     type ReplayModel: Model<NQ, NU, NZ>;
 
-    /// Simulates the run of `cell` with this seed.
-    fn simulate(&self, cell: &Cell, seed: u64) -> Self::Run;
+    /// Simulates run `unit` (of `cell`) with this seed.
+    fn simulate(&self, cell: &Cell, unit: &Unit, seed: u64) -> Self::Run;
     /// The run as the filters and the trace read it.
     fn view<'r>(&'r self, run: &'r Self::Run) -> Simulated<'r, NQ, NU, NZ>;
     /// Builds a variant's filter for a cell.
@@ -92,7 +92,7 @@ pub(super) trait TrialKit<const NQ: usize, const NU: usize, const NZ: usize> {
 /// names, angles and rotations, the consistency options, and the prepared filter of each
 /// cell (variant × noise scale), built on first use.
 pub(super) struct UnitRunner<'a, F: ?Sized> {
-    settings: &'a RunSettings,
+    pub(super) settings: &'a RunSettings,
     layout: &'a Layout,
     scenarios: &'a [ScenarioInfo],
     names: Vec<&'a str>,
@@ -181,7 +181,7 @@ impl<'a, F: ?Sized> UnitRunner<'a, F> {
             },
         };
         let seed = settings.run_seed(&self.scenarios[si].name, unit.scale, unit.run);
-        let run = kit.simulate(&cell, seed);
+        let run = kit.simulate(&cell, unit, seed);
         let sim = kit.view(&run);
         let ctx = self.context(unit, &sim);
         let mut trace = (ctx.trace || ctx.export).then(|| {

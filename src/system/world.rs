@@ -105,6 +105,8 @@ pub struct WorldPlan<const NQ: usize, const NU: usize, const NZ: usize> {
     pub filter_info: Vec<FilterInfo>,
     /// Names of the world's per-run metrics ([`Realisation::metrics`]); empty for none.
     pub world_metrics: Vec<String>,
+    /// Whether the world's truth is recorded, never simulated ([`SystemPlan::recorded`]).
+    pub recorded: bool,
 }
 
 impl<const NQ: usize, const NU: usize, const NZ: usize> WorldPlan<NQ, NU, NZ> {
@@ -122,7 +124,16 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> WorldPlan<NQ, NU, NZ> {
             scenario_info,
             entries,
             world_metrics: Vec::new(),
+            recorded: false,
         }
+    }
+
+    /// The plan of a world whose truth is recorded ([`SystemPlan::recorded`]): its
+    /// [`World::simulate`] is never called with a truth table attached, and the commands that
+    /// simulate refuse it.
+    pub fn with_recorded_truth(mut self) -> Self {
+        self.recorded = true;
+        self
     }
 
     /// The plan with per-run world metrics named `names` (the `sensors` table).
@@ -164,6 +175,9 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> SystemPlan for WorldPlan
     fn as_any(&self) -> &dyn Any {
         self
     }
+    fn recorded(&self) -> bool {
+        self.recorded
+    }
 }
 
 /// The trial of a [`WorldPlan`] for one study's settings.
@@ -181,10 +195,20 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> TrialKit<NQ, NU, NZ>
     type Run = Realisation<NQ, NU, NZ>;
     type ReplayModel = crate::score::Unmodelled;
 
-    fn simulate(&self, cell: &Cell, seed: u64) -> Realisation<NQ, NU, NZ> {
-        self.sys
-            .world
-            .simulate(cell.scenario, cell.noise_scale, seed)
+    fn simulate(&self, cell: &Cell, unit: &Unit, seed: u64) -> Realisation<NQ, NU, NZ> {
+        match &self.runner.settings.truth {
+            Some(truth) => recorded_run(
+                truth,
+                unit,
+                self.runner.settings.noise_scales.len(),
+                self.runner.steps(unit.scenario),
+                cell.scenario,
+            ),
+            None => self
+                .sys
+                .world
+                .simulate(cell.scenario, cell.noise_scale, seed),
+        }
     }
 
     fn view<'r>(&'r self, real: &'r Realisation<NQ, NU, NZ>) -> Simulated<'r, NQ, NU, NZ> {
@@ -239,6 +263,41 @@ impl<const NQ: usize, const NU: usize, const NZ: usize> Trial for WorldTrial<'_,
 
     fn world_metrics(&self) -> &[String] {
         &self.sys.world_metrics
+    }
+}
+
+/// Run `unit` of a recorded truth (K transitions) as a realisation: its quantities, no
+/// inputs and no measurements (a recorded world's filters are outside ones, replayed from
+/// their rows). A run the table leaves out is all NaN: its estimates leave it out too (the
+/// reading refuses estimates of a run without truth), so it is scored as missing.
+fn recorded_run<const NQ: usize, const NU: usize, const NZ: usize>(
+    truth: &crate::exchange::recorded::RecordedTable,
+    unit: &Unit,
+    n_scales: usize,
+    steps: usize,
+    scenario: usize,
+) -> Realisation<NQ, NU, NZ> {
+    let cell = unit.scenario * n_scales + unit.scale;
+    let quantities = match truth.run(cell, unit.run) {
+        Some(run) => (0..=steps)
+            .map(|k| Vector::<NQ>::from_column_slice(&run.values[k * run.width..][..NQ]))
+            .collect(),
+        None => vec![Vector::<NQ>::from_element(f64::NAN); steps + 1],
+    };
+    Realisation {
+        truth: quantities,
+        inputs: vec![Vector::<NU>::zeros(); steps + 1],
+        measurements: vec![
+            Measurement {
+                z: Vector::<NZ>::zeros(),
+                available: crate::model::Availability(0),
+            };
+            steps + 1
+        ],
+        world: Vec::new(),
+        prior_draws: Vec::new(),
+        scenario,
+        metrics: Vec::new(),
     }
 }
 

@@ -6,6 +6,7 @@ pub mod drone;
 pub mod linear;
 pub mod linear_quadrotor;
 pub mod planar;
+pub mod recorded;
 
 use crate::system::Registry;
 
@@ -22,4 +23,5 @@ pub fn register(registry: Registry) -> Registry {
         .with(linear_quadrotor::LinearQuadrotorSystem::new())
         .with(linear::LinearSystem::new())
         .with(drone::DroneSystem::new())
+        .with(recorded::RecordedSystem::new())
 }

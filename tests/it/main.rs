@@ -92,6 +92,7 @@ mod exchange {
     mod exchange;
     mod filter_model;
     mod interop;
+    mod recorded;
     mod variants;
 }
 

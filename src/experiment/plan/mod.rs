@@ -157,6 +157,26 @@ impl Plan {
         d
     }
 
+    /// What reading a recorded truth table for this study needs
+    /// ([`crate::exchange::recorded`]): the scenarios, noise scales and runs it declares, and
+    /// a `truth_<q>` column per quantity (`world_<w>` columns, as `kfmc simulate` writes them,
+    /// are read past).
+    pub fn truth_keys(&self) -> crate::exchange::recorded::RecordedKeys {
+        let layout = self.layout();
+        crate::exchange::recorded::RecordedKeys {
+            table: "truth".into(),
+            scenarios: (self.scenarios.iter())
+                .map(|s| (s.name.clone(), s.steps))
+                .collect(),
+            noise_scales: self.noise_scales.clone(),
+            runs: self.runs,
+            groups: vec![crate::exchange::recorded::ValueGroup::truth(
+                &layout.quantity_names(),
+            )],
+            ignored_prefixes: vec!["world_".into()],
+        }
+    }
+
     /// What reading estimates for this study needs: its keys and its world.
     pub fn study_keys(&self) -> crate::score::StudyKeys<'_> {
         let layout = self.layout();
@@ -391,6 +411,10 @@ impl Plan {
     /// whatever their filters, run counts, comments or key order; an estimates file carries
     /// it as `kfmc.world_stamp` ([`Plan::stamp_metadata`]).
     pub fn world_stamp(&self) -> String {
+        // A recorded world is its truth table: the table's content hash stands in.
+        if let Some(truth) = &self.settings.truth {
+            return truth.content_hash();
+        }
         format!(
             "{:016x}",
             hash_str(&format!(
@@ -426,11 +450,18 @@ pub fn validate(
 /// and returns what later tables need, so every independent problem is reported at once.
 pub(crate) fn validate_into(
     mut c: Checker,
-    spec: Spec,
+    mut spec: Spec,
     registry: &Registry,
 ) -> Result<Plan, SpecErrors> {
     let path = c.file().to_path_buf();
     let (kind, model, system) = model_table(&mut c, &spec, registry);
+    if spec.scenarios.is_empty()
+        && let Some(name) = system.and_then(|s| s.default_scenario())
+    {
+        let mut table = toml::Table::new();
+        table.insert("name".into(), toml::Value::String(name.into()));
+        spec.scenarios.push(table);
+    }
     let presentation_keys: Vec<String> = system
         .map(|s| {
             s.presentation_keys()
@@ -557,6 +588,7 @@ pub(crate) fn validate_into(
             export_estimates: false,
             export_precision: crate::score::EstimatePrecision::F64,
             estimates: None,
+            truth: None,
         },
         system,
         output,
