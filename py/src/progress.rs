@@ -72,16 +72,18 @@ impl Progress {
             obs.total.load(Ordering::Relaxed),
         );
         let elapsed = (now - self.started).as_secs_f64();
-        // A study done within half a second (a second without redraws) prints nothing: a
-        // loop of short calls stays quiet.
+        // A study done within half a second (a second without redraws) draws nothing: a
+        // loop of short calls stays quiet. A log still gets the last line, so that it
+        // records what ran whatever the machine's speed.
         let quiet_for = if self.redraw { 0.5 } else { 1.0 };
-        if total == 0 || (!self.shown && elapsed < quiet_for) {
+        let logged_end = last && !self.redraw;
+        if total == 0 || (!self.shown && elapsed < quiet_for && !logged_end) {
             return;
         }
         self.last = Some(now);
         let (start, end) = if self.redraw { ("\r", "") } else { ("", "\n") };
         let text = if last {
-            if !self.shown {
+            if !self.shown && self.redraw {
                 return;
             }
             format!("{start}{done}/{total} runs in {elapsed:.1} s\n")

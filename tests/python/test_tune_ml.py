@@ -59,7 +59,9 @@ def test_kfmc_ml_matches_statsmodels(tmp_path, kfmc_bin, root):
 
         def update(self, params, **kwargs):
             params = super().update(params, **kwargs)
-            q, r = Q.copy(), R.copy()
+            # statsmodels differentiates by complex step: keep the imaginary part, or the
+            # score is zero and the fit stops where it starts.
+            q, r = Q.astype(params.dtype), R.astype(params.dtype)
             q[1, 1], q[3, 3], r[0, 0], r[1, 1] = np.exp(params)
             self["state_cov"] = q
             self["obs_cov"] = r
