@@ -24,6 +24,7 @@ use std::path::{Path, PathBuf};
 use polars::prelude::*;
 
 use crate::error::OutputError;
+use crate::score::format_err;
 
 /// The key columns, in `kfmc simulate`'s order; `t` follows them.
 pub const KEY_COLUMNS: [&str; 4] = ["scenario", "noise_scale", "run", "step"];
@@ -123,13 +124,6 @@ impl RecordedKeys {
             self.scenarios[cell / s].0,
             self.noise_scales[cell % s]
         )
-    }
-}
-
-fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
-    OutputError::Format {
-        path: path.to_path_buf(),
-        message: message.into(),
     }
 }
 

@@ -202,7 +202,9 @@ pub struct EstimateSet {
     tables: Vec<PathBuf>,
 }
 
-fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
+/// A table that breaks the format: `path` and what is wrong with it. Shared with the reader of
+/// other recorded tables ([`crate::exchange::recorded`]).
+pub(crate) fn format_err(path: &Path, message: impl Into<String>) -> OutputError {
     OutputError::Format {
         path: path.to_path_buf(),
         message: message.into(),
