@@ -24,6 +24,7 @@ mod model;
 mod progress;
 mod spec;
 mod study;
+mod tune;
 mod ulog;
 
 use pyo3::prelude::*;
@@ -62,6 +63,7 @@ fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(score, m)?)?;
     m.add_function(wrap_pyfunction!(check::check, m)?)?;
     m.add_function(wrap_pyfunction!(power, m)?)?;
+    m.add_function(wrap_pyfunction!(tune::tune, m)?)?;
     m.add_function(wrap_pyfunction!(describe, m)?)?;
     m.add_function(wrap_pyfunction!(schema, m)?)?;
     m.add_function(wrap_pyfunction!(load_toml, m)?)?;

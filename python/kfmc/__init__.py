@@ -8,6 +8,7 @@ The API, each function the ``kfmc`` command of the same name:
   (:meth:`Simulation.runs` yields each :class:`Run`: ``x0``, ``P0``, ``z``, ``u``,
   ``truth`` as numpy arrays), :class:`Estimates` to collect its output, :func:`score` it;
 * :func:`check` a spec's ``[check]`` assertions → :class:`CheckResult`; :func:`power`;
+* :func:`tune` a filter's noise covariances → :class:`TuneResult`;
 * :func:`validate`, :func:`describe`, :func:`schema`, :func:`model`, :func:`list`,
   :func:`to_toml`; :func:`examples` the specs bundled with the wheel (name → path).
 
@@ -59,6 +60,7 @@ __all__ = [
     "SpecError",
     "Study",
     "StudyError",
+    "TuneResult",
     "Run",
     "check",
     "describe",
@@ -75,6 +77,7 @@ __all__ = [
     "simulate",
     "summary",
     "to_toml",
+    "tune",
     "ulog_nis",
     "validate",
 ]
@@ -143,6 +146,10 @@ _FLAGS = [
     ("`--looks`", "`looks=`"),
     ("`--against`", "`against=`"),
     ("--allow-large", "allow_large=True"),
+    ("--method ml", 'method="ml"'),
+    ("--elements[", "elements["),
+    ("--elements", "elements="),
+    ("--measurements", "measurements="),
 ]
 
 
@@ -1173,6 +1180,114 @@ def power(
     if scratch is not None:
         scratch.cleanup()
     return table
+
+
+class TuneResult:
+    """What :func:`tune` found, and the folder holding its tables.
+
+    ``method`` is ``"ml"`` or ``"consistency"``. For ``"ml"``, :attr:`table` is
+    ``tuned.parquet`` (one row per element: its estimate, standard error, 95 % interval
+    ``ci_low``–``ci_high`` and whether it is identified),
+    :attr:`trace` is ``tune_trace.parquet`` (every iteration of every start) and
+    :attr:`tuned_toml` the tuned Q and R as TOML, ready to paste into a spec; ``details``
+    holds −ln L (``objective``), ``converged``, ``runs``, ``measurements``, where the data
+    came from (``data``) and ``not_identified``: one dict per direction the data do not
+    identify (element name → component in ln units). For ``"consistency"``, :attr:`table` is
+    ``tuning.parquet`` (every candidate in every cell) and ``details`` holds the tuned
+    ``filter``, the best ``q_scale`` and ``r_scale``, their ``objective`` and their
+    ``anees``/``anis``.
+    """
+
+    def __init__(self, details: Mapping[str, Any], *, _scratch: Any = None) -> None:
+        #: The method that ran.
+        self.method: str = str(details["method"])
+        #: The folder holding the tables.
+        self.folder: Path = Path(details["folder"])
+        #: What the command prints, as a dict (see the class's description).
+        self.details: Dict[str, Any] = {k: v for k, v in details.items() if k not in ("method", "folder")}
+        # The temporary folder of a call without out=, removed with this object.
+        self._scratch = _scratch
+
+    def __repr__(self) -> str:
+        return f"kfmc.TuneResult(method={self.method!r}, folder={str(self.folder)!r})"
+
+    @property
+    def table(self) -> pl.DataFrame:
+        """``tuned.parquet`` (``ml``) or ``tuning.parquet`` (``consistency``)."""
+        name = "tuned" if self.method == "ml" else "tuning"
+        return pl.read_parquet(self.folder / f"{name}.parquet", memory_map=False)
+
+    @property
+    def trace(self) -> pl.DataFrame:
+        """``tune_trace.parquet``: every iteration of every start of the ``ml`` search."""
+        if self.method != "ml":
+            raise StudyError(f"the {self.method} method keeps no iteration trace (method=\"ml\" does)")
+        return pl.read_parquet(self.folder / "tune_trace.parquet", memory_map=False)
+
+    @property
+    def tuned_toml(self) -> str:
+        """The tuned model as TOML (``tuned.toml``; the ``ml`` method)."""
+        if self.method != "ml":
+            raise StudyError(f"the {self.method} method writes no tuned.toml (method=\"ml\" does)")
+        return (self.folder / "tuned.toml").read_text()
+
+
+def tune(
+    spec: Spec,
+    *,
+    method: Optional[str] = None,
+    elements: Optional[Sequence[str]] = None,
+    measurements: Optional[PathLike] = None,
+    objective: str = "consistency",
+    tune_r: bool = False,
+    filter: Optional[str] = None,  # noqa: A002 (the command's flag)
+    out: Optional[PathLike] = None,
+    runs: Optional[int] = None,
+    seed: Optional[int] = None,
+    threads: Optional[int] = None,
+    quiet: bool = False,
+    force: bool = False,
+    allow_large: bool = False,
+) -> TuneResult:
+    """Tunes a filter's noise covariances (``kfmc tune``) → :class:`TuneResult`.
+
+    ``method`` is ``"ml"`` or ``"consistency"`` (default: the spec's ``tune.method``, else
+    ``"consistency"``).
+
+    * ``"ml"``: the maximum-likelihood estimate of the ``elements`` of Q and R (e.g.
+      ``["q[px,px]", "r[zx,zx]"]``; default the spec's ``tune.elements``) from the innovations
+      alone, with 95 % intervals from the observed information, for linear systems. The data
+      are the spec's simulation, or with ``measurements=`` a ``measurements.parquet`` in the
+      layout :func:`simulate` writes (your own recorded measurements; an ``initial.parquet``
+      beside it gives the priors).
+    * ``"consistency"``: the grid search of a Q multiplier (and with ``tune_r=True`` an R
+      multiplier) of ``filter`` (default the first filter with a covariance) for
+      ``objective="consistency"`` (ANEES closest to n and ANIS to p) or ``"rmse"``.
+
+    Tables go to ``out``, or without it to a temporary folder that lives as long as the
+    returned object. ``runs`` and ``seed`` override the spec's; ``force=True`` writes into a
+    non-empty folder that is not a kfmc study. Invalid settings raise :class:`SpecError`.
+    """
+    folder, scratch = _out(out)
+    details = _pythonic(
+        lambda: _kfmc.tune(
+            _spec(spec),
+            method=method,
+            elements=None if elements is None else [str(e) for e in ([elements] if isinstance(elements, str) else elements)],
+            measurements=_path(measurements),
+            objective=objective,
+            tune_r=tune_r,
+            filter=filter,
+            out=folder,
+            runs=_count(runs, "runs"),
+            seed=_count(seed, "seed"),
+            threads=_count(threads, "threads"),
+            quiet=quiet,
+            force=force,
+            allow_large=allow_large,
+        )
+    )
+    return TuneResult(details, _scratch=scratch)
 
 
 def describe(spec: Spec) -> Dict[str, Any]:

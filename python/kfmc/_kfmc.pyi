@@ -17,6 +17,7 @@ __all__ = [
     "score",
     "check",
     "power",
+    "tune",
     "describe",
     "schema",
     "load_toml",
@@ -120,6 +121,23 @@ def power(
     target_power: Optional[float] = None,
     against: Optional[str] = None,
 ) -> Tuple["os.PathLike[str]", Optional[str]]: ...
+def tune(
+    spec: _Spec,
+    *,
+    method: Optional[str] = None,
+    elements: Optional[Sequence[str]] = None,
+    measurements: Optional[Union[str, "os.PathLike[str]"]] = None,
+    objective: str = "consistency",
+    tune_r: bool = False,
+    filter: Optional[str] = None,  # noqa: A002
+    out: Optional[Union[str, "os.PathLike[str]"]] = None,
+    runs: Optional[int] = None,
+    seed: Optional[int] = None,
+    threads: Optional[int] = None,
+    quiet: bool = False,
+    force: bool = False,
+    allow_large: bool = False,
+) -> Dict[str, Any]: ...
 def describe(spec: _Spec) -> Dict[str, Any]: ...
 def schema(kind: str, spec: _Spec) -> Dict[str, Any]: ...
 def load_toml(path: _Path) -> Dict[str, Any]: ...

@@ -1,0 +1,124 @@
+//! `tune`: a filter's noise covariances tuned, by the methods `kfmc tune` has.
+
+use std::path::PathBuf;
+
+use kfmc::experiment::tune_spec::{TuneMethod, method_of};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+
+use crate::errors::{Failure, SpecError, guarded};
+use crate::progress::run_study;
+use crate::spec::prepared;
+use crate::study::clamp_threads;
+
+/// `kfmc tune`: tunes the spec's filter and returns what the command prints, as a dict
+/// (`method`, `folder`, and the method's own keys); the tables are in `folder`.
+#[pyfunction]
+#[pyo3(signature = (spec, *, method=None, elements=None, measurements=None, objective="consistency", tune_r=false, filter=None, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
+#[allow(
+    clippy::too_many_arguments,
+    reason = "each argument is one of the Python function's keyword arguments, its public API"
+)]
+pub(crate) fn tune<'py>(
+    py: Python<'py>,
+    spec: &Bound<'py, PyAny>,
+    method: Option<&str>,
+    elements: Option<Vec<String>>,
+    measurements: Option<PathBuf>,
+    objective: &str,
+    tune_r: bool,
+    filter: Option<String>,
+    out: Option<PathBuf>,
+    runs: Option<usize>,
+    seed: Option<u64>,
+    threads: Option<usize>,
+    quiet: bool,
+    force: bool,
+    allow_large: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let method = method
+            .map(|m| method_of(m).map_err(|e| SpecError::new_err(format!("method={m:?}: {e}"))))
+            .transpose()?;
+        let objective = match objective {
+            "consistency" => kfmc::tune::Objective::Consistency,
+            "rmse" => kfmc::tune::Objective::Rmse,
+            other => {
+                return Err(SpecError::new_err(format!(
+                    "objective={other:?}: not an objective (\"consistency\" or \"rmse\")"
+                )));
+            }
+        };
+        let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        // As the command: the keyword, else the spec's `tune.method`, else `consistency`.
+        let method = method
+            .or_else(|| plan.tune.as_ref().and_then(|t| t.method))
+            .unwrap_or(TuneMethod::Consistency);
+        let threads = clamp_threads(threads.unwrap_or(0));
+        let d = PyDict::new(py);
+        d.set_item("method", method.name())?;
+        d.set_item("folder", plan.output.clone())?;
+        match method {
+            TuneMethod::Ml => {
+                if tune_r || filter.is_some() {
+                    return Err(SpecError::new_err(
+                        "tune_r= and filter= belong to the consistency method; the ml method estimates the elements= of Q and R of the spec's filter model",
+                    ));
+                }
+                let opts = kfmc::tune::ml::MlOptions {
+                    elements,
+                    measurements,
+                    search: Default::default(),
+                    force,
+                    threads,
+                };
+                let report = run_study(py, quiet, move |obs| {
+                    kfmc::tune::ml::tune_ml(&plan, &opts, obs, &|_| {})
+                        .map_err(|e| Failure::from(e).context(format!("tuning {}", path.display())))
+                })?;
+                let est = &report.estimate;
+                d.set_item("objective", est.objective)?;
+                d.set_item("converged", est.converged)?;
+                d.set_item("runs", report.runs)?;
+                d.set_item("measurements", report.measurements)?;
+                d.set_item("data", &report.data)?;
+                let flat = PyList::empty(py);
+                for direction in &est.flat {
+                    let entry = PyDict::new(py);
+                    for (c, e) in direction.components.iter().zip(&report.elements) {
+                        entry.set_item(&e.name, c)?;
+                    }
+                    flat.append(entry)?;
+                }
+                d.set_item("not_identified", flat)?;
+            }
+            TuneMethod::Consistency => {
+                if elements.is_some() || measurements.is_some() {
+                    return Err(SpecError::new_err(
+                        "elements= and measurements= belong to the ml method (method=\"ml\"); the consistency method tunes a Q scale and an R scale",
+                    ));
+                }
+                let opts = kfmc::tune::TuneOptions {
+                    objective,
+                    tune_r,
+                    filter,
+                    threads,
+                    force,
+                };
+                let report = run_study(py, quiet, move |obs| {
+                    kfmc::tune::tune(&plan, &opts, obs)
+                        .map_err(|e| Failure::from(e).context(format!("tuning {}", path.display())))
+                })?;
+                let (q, r, o) = report.best;
+                let best = report.averages(q, r, None);
+                d.set_item("filter", &report.filter)?;
+                d.set_item("q_scale", q)?;
+                d.set_item("r_scale", r)?;
+                d.set_item("objective", o)?;
+                d.set_item("anees", best.anees)?;
+                d.set_item("anis", best.anis)?;
+            }
+        }
+        Ok(d)
+    })
+}
