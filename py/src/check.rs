@@ -14,7 +14,7 @@ use crate::study::{clamp_threads, gate_override_error, gate_overrides};
 
 /// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
 #[pyfunction]
-#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None))]
+#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None, truth=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -38,6 +38,7 @@ pub(crate) fn check<'py>(
     spending: Option<&str>,
     futility: Option<f64>,
     futility_rho: Option<f64>,
+    truth: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let overrides = gate_overrides(sequential, looks, spending, futility, futility_rho)?;
@@ -48,6 +49,11 @@ pub(crate) fn check<'py>(
         plan.check_sequential = overrides
             .apply(plan.check_sequential.as_ref())
             .map_err(gate_override_error)?;
+        // A user's own runs (`kfmc check --truth`): the truth first, so that estimates of a run
+        // it leaves out are refused as they are read.
+        if let Some(truth) = &truth {
+            crate::estimates::attach_truth(&mut plan, truth)?;
+        }
         // An iterable without a length (a generator) may yield estimates: it is read.
         if !(paths.is_empty() && streams.len().is_ok_and(|n| n == 0)) {
             let unstamped = if allow_unstamped {

@@ -200,9 +200,8 @@ pub(crate) fn attach(
     })
 }
 
-/// The plan of a recorded spec (`model.kind = "recorded"`) with its truth attached: `truth` is
-/// a Parquet file's path or a table with `__arrow_c_stream__` (read whole: the runs' truth is
-/// held in memory either way).
+/// The plan of a recorded spec (`model.kind = "recorded"`) with its truth attached
+/// ([`attach_truth`]).
 fn recorded_plan(
     spec: &std::path::Path,
     truth: &Bound<'_, PyAny>,
@@ -214,6 +213,14 @@ fn recorded_plan(
     if let Some(out) = out {
         plan.output = out;
     }
+    attach_truth(&mut plan, truth)?;
+    Ok(plan)
+}
+
+/// Attaches a user's truth to a recorded plan (`kfmc score|check --truth`): `truth` is a
+/// Parquet file's path or a table with `__arrow_c_stream__` (read whole: the runs' truth is
+/// held in memory either way).
+pub(crate) fn attach_truth(plan: &mut Plan, truth: &Bound<'_, PyAny>) -> PyResult<()> {
     let (files, frames) = if let Ok(path) = truth.extract::<PathBuf>() {
         (vec![path], Vec::new())
     } else {
@@ -229,12 +236,39 @@ fn recorded_plan(
             .map_err(|e| Failure::new(Kind::Estimates, e).into_py())?;
         (Vec::new(), frames)
     };
-    kfmc::check::attach_truth(&mut plan, &files, &frames).map_err(|e| {
+    kfmc::check::attach_truth(plan, &files, &frames).map_err(|e| {
         Failure::new(Kind::Estimates, e)
             .context("reading the truth".into())
             .into_py()
-    })?;
-    Ok(plan)
+    })
+}
+
+/// `kfmc stamp`: the world stamp of estimates made on a user's own runs (a recorded spec and
+/// its truth: the truth's content hash), as a dict of the Parquet metadata keys; the files
+/// given are stamped in place, as the command stamps them.
+#[pyfunction]
+#[pyo3(signature = (spec, truth, files))]
+pub(crate) fn stamp<'py>(
+    py: Python<'py>,
+    spec: &Bound<'py, PyAny>,
+    truth: &Bound<'py, PyAny>,
+    files: Vec<PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    guarded(|| {
+        let registry = kfmc::systems::builtin();
+        let (mut plan, _) = crate::spec::load_spec(spec, &registry)?;
+        attach_truth(&mut plan, truth)?;
+        kfmc::check::stamp_estimates(&plan, &files).map_err(|e| {
+            Failure::new(Kind::Estimates, e)
+                .context("stamping the estimates".into())
+                .into_py()
+        })?;
+        let d = PyDict::new(py);
+        for (k, v) in plan.stamp_metadata() {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    })
 }
 
 /// `kfmc score`: `simulation` is a `kfmc simulate` folder (or, with `truth`, the recorded

@@ -32,7 +32,7 @@ use pyo3::prelude::*;
 use errors::{
     CheckFailedError, Error, EstimatesError, IncompleteError, SpecError, StudyError, guarded,
 };
-use estimates::score;
+use estimates::{score, stamp};
 use model::{FilterModel, estimates_layout, filter_model, simulation_model};
 use spec::{describe, load_toml, schema, to_toml_text};
 use study::{power, run, simulate, validate};
@@ -64,6 +64,7 @@ fn _kfmc(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(check::check, m)?)?;
     m.add_function(wrap_pyfunction!(power, m)?)?;
     m.add_function(wrap_pyfunction!(tune::tune, m)?)?;
+    m.add_function(wrap_pyfunction!(stamp, m)?)?;
     m.add_function(wrap_pyfunction!(describe, m)?)?;
     m.add_function(wrap_pyfunction!(schema, m)?)?;
     m.add_function(wrap_pyfunction!(load_toml, m)?)?;

@@ -9,6 +9,8 @@ The API, each function the ``kfmc`` command of the same name:
   ``truth`` as numpy arrays), :class:`Estimates` to collect its output, :func:`score` it;
 * :func:`check` a spec's ``[check]`` assertions → :class:`CheckResult`; :func:`power`;
 * :func:`tune` a filter's noise covariances → :class:`TuneResult`;
+* your own runs (a recorded truth): :func:`score` and :func:`check` with ``truth=``,
+  :func:`stamp` their estimates;
 * :func:`validate`, :func:`describe`, :func:`schema`, :func:`model`, :func:`list`,
   :func:`to_toml`; :func:`examples` the specs bundled with the wheel (name → path).
 
@@ -75,6 +77,7 @@ __all__ = [
     "score",
     "sigma_point_transition",
     "simulate",
+    "stamp",
     "summary",
     "to_toml",
     "tune",
@@ -994,7 +997,8 @@ def score(
 
     With ``truth`` (a Parquet file's path or a DataFrame: ``scenario``, ``noise_scale``,
     ``run``, ``step``, ``t``, ``truth_<q>``) the runs are the user's own: ``simulation`` is
-    then the path of a spec of ``model.kind = "recorded"`` (``kfmc score --truth``).
+    then the path of a spec of ``model.kind = "recorded"`` (``kfmc score --truth``);
+    :func:`stamp` gives the stamp of estimates made on such runs.
 
     In-memory estimates (the columns ``schema("estimates", spec)`` lists) go to the library
     through the Arrow C stream interface. Their world stamp is checked as a file's: a
@@ -1015,11 +1019,15 @@ def score(
         paths, streams = _estimates(estimates)
         if not paths and not streams:
             raise EstimatesError("no estimates given")
-        r = _kfmc.score(
-            os.fspath(simulation), paths, streams, out=_path(out), threads=threads,
-            quiet=quiet, force=force, truth=_truth_input(truth),
+        target, scratch = _out(out)
+        truth_table = _truth_input(truth)
+        r = _pythonic(
+            lambda: _kfmc.score(
+                os.fspath(simulation), paths, streams, out=target, threads=_count(threads, "threads"),
+                quiet=quiet, force=force, truth=truth_table,
+            )
         )
-        return Study(r["folder"], r)
+        return Study(r["folder"], r, _scratch=scratch)
     folder = simulation.folder if isinstance(simulation, Simulation) else Path(simulation)
     paths, streams = _estimates(estimates, lambda: Simulation(folder).stamp)
     if not paths and not streams:
@@ -1052,6 +1060,7 @@ def check(
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
     futility_beta: Optional[float] = None,
+    truth: Any = None,
 ) -> CheckResult:
     """Runs the study and evaluates its ``[check]`` assertions (``kfmc check``). A failing
     or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
@@ -1072,9 +1081,22 @@ def check(
     ``futility_rho`` (their β-spending exponent, default 2) are ``--looks``, ``--spending``,
     ``--futility`` and ``--futility-rho``: each given one wins over the spec's key. A setting
     without the gate, or settings that make no gate for the study's runs, raise
-    :class:`SpecError` (the command's exit 2)."""
+    :class:`SpecError` (the command's exit 2).
+
+    With ``truth`` (a Parquet file's path or a DataFrame, as for :func:`score`) the spec is
+    one of ``model.kind = "recorded"`` and the runs are the user's own (``kfmc check
+    --truth``): the estimates are judged against that truth, and their stamp is the truth's
+    (:func:`stamp`)."""
+
+    truth_table = None
+    if truth is not None:
+        from kfmc._estimates import _truth_input
+
+        truth_table = _truth_input(truth)
 
     def stamp() -> Dict[str, str]:
+        if truth_table is not None:
+            return dict(_kfmc.stamp(_spec(spec), truth_table, []))
         s = dict(_kfmc.schema("estimates", _spec(spec))["metadata"])
         if seed is not None:
             s["kfmc.master_seed"] = str(seed)
@@ -1102,6 +1124,7 @@ def check(
             spending=spending,
             futility=beta,
             futility_rho=futility_rho,
+            truth=truth_table,
         )
     )
     return CheckResult(r, scratch)
@@ -1288,6 +1311,20 @@ def tune(
         )
     )
     return TuneResult(details, _scratch=scratch)
+
+
+def stamp(spec: Spec, truth: Any, files: Sequence[PathLike] = ()) -> Dict[str, str]:
+    """The world stamp of estimates made on a user's own runs (``kfmc stamp``): ``spec`` is a
+    spec of ``model.kind = "recorded"``, ``truth`` its truth (a Parquet file's path or a
+    DataFrame, as for :func:`score`). Returns the Parquet metadata keys and values (the
+    truth's content hash among them) to set on an estimates table, e.g. a pyarrow Table's
+    ``replace_schema_metadata``; each of ``files`` (Parquet estimates) is stamped in place,
+    its rows and other metadata kept, as the command does."""
+    from kfmc._estimates import _truth_input
+
+    return dict(
+        _pythonic(lambda: _kfmc.stamp(_spec(spec), _truth_input(truth), [os.fspath(f) for f in files]))
+    )
 
 
 def describe(spec: Spec) -> Dict[str, Any]:

@@ -18,6 +18,7 @@ __all__ = [
     "check",
     "power",
     "tune",
+    "stamp",
     "describe",
     "schema",
     "load_toml",
@@ -101,7 +102,9 @@ def check(
     spending: Optional[str] = None,
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
+    truth: Any = None,
 ) -> Dict[str, Any]: ...
+def stamp(spec: _Spec, truth: Any, files: Sequence[_Path]) -> Dict[str, str]: ...
 def power(
     spec: _Spec,
     replications: int,

@@ -122,3 +122,73 @@ def test_score_judges_a_users_own_runs_in_memory(tmp_path):
             out=tmp_path / "bad_truth",
             quiet=True,
         )
+
+
+CHECKED = SPEC + """
+[[check.assert]]
+kind = "consistent"
+filter = "kf"
+"""
+
+
+def test_check_judges_a_users_own_runs_and_wants_their_stamp(tmp_path, kfmc_bin):
+    import subprocess
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    spec = tmp_path / "walk.toml"
+    spec.write_text(CHECKED)
+    truth, good = frames(Q)
+    _, bad = frames(0.05 * Q)
+    # A DataFrame carries no stamp: refused unless allowed, as the command refuses a file.
+    with pytest.raises(kfmc.Error, match="stamp"):
+        kfmc.check(spec, estimates=good, truth=truth, out=tmp_path / "unstamped", quiet=True)
+    allowed = kfmc.check(spec, estimates=good, truth=truth, allow_unstamped=True, out=tmp_path / "a", quiet=True)
+    assert allowed.ok and allowed.exit_code == 0
+    failing = kfmc.check(spec, estimates=bad, truth=truth, allow_unstamped=True, out=tmp_path / "b", quiet=True)
+    assert not failing.ok and failing.exit_code == 3
+    # kfmc.stamp gives the metadata a table made on this truth carries: accepted without
+    # allow_unstamped, and equal to what `kfmc stamp` writes into a file.
+    stamp = kfmc.stamp(spec, truth)
+    table = good.to_arrow()
+    stamped = table.replace_schema_metadata({**(table.schema.metadata or {}), **stamp})
+    assert kfmc.check(spec, estimates=stamped, truth=truth, out=tmp_path / "c", quiet=True).ok
+    truth_file, by_cli, by_py = tmp_path / "truth.parquet", tmp_path / "cli.parquet", tmp_path / "py.parquet"
+    truth.write_parquet(truth_file)
+    good.write_parquet(by_cli)
+    good.write_parquet(by_py)
+    out = subprocess.run(
+        [kfmc_bin, "stamp", "--truth", str(truth_file), "--spec", str(spec), str(by_cli)],
+        capture_output=True, text=True,
+    )
+    assert out.returncode == 0, out.stderr
+    assert kfmc.stamp(spec, truth_file, files=[by_py]) == stamp
+    meta = lambda p: {k.decode(): v.decode() for k, v in (pq.read_metadata(p).metadata or {}).items() if k.startswith(b"kfmc.")}
+    assert meta(by_py) == meta(by_cli) == stamp
+    assert kfmc.check(spec, estimates=by_py, truth=truth_file, out=tmp_path / "d", quiet=True).ok
+    # Estimates stamped with another truth (one value changed) are foreign.
+    other = truth.with_columns(pl.when(pl.int_range(pl.len()) == 5).then(pl.col("truth_x") + 1e-9).otherwise(pl.col("truth_x")).alias("truth_x"))
+    assert kfmc.stamp(spec, other) != stamp
+    with pytest.raises(kfmc.Error, match="stamp|world"):
+        kfmc.check(spec, estimates=stamped, truth=other, out=tmp_path / "e", quiet=True)
+    assert isinstance(stamped, pa.Table)
+
+
+def test_score_with_truth_writes_nothing_in_the_working_directory(tmp_path, monkeypatch):
+    import gc
+
+    spec = tmp_path / "spec" / "walk.toml"
+    spec.parent.mkdir()
+    spec.write_text(SPEC)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    truth, good = frames(Q)
+    study = kfmc.score(spec, good, truth=truth, quiet=True)
+    folder = study.folder
+    assert (folder / "consistency.parquet").is_file()
+    assert list(work.iterdir()) == []
+    del study
+    gc.collect()
+    assert not folder.exists()
