@@ -117,9 +117,10 @@ pub fn attach_truth(
         return Err(OutputError::Mismatch {
             path: name,
             why: format!(
-                "is a truth table, but the spec {} simulates its own truth (model.kind = \"{}\"); a truth table is judged with a spec of model.kind = \"recorded\", and a kfmc simulation with `kfmc score SIM_DIR --estimates …`",
+                "is a truth table, but the spec {} simulates its own truth (model.kind = \"{}\"); a truth table is judged with a spec of model.kind = \"{}\", and a kfmc simulation with `kfmc score SIM_DIR --estimates …`",
                 plan.spec_path.display(),
-                plan.kind
+                plan.kind,
+                crate::systems::recorded::KIND,
             ),
         }
         .into());

@@ -269,27 +269,10 @@ impl RecordedReader {
     }
 
     fn rows(&mut self, path: &Path, df: &DataFrame) -> Result<(), OutputError> {
-        let col_err =
-            |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
-        let floats = |name: &str| -> Result<Float64Chunked, OutputError> {
-            let c = df
-                .column(name)
-                .and_then(|c| c.cast(&DataType::Float64))
-                .map_err(|e| col_err(name, e))?;
-            Ok(c.f64().map_err(|e| col_err(name, e))?.clone())
-        };
-        let ints = |name: &str| -> Result<Int64Chunked, OutputError> {
-            let c = df
-                .column(name)
-                .and_then(|c| c.cast(&DataType::Int64))
-                .map_err(|e| col_err(name, e))?;
-            Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
-        };
-        let scenario = df
-            .column("scenario")
-            .and_then(|c| c.cast(&DataType::String))
-            .map_err(|e| col_err("scenario", e))?;
-        let scenario = scenario.str().map_err(|e| col_err("scenario", e))?;
+        let frame = crate::score::FrameColumns { path, df };
+        let floats = |name: &str| frame.floats(name);
+        let ints = |name: &str| frame.ints(name);
+        let scenario = frame.strings("scenario")?;
         let (noise, run, step, t) = (
             floats("noise_scale")?,
             ints("run")?,

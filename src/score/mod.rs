@@ -60,6 +60,7 @@ use crate::linalg::so3::EulerRotation;
 
 mod column_types;
 mod columns;
+mod frame;
 mod index;
 mod reading;
 mod replay;
@@ -71,6 +72,7 @@ pub use columns::{
     CovarianceForm, EstimateColumns, EstimatePrecision, covariance_forms_text, estimate_columns,
     estimate_columns_in, estimate_columns_with, key_columns,
 };
+pub(crate) use frame::FrameColumns;
 use reading::Reading;
 pub use replay::{Unmodelled, replay};
 pub use rotation::quaternion_columns;

@@ -131,37 +131,11 @@ impl RowGroup {
         first_row: usize,
         columns: &FileColumns,
     ) -> Result<Self, OutputError> {
-        let col_err =
-            |name: &str, e: PolarsError| format_err(path, format!("column `{name}`: {e}"));
-        let strs = |name: &str| -> Result<StringChunked, OutputError> {
-            let c = df.column(name).map_err(|e| col_err(name, e))?;
-            Ok(c.str().map_err(|e| col_err(name, e))?.clone())
-        };
-        let floats = |name: &str| -> Result<Float64Chunked, OutputError> {
-            let c = df
-                .column(name)
-                .and_then(|c| c.cast(&DataType::Float64))
-                .map_err(|e| col_err(name, e))?;
-            Ok(c.f64().map_err(|e| col_err(name, e))?.clone())
-        };
-        let ints = |name: &str| -> Result<Int64Chunked, OutputError> {
-            let c = df.column(name).map_err(|e| col_err(name, e))?;
-            if !c.dtype().is_integer() {
-                return Err(format_err(
-                    path,
-                    format!("column `{name}` must be an integer, not {}", c.dtype()),
-                ));
-            }
-            let c = c.cast(&DataType::Int64).map_err(|e| col_err(name, e))?;
-            Ok(c.i64().map_err(|e| col_err(name, e))?.clone())
-        };
-        let optional = |name: &str| -> Result<Option<Float64Chunked>, OutputError> {
-            if df.schema().contains(name) {
-                floats(name).map(Some)
-            } else {
-                Ok(None)
-            }
-        };
+        let frame = super::FrameColumns { path, df };
+        let strs = |name: &str| frame.strs(name);
+        let floats = |name: &str| frame.floats(name);
+        let ints = |name: &str| frame.ints(name);
+        let optional = |name: &str| frame.optional_floats(name);
         // A rotation given as a quaternion is read as the Euler angles its `est_` columns
         // would hold.
         let cols = &columns.columns;
@@ -211,9 +185,11 @@ impl RowGroup {
             q_scale: optional("q_scale")?,
             r_scale: optional("r_scale")?,
             failed: match df.column(FAILED_COLUMN) {
-                Ok(c) if c.dtype() == &DataType::Boolean => {
-                    Some(c.bool().map_err(|e| col_err(FAILED_COLUMN, e))?.clone())
-                }
+                Ok(c) if c.dtype() == &DataType::Boolean => Some(
+                    c.bool()
+                        .map_err(|e| frame.column_err(FAILED_COLUMN, e))?
+                        .clone(),
+                ),
                 Ok(c) => {
                     return Err(format_err(
                         path,
