@@ -42,7 +42,7 @@ pub use crate::system::world::{
 pub use crate::system::world_kinds::WorldKinds;
 pub use crate::system::{
     Catalogue, Checker, FilterInfo, FilterTable, InitialMode, InitialSpec, Layout, OneOrMany,
-    PositionAxis, PositionFix, Quantity, Registry, RunSettings, ScenarioInfo, System, SystemPlan,
-    SystemSpec,
+    PositionAxis, PositionFix, Program, Quantity, Registry, RunSettings, ScenarioInfo, System,
+    SystemPlan, SystemSpec,
 };
 pub use crate::trial::{Evaluate, Identity, Marginal, Trial};

@@ -91,6 +91,9 @@ pub struct Plan {
     pub never_crossed_largest: bool,
     /// `[tune]`: `kfmc tune`'s method and elements, when the spec has the table.
     pub tune: Option<crate::experiment::tune_spec::TunePlan>,
+    /// The binary that loaded the plan (its registry's [`crate::system::Program`]): its name
+    /// and version go into the manifest beside kfmc's.
+    pub program: crate::system::Program,
 }
 
 impl std::ops::Deref for Plan {
@@ -605,6 +608,7 @@ pub(crate) fn validate_into(
             .unwrap_or(false),
         never_crossed_largest,
         tune,
+        program: registry.program(),
     })
 }
 
