@@ -38,11 +38,11 @@ use std::sync::Arc;
 
 use trial::Trial;
 
-pub use crate::linalg::so3::{ErrorSide, EulerRotation};
-pub use checker::Checker;
+pub(crate) use crate::linalg::so3::{ErrorSide, EulerRotation};
+pub(crate) use checker::Checker;
 pub use program::Program;
-pub use settings::{InitialMode, RunSettings};
-pub use spec_values::OneOrMany;
+pub(crate) use settings::{InitialMode, RunSettings};
+pub(crate) use spec_values::OneOrMany;
 
 /// Which axis of which frame a position quantity is: what the position figures (the
 /// `trajectory` map, the `route` projections) are chosen and drawn by.

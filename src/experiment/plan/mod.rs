@@ -22,10 +22,7 @@ use super::spec::Spec;
 use crate::error::{SpecError, SpecErrors};
 use crate::sim::seed::hash_str;
 use crate::system::checker::Checker;
-pub use crate::system::settings::{
-    ConsistencyPlan, DeclaredScales, Draws, FilterNoiseMode, FilterPlan, InitialMode, RunSettings,
-    ScenarioPlan,
-};
+pub(crate) use crate::system::settings::{ConsistencyPlan, FilterPlan, RunSettings, ScenarioPlan};
 use crate::system::{Layout, Registry, SystemPlan, SystemSpec};
 
 pub use check::{Assertion, Selection};
@@ -109,7 +106,7 @@ impl std::ops::DerefMut for Plan {
     }
 }
 
-pub use crate::system::limits;
+pub(crate) use crate::system::limits;
 
 /// Command-line overrides of spec values.
 #[derive(Clone, Debug, Default, PartialEq)]
