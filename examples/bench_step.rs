@@ -27,10 +27,10 @@ use kfmc::linalg::{Matrix, SmallCholesky, Vector};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::scenario::Scenario;
 use kfmc::sim::{NoiseDraws, TruthNoise, seed::run_seed, simulate};
+use kfmc::step_loop::Unit;
 use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
 use kfmc::systems::planar::model::{PlanarP1, PlanarParams};
 use kfmc::systems::planar::scenario::builtin;
-use kfmc::trial::Unit;
 use nalgebra::DMatrix;
 
 /// The baseline: the seed's EKF step written out by hand for exactly this model, with

@@ -39,6 +39,7 @@ use kfmc::linalg::{Matrix, SmallCholesky, Vector};
 use kfmc::model::Model;
 use kfmc::runner::NullObserver;
 use kfmc::sim::seed::{StreamKind, stream};
+use kfmc::step_loop::Unit;
 use kfmc::study::{ExecOptions, run};
 use kfmc::system::additive::AdditivePlan;
 use kfmc::system::world::WorldPlan;
@@ -46,7 +47,6 @@ use kfmc::systems::drone::filters::{Augmentation, Nav, Principled};
 use kfmc::systems::drone::world::DroneParams;
 use kfmc::systems::linear_quadrotor::model::Linear;
 use kfmc::systems::planar::model::PlanarP1;
-use kfmc::trial::Unit;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 

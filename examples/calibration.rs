@@ -16,7 +16,7 @@
 use kfmc::experiment;
 use kfmc::metrics::RunConsistency;
 use kfmc::metrics::consistency::{VERDICT, cell_tests};
-use kfmc::trial::Unit;
+use kfmc::step_loop::Unit;
 use rayon::prelude::*;
 use std::path::Path;
 

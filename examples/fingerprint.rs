@@ -17,7 +17,7 @@ use std::hash::{DefaultHasher, Hasher};
 use std::path::PathBuf;
 
 use kfmc::experiment;
-use kfmc::trial::Unit;
+use kfmc::step_loop::Unit;
 
 fn main() {
     let mut runs = 3usize;

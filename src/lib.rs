@@ -16,7 +16,7 @@
 //! [`model`] (f, h, Jacobians — the only copy), [`scenario`] (x0, controls), [`filter`]
 //! (configuration only; beliefs are values), [`sim`] (truth, measurements, seeding),
 //! [`metrics`] (errors, NEES, NIS, accumulators, divergence), [`experiment`] (spec →
-//! plan), [`runner`] (executor), [`trial`] (one run), [`study`] (a whole study),
+//! plan), [`runner`] (executor), [`system::trial`] and [`step_loop`] (one run), [`study`] (a whole study),
 //! [`output`] (schema, Parquet, manifest), [`plot`] (figures and the HTML report, from the
 //! written tables only), [`cli`]. A plugin crate starts from [`prelude`].
 //!
@@ -36,6 +36,7 @@
 
 pub mod analysis;
 pub mod check;
+#[cfg(feature = "cli")]
 pub mod cli;
 pub mod error;
 pub mod exchange;
@@ -47,6 +48,7 @@ pub mod merge;
 pub mod metrics;
 pub mod model;
 pub mod output;
+#[cfg(feature = "plot")]
 pub mod plot;
 pub mod power;
 pub mod prelude;
@@ -56,13 +58,15 @@ pub mod score;
 pub mod sequential;
 pub mod sim;
 pub mod simulate;
-/// The spill of per-run values is part of [`metrics`]; this path stays for code that used it.
-pub use metrics::spill;
+// The spill of per-run values is part of `metrics`; this path stays for the code that uses it.
+pub(crate) use metrics::spill;
 pub mod step_loop;
 pub mod study;
 pub mod system;
 pub mod systems;
-pub mod trial;
+// What a trial is written with, gathered for the crate's own code (the public paths are
+// `system::trial` and `step_loop`).
+pub(crate) mod trial;
 pub mod tune;
 pub mod ulog;
 

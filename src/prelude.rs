@@ -31,18 +31,21 @@ pub use crate::model::{Availability, Measurement, Model};
 pub use crate::scenario::Scenario;
 pub use crate::sim::TruthNoise;
 pub use crate::sim::seed::world_normals;
-pub use crate::system::additive::{
-    AdditivePlan, AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds,
-    FilterSetup, FnKind, RunFilter, common_kinds, linear_kinds,
+pub use crate::step_loop::{Evaluate, Identity, Marginal};
+pub use crate::system::additive::AdditivePlan;
+pub use crate::system::checker::{Checker, non_negative, positive};
+pub use crate::system::filter_kind::{
+    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup,
+    FnKind, RunFilter,
 };
-pub use crate::system::checker::{non_negative, positive};
+pub use crate::system::kinds::{common_kinds, linear_kinds};
+pub use crate::system::settings::InitialMode;
+pub use crate::system::spec_values::OneOrMany;
 pub use crate::system::world::{
     ModelFilter, NoiseSettings, Realisation, World, WorldFilter, WorldFilterEntry, WorldPlan,
 };
 pub use crate::system::world_kinds::WorldKinds;
 pub use crate::system::{
-    Catalogue, Checker, FilterInfo, FilterTable, InitialMode, InitialSpec, Layout, OneOrMany,
-    PositionAxis, PositionFix, Quantity, Registry, RunSettings, ScenarioInfo, System, SystemPlan,
-    SystemSpec,
+    Catalogue, FilterInfo, FilterTable, InitialSpec, Layout, PositionAxis, PositionFix, Program,
+    Quantity, Registry, ScenarioInfo, System, SystemPlan, SystemSpec,
 };
-pub use crate::trial::{Evaluate, Identity, Marginal, Trial};

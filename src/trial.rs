@@ -4,9 +4,8 @@
 //! them where a plugin looks for them; they are defined in [`crate::system::trial`] and
 //! [`crate::step_loop`].
 
-pub use crate::step_loop::{
-    BURN_IN_THRESHOLD, ConsistencyOptions, Evaluate, ExportTrace, FilterOutput, Identity, Marginal,
-    Prior, RunContext, RunTrace, Unit, UnitResult, lower_triangle, run_filter, wrap_angle,
+pub(crate) use crate::step_loop::{
+    Evaluate, FilterOutput, Prior, RunContext, RunTrace, Unit, UnitResult, run_filter, wrap_angle,
 };
-pub use crate::system::settings::layout_blocks;
-pub use crate::system::trial::Trial;
+pub(crate) use crate::system::settings::layout_blocks;
+pub(crate) use crate::system::trial::Trial;

@@ -28,7 +28,7 @@ mod user_ekf;
 
 use std::process::ExitCode;
 
-use kfmc::cli::Program;
+use kfmc::prelude::Program;
 use kfmc::systems::planar::PlanarSystem;
 
 fn main() -> ExitCode {

@@ -65,7 +65,7 @@ where
             let ph = b.p * h.transpose();
             let s = (h * ph)[(0, 0)] + self.r[i];
             // A NaN s must fail here too, hence not `s <= 0.0`.
-            if !kfmc::experiment::positive(s) {
+            if !kfmc::prelude::positive(s) {
                 return Err(FilterError::NotPositiveDefinite {
                     which: "innovation variance s",
                 });

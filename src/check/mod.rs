@@ -78,6 +78,9 @@ pub const EXIT_CHECK_INCOMPLETE: u8 = 4;
 /// Python module returns them.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CheckOutcome {
+    /// The binary that ran the check (`kfmc` or a plugin crate's): the report's header and
+    /// the JUnit suite name it.
+    pub program: String,
     /// The experiment's name.
     pub experiment: String,
     /// Every evaluated case, in the order the report lists them.
@@ -93,11 +96,11 @@ impl CheckOutcome {
     }
     /// The readable report ([`render`]).
     pub fn render(&self) -> String {
-        render(&self.experiment, &self.cases)
+        render(&self.program, &self.experiment, &self.cases)
     }
     /// The JUnit XML ([`junit`]).
     pub fn junit(&self) -> String {
-        junit(&self.experiment, &self.cases, self.wall_s)
+        junit(&self.program, &self.experiment, &self.cases, self.wall_s)
     }
     /// The gate's exit code: 0 all hold, 3 one failed (a judged failure outranks a case that
     /// could not be judged), 4 none failed but one is incomplete.
@@ -222,6 +225,7 @@ pub fn run<O: crate::runner::RunObserver>(
         );
     }
     Ok(CheckOutcome {
+        program: plan.program.name.to_string(),
         experiment: plan.name.clone(),
         cases,
         wall_s,

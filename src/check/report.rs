@@ -11,11 +11,11 @@ pub fn tally(cases: &[CaseResult]) -> (usize, usize) {
     (failed, incomplete)
 }
 
-/// The readable report.
-pub fn render(experiment: &str, cases: &[CaseResult]) -> String {
+/// The readable report of the check `program` (`kfmc` or a plugin crate's binary) ran.
+pub fn render(program: &str, experiment: &str, cases: &[CaseResult]) -> String {
     let (failed, incomplete) = tally(cases);
     let mut s = format!(
-        "kfmc check {experiment}: {} cases, {} passed, {failed} failed, {incomplete} incomplete\n",
+        "{program} check {experiment}: {} cases, {} passed, {failed} failed, {incomplete} incomplete\n",
         cases.len(),
         cases.len() - failed - incomplete
     );
@@ -54,13 +54,14 @@ fn xml_escape(s: &str) -> String {
 
 /// JUnit XML: one `<testcase>` per case, failures with their numbers; an incomplete case is
 /// a `<failure type="incomplete">` whose message names the cell and the count.
-pub fn junit(experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
+pub fn junit(program: &str, experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
     let (failed, incomplete) = tally(cases);
     let failures = failed + incomplete;
     let mut s = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n");
     let _ = writeln!(
         s,
-        "<testsuites name=\"kfmc check\" tests=\"{}\" failures=\"{failures}\" time=\"{seconds:.3}\">",
+        "<testsuites name=\"{} check\" tests=\"{}\" failures=\"{failures}\" time=\"{seconds:.3}\">",
+        xml_escape(program),
         cases.len()
     );
     let _ = writeln!(
@@ -72,7 +73,8 @@ pub fn junit(experiment: &str, cases: &[CaseResult], seconds: f64) -> String {
     for c in cases {
         let _ = write!(
             s,
-            "    <testcase classname=\"kfmc.{}.{}\" name=\"{}\"",
+            "    <testcase classname=\"{}.{}.{}\" name=\"{}\"",
+            xml_escape(program),
             xml_escape(experiment),
             xml_escape(&c.kind),
             xml_escape(&c.name)

@@ -141,7 +141,7 @@ fn incomplete_cases_are_counted_apart_and_never_pass() {
         CaseResult::incomplete("consistent", "c".into(), "2 of 10 runs".into()),
     ];
     assert_eq!(tally(&cases), (1, 1));
-    let text = render("x", &cases);
+    let text = render("kfmc", "x", &cases);
     assert!(
         text.starts_with("kfmc check x: 3 cases, 1 passed, 1 failed, 1 incomplete\n"),
         "{text}"
@@ -150,7 +150,7 @@ fn incomplete_cases_are_counted_apart_and_never_pass() {
         text.contains("INCOMPLETE  c  incomplete: 2 of 10 runs"),
         "{text}"
     );
-    let xml = junit("x", &cases, 0.0);
+    let xml = junit("kfmc", "x", &cases, 0.0);
     assert!(xml.contains("tests=\"3\" failures=\"2\""), "{xml}");
     assert!(
         xml.contains("<failure type=\"incomplete\" message=\"incomplete: 2 of 10 runs\">"),

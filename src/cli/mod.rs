@@ -21,7 +21,7 @@ use clap::{Parser, Subcommand};
 use crate::error::KfmcError;
 use crate::experiment::{self, Overrides, Plan};
 use crate::plot::{FigureKind, Format, PlotOptions};
-use crate::system::Registry;
+use crate::system::{Program, Registry};
 use progress::ProgressObserver;
 
 /// Exit code: success.
@@ -343,11 +343,11 @@ pub enum Command {
 pub enum SchemaTable {
     /// The estimates file an outside estimator writes.
     Estimates,
-    /// `truth.parquet` of `kfmc simulate`.
+    /// `truth.parquet` of the `simulate` command.
     Truth,
-    /// `measurements.parquet` of `kfmc simulate`.
+    /// `measurements.parquet` of the `simulate` command.
     Measurements,
-    /// `initial.parquet` of `kfmc simulate`.
+    /// `initial.parquet` of the `simulate` command.
     Initial,
 }
 
@@ -531,13 +531,27 @@ fn attach_estimates(
         .map_err(|e| anyhow::Error::from(e).context("reading the estimates"))
 }
 
+/// Each filter label once, in spec order, with its kind and how many variants (q_scale ×
+/// r_scale) it runs: a label with variants is one filter of the spec, not several.
+fn filter_labels(plan: &Plan) -> Vec<String> {
+    let mut seen: Vec<(&str, &str, usize)> = Vec::new();
+    for f in &plan.filters {
+        match seen.iter_mut().find(|(label, _, _)| *label == f.label) {
+            Some((_, _, n)) => *n += 1,
+            None => seen.push((&f.label, &f.kind, 1)),
+        }
+    }
+    seen.into_iter()
+        .map(|(label, kind, n)| match n {
+            1 => format!("{label} ({kind})"),
+            n => format!("{label} ({kind}, {n} variants)"),
+        })
+        .collect()
+}
+
 fn describe(plan: &Plan) -> String {
     let size = plan.size();
-    let filters: Vec<String> = plan
-        .filters
-        .iter()
-        .map(|f| format!("{} ({})", f.label, f.kind))
-        .collect();
+    let filters = filter_labels(plan);
     let scales = match plan.noise_scales.as_slice() {
         [one] => format!("{one}"),
         s => format!("{} values from {} to {}", s.len(), s[0], s[s.len() - 1]),
@@ -599,47 +613,111 @@ pub fn score_plan(
 /// The whole command line for the systems of `registry`: parses the process's arguments,
 /// runs the command and returns the exit code. A downstream crate's `main` is
 /// `kfmc::cli::main_with(kfmc::systems::builtin().with(MySystem))`.
+/// The command line takes the registry's name and version ([`Registry::named`], kfmc's own
+/// unless set).
 pub fn main_with(registry: Registry) -> ExitCode {
-    crate::runner::stop_on_signals();
-    run(Cli::parse(), &registry)
-}
-
-/// A downstream binary's own name and version, which its `--help` and `--version` show
-/// instead of kfmc's (kfmc's version follows in parentheses).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Program {
-    /// The binary's name (`env!("CARGO_BIN_NAME")` or the crate's name).
-    pub name: &'static str,
-    /// The binary's version (`env!("CARGO_PKG_VERSION")`).
-    pub version: &'static str,
-}
-
-impl Program {
-    /// The clap command of kfmc's command line under this program's name and version.
-    pub fn command(&self) -> clap::Command {
-        use clap::CommandFactory;
-        // clap keeps borrowed strings for the program's lifetime; this runs once per process.
-        let version: &'static str = Box::leak(
-            format!("{} (kfmc {})", self.version, env!("CARGO_PKG_VERSION")).into_boxed_str(),
-        );
-        Cli::command()
-            .name(self.name)
-            .bin_name(self.name)
-            .display_name(self.name)
-            .version(version)
-    }
-}
-
-/// [`main_with`] for a downstream binary with its own name and version:
-/// `kfmc::cli::main_as(Program { name: "mytool", version: env!("CARGO_PKG_VERSION") }, registry)`.
-pub fn main_as(program: Program, registry: Registry) -> ExitCode {
     use clap::FromArgMatches;
-    let cli = match Cli::from_arg_matches(&program.command().get_matches()) {
+    let cli = match Cli::from_arg_matches(&command_of(registry.program()).get_matches()) {
         Ok(cli) => cli,
         Err(e) => e.exit(),
     };
     crate::runner::stop_on_signals();
     run(cli, &registry)
+}
+
+/// kfmc's command line under `program`'s name and version: every "kfmc" of its help (the
+/// commands' and the arguments' texts, the usage line) names the program instead, and
+/// `--version` prints the program's version with kfmc's in parentheses.
+pub fn command_of(program: Program) -> clap::Command {
+    use clap::CommandFactory;
+    if program == Program::KFMC {
+        return Cli::command();
+    }
+    // clap keeps borrowed strings for the program's lifetime; this runs once per process.
+    let version: &'static str = Box::leak(
+        format!("{} (kfmc {})", program.version, env!("CARGO_PKG_VERSION")).into_boxed_str(),
+    );
+    renamed(Cli::command(), program.name)
+        .name(program.name)
+        .bin_name(program.name)
+        .display_name(program.name)
+        .version(version)
+}
+
+/// `cmd` with "kfmc" as a word (not `kfmc.world_stamp`, `kfmc-result`) replaced by `name` in
+/// its texts, its arguments' and its subcommands', recursively.
+fn renamed(mut cmd: clap::Command, name: &str) -> clap::Command {
+    let text = |s: &clap::builder::StyledStr| rename_word(&s.to_string(), "kfmc", name);
+    if let Some(t) = cmd.get_about().map(text) {
+        cmd = cmd.about(t);
+    }
+    if let Some(t) = cmd.get_long_about().map(text) {
+        cmd = cmd.long_about(t);
+    }
+    if let Some(t) = cmd.get_before_help().map(text) {
+        cmd = cmd.before_help(t);
+    }
+    if let Some(t) = cmd.get_after_help().map(text) {
+        cmd = cmd.after_help(t);
+    }
+    if let Some(t) = cmd.get_after_long_help().map(text) {
+        cmd = cmd.after_long_help(t);
+    }
+    cmd = cmd.mut_args(|mut a| {
+        if let Some(t) = a.get_help().map(text) {
+            a = a.help(t);
+        }
+        if let Some(t) = a.get_long_help().map(text) {
+            a = a.long_help(t);
+        }
+        a
+    });
+    let subcommands: Vec<String> = cmd
+        .get_subcommands()
+        .map(|c| c.get_name().to_string())
+        .collect();
+    for sub in subcommands {
+        cmd = cmd.mut_subcommand(sub, |c| renamed(c, name));
+    }
+    cmd
+}
+
+/// `text` with every whole word `word` replaced by `by`: a word is not part of a longer
+/// identifier, a file name or a dotted key (`kfmc.world_stamp`, `kfmc-result`, `kfmc_x`).
+fn rename_word(text: &str, word: &str, by: &str) -> String {
+    let joins = |c: char| c.is_alphanumeric() || matches!(c, '_' | '.' | '-' | '/');
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    let mut before: Option<char> = None;
+    while let Some(i) = rest.find(word) {
+        let head = &rest[..i];
+        let prev = head.chars().next_back().or(before);
+        let tail = &rest[i + word.len()..];
+        // A sentence may end with the word: "." followed by a space or the end is not a key.
+        let next = tail.chars().next();
+        let dotted_key = next == Some('.')
+            && tail[1..]
+                .chars()
+                .next()
+                .is_some_and(|c| c.is_alphanumeric() || c == '_');
+        let continues = next.is_some_and(|c| c.is_alphanumeric() || matches!(c, '_' | '-' | '/'));
+        let whole = !(prev.is_some_and(joins) || continues || dotted_key);
+        out.push_str(head);
+        out.push_str(if whole { by } else { word });
+        before = Some(word.chars().next_back().unwrap_or(' '));
+        rest = tail;
+    }
+    out.push_str(rest);
+    out
+}
+
+/// [`main_with`] for a downstream binary with its own name and version:
+/// `kfmc::cli::main_as(Program { name: "mytool", version: env!("CARGO_PKG_VERSION") }, registry)`.
+///
+/// The registry's plans then carry `program` ([`Registry::named`]): the manifests, the
+/// report's "reproduce" line and the `check`/`tune` headers name it.
+pub fn main_as(program: Program, registry: Registry) -> ExitCode {
+    main_with(registry.named(program))
 }
 
 /// The whole command line from `args` (the program name first, as `std::env::args`), for an

@@ -82,7 +82,8 @@ impl Tune {
         let (q, r, obj) = report.best;
         let fmt = |v: Option<f64>| v.map_or("—".into(), |x| format!("{x:.4}"));
         outln!(
-            "kfmc tune {}: filter {}, objective {:?}, {} candidates evaluated → {}",
+            "{} tune {}: filter {}, objective {:?}, {} candidates evaluated → {}",
+            plan.program.name,
             plan.name,
             report.filter,
             objective,
@@ -138,7 +139,8 @@ fn execute_ml(
         .max()
         .unwrap_or(0);
     outln!(
-        "kfmc tune {} (ml): {} elements from {} runs, {} scalar measurements ({})",
+        "{} tune {} (ml): {} elements from {} runs, {} scalar measurements ({})",
+        plan.program.name,
         plan.name,
         report.elements.len(),
         report.runs,

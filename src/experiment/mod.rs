@@ -10,10 +10,8 @@ pub mod tune_spec;
 
 use std::path::Path;
 
-pub use crate::system::checker::{self, Checker, non_negative, positive};
-pub use crate::system::settings::{
-    ConsistencyPlan, Draws, FilterNoiseMode, FilterPlan, InitialMode, ScenarioPlan,
-};
+pub(crate) use crate::system::checker::{self, Checker};
+pub(crate) use crate::system::settings::{FilterPlan, InitialMode};
 pub use plan::{Overrides, Plan, PlanSize};
 
 use crate::error::{SpecError, SpecErrors};

@@ -5,7 +5,7 @@ use serde::Deserialize;
 use serde::de::{self, Deserializer, MapAccess, SeqAccess, Visitor};
 use std::fmt;
 
-pub use crate::system::spec_values::{OneOrMany, TableOf};
+pub(crate) use crate::system::spec_values::{OneOrMany, TableOf};
 
 /// The whole experiment spec.
 #[derive(Debug, Deserialize)]

@@ -54,6 +54,11 @@ pub struct FixEntry {
 }
 
 impl Manifest {
+    /// The binary that wrote the folder, `kfmc` when the manifest does not say.
+    pub fn program(&self) -> &str {
+        self.program.as_deref().unwrap_or("kfmc")
+    }
+
     /// Whether the folder records position roles: a folder written before they were recorded
     /// has none, and its figures are chosen by quantity names as they were then.
     pub fn has_position_roles(&self) -> bool {
@@ -225,8 +230,16 @@ pub struct Manifest {
     /// when every table they list matches ([`super::folder::StudyFolder::prepare`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub format: Option<String>,
-    /// kfmc version that wrote the folder.
+    /// kfmc version that wrote the folder: the library's, also inside a plugin crate's
+    /// binary (what `merge` and `resume` compare).
     pub kfmc_version: String,
+    /// The binary that wrote the folder (`kfmc`, or a plugin crate's own binary): the command
+    /// that reproduces it. Absent in folders written before it was recorded (kfmc's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program: Option<String>,
+    /// That binary's own version.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program_version: Option<String>,
     /// Experiment name.
     pub experiment: String,
     /// `model.kind`: the system that made the folder.

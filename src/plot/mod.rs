@@ -57,7 +57,7 @@ pub enum FigureKind {
     /// traced runs' covariances (traces.parquet `P_<qi>_<qj>`).
     #[value(name = "block_consistency")]
     BlockConsistency,
-    /// NIS over time per aid source with its χ² band and the gate (`kfmc ulog nis` folders,
+    /// NIS over time per aid source with its χ² band and the gate (`ulog nis` folders,
     /// ulog_samples.parquet).
     #[value(name = "ulog_nis")]
     UlogNis,

@@ -523,7 +523,8 @@ pub fn reproduce_command(t: &Tables) -> Option<String> {
         "run"
     };
     let mut c = format!(
-        "kfmc {cmd} {} --seed {} --runs {} --out {}",
+        "{} {cmd} {} --seed {} --runs {} --out {}",
+        m.program(),
         m.spec_path,
         m.master_seed,
         m.runs_per_cell,
@@ -702,8 +703,9 @@ fn provenance(h: &mut String, t: &Tables) {
     if let Some(c) = reproduce_command(t) {
         let _ = writeln!(
             h,
-            "<p>Reproduce the tables bit for bit (any thread count), then this report:</p>\n<pre>{}\nkfmc report {}</pre>",
+            "<p>Reproduce the tables bit for bit (any thread count), then this report:</p>\n<pre>{}\n{} report {}</pre>",
             escape(&c),
+            escape(m.program()),
             escape(&t.dir.display().to_string())
         );
     }
@@ -713,7 +715,13 @@ fn provenance(h: &mut String, t: &Tables) {
         .map(|e| format!("{} ({} rows)", e.name, e.rows))
         .collect::<Vec<_>>()
         .join(", ");
-    let rows: [(&str, String); 13] = [
+    let program = match (&m.program, &m.program_version) {
+        (Some(name), Some(version)) => format!("{name} {version}"),
+        (Some(name), None) => name.clone(),
+        _ => "kfmc".to_string(),
+    };
+    let rows: [(&str, String); 14] = [
+        ("program", program),
         ("kfmc version", m.kfmc_version.clone()),
         ("experiment", m.experiment.clone()),
         ("spec file", m.spec_path.clone()),

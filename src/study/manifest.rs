@@ -22,6 +22,8 @@ pub(crate) fn manifest_for(
     Manifest {
         format: Some(crate::output::manifest::FORMAT.into()),
         kfmc_version: env!("CARGO_PKG_VERSION").to_string(),
+        program: Some(plan.program.name.to_string()),
+        program_version: Some(plan.program.version.to_string()),
         experiment: plan.name.clone(),
         system: plan.kind.clone(),
         kind: Some(study_kind(plan)),

@@ -17,11 +17,11 @@ use std::any::Any;
 use std::fmt::Debug;
 use std::sync::Arc;
 
-pub use super::filter_kind::{
-    AssumedNoise, AssumedStd, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup,
-    FnKind, RunFilter, UnknownKind, check_scenarios,
+pub(crate) use super::filter_kind::{
+    AssumedNoise, FilterContext, FilterEntry, FilterKind, FilterKinds, FilterSetup, RunFilter,
+    check_scenarios,
 };
-pub use super::kinds::{common_kinds, linear_kinds};
+pub(crate) use super::kinds::{common_kinds, linear_kinds};
 use super::settings::{FilterPlan, InitialMode, RunSettings};
 use super::trial::{Cell, Simulated, Trial, TrialKit, UnitRunner};
 use super::{FilterInfo, Layout, ScenarioInfo, SystemPlan};

@@ -322,13 +322,7 @@ impl Checker {
     ) -> &'a str {
         let s = v.unwrap_or(default);
         if !allowed.contains(&s) {
-            self.err(
-                key,
-                format!(
-                    "unknown value `{s}`; expected one of: {}",
-                    allowed.join(", ")
-                ),
-            );
+            self.err(key, unknown_value("value", s, allowed.iter().copied()));
         }
         s
     }
@@ -398,6 +392,25 @@ pub fn with_suggestion(msg: &str) -> String {
         Some(best) => format!("{msg}; did you mean `{best}`?"),
         None => msg.to_string(),
     }
+}
+
+/// "unknown {what} `word`; expected one of: a, b, c", with "; did you mean `b`?" when one of
+/// `known` is close enough to be a typo of `word` ([`did_you_mean`]): the message of a tag
+/// (`model.kind`, a filter's `kind`, a choice) that names nothing known.
+pub fn unknown_value<'a>(
+    what: &str,
+    word: &str,
+    known: impl Iterator<Item = &'a str> + Clone,
+) -> String {
+    let list: Vec<&str> = known.clone().collect();
+    let mut msg = format!(
+        "unknown {what} `{word}`; expected one of: {}",
+        list.join(", ")
+    );
+    if let Some(best) = did_you_mean(word, known) {
+        msg.push_str(&format!("; did you mean `{best}`?"));
+    }
+    msg
 }
 
 /// The candidate closest to `word` by edit distance, if within a third of its length (at

@@ -326,11 +326,8 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M> FilterKinds<NX, NU, N
             let key = f.key.clone();
             let Some(kind) = self.get(&f.kind) else {
                 let msg = unknown.and_then(|u| u(&f.kind)).unwrap_or_else(|| {
-                    format!(
-                        "unknown value `{}`; expected one of: {}",
-                        f.kind,
-                        self.tags().join(", ")
-                    )
+                    let tags = self.tags();
+                    super::checker::unknown_value("value", &f.kind, tags.iter().copied())
                 });
                 c.err(format!("{key}.kind"), msg);
                 continue;

@@ -32,6 +32,5 @@ pub const MAX_MEMORY_BYTES: u128 = 8 << 30;
 pub const MAX_DISK_BYTES: u128 = 100 << 30;
 /// Simulated filter steps in total (lifted by `--allow-large`).
 pub const MAX_FILTER_STEPS: u128 = 100_000_000_000_000;
-/// Looks of a sequential gate (`check.looks`, `--looks`, Python's `looks=`): kept beside the
-/// design it bounds.
-pub use crate::sequential::MAX_LOOKS;
+// The looks of a sequential gate are bounded by `crate::sequential::MAX_LOOKS`, kept beside
+// the design it bounds.

@@ -24,6 +24,7 @@ pub mod filter_kind;
 pub mod filter_model;
 pub mod kinds;
 pub mod limits;
+mod program;
 pub mod settings;
 pub mod spec_values;
 pub mod trial;
@@ -37,10 +38,11 @@ use std::sync::Arc;
 
 use trial::Trial;
 
-pub use crate::linalg::so3::{ErrorSide, EulerRotation};
-pub use checker::Checker;
-pub use settings::{InitialMode, RunSettings};
-pub use spec_values::OneOrMany;
+pub(crate) use crate::linalg::so3::{ErrorSide, EulerRotation};
+pub(crate) use checker::Checker;
+pub use program::Program;
+pub(crate) use settings::{InitialMode, RunSettings};
+pub(crate) use spec_values::OneOrMany;
 
 /// Which axis of which frame a position quantity is: what the position figures (the
 /// `trajectory` map, the `route` projections) are chosen and drawn by.
@@ -406,6 +408,7 @@ pub trait SystemPlan: Send + Sync + Debug {
 #[derive(Clone, Default)]
 pub struct Registry {
     systems: Vec<Arc<dyn System>>,
+    program: Program,
 }
 
 impl Debug for Registry {
@@ -451,5 +454,17 @@ impl Registry {
     /// The registered systems.
     pub fn systems(&self) -> impl Iterator<Item = &dyn System> {
         self.systems.iter().map(|s| s.as_ref())
+    }
+
+    /// The same systems, run by `program` (kfmc's own command unless set): the plans loaded
+    /// through this registry record it in their manifests.
+    pub fn named(mut self, program: Program) -> Self {
+        self.program = program;
+        self
+    }
+
+    /// The binary these systems run in ([`Registry::named`]).
+    pub fn program(&self) -> Program {
+        self.program
     }
 }

@@ -181,11 +181,11 @@ impl NisOutcome {
     }
     /// The readable report.
     pub fn render(&self) -> String {
-        crate::check::render("ulog nis", &self.cases)
+        crate::check::render("kfmc", "ulog nis", &self.cases)
     }
     /// JUnit XML of the cases.
     pub fn junit(&self) -> String {
-        crate::check::junit("ulog nis", &self.cases, self.seconds)
+        crate::check::junit("kfmc", "ulog nis", &self.cases, self.seconds)
     }
 }
 
@@ -942,6 +942,8 @@ pub fn nis(
     let manifest = Manifest {
         format: Some(crate::output::manifest::FORMAT.into()),
         kfmc_version: env!("CARGO_PKG_VERSION").into(),
+        program: None,
+        program_version: None,
         experiment: format!("ulog nis {}", path.display()),
         system: "ulog".into(),
         kind: Some(StudyKind::Ulog),

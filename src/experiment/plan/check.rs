@@ -393,7 +393,20 @@ fn assertion(
         other => {
             c.err(
                 format!("{key}.kind"),
-                format!("unknown value `{other}`; expected one of: consistent, white, unbiased, test_passes, rmse_below, no_worse_than, rejection_rate"),
+                crate::system::checker::unknown_value(
+                    "value",
+                    other,
+                    [
+                        "consistent",
+                        "white",
+                        "unbiased",
+                        "test_passes",
+                        "rmse_below",
+                        "no_worse_than",
+                        "rejection_rate",
+                    ]
+                    .into_iter(),
+                ),
             );
             None
         }

@@ -22,10 +22,7 @@ use super::spec::Spec;
 use crate::error::{SpecError, SpecErrors};
 use crate::sim::seed::hash_str;
 use crate::system::checker::Checker;
-pub use crate::system::settings::{
-    ConsistencyPlan, DeclaredScales, Draws, FilterNoiseMode, FilterPlan, InitialMode, RunSettings,
-    ScenarioPlan,
-};
+pub(crate) use crate::system::settings::{ConsistencyPlan, FilterPlan, RunSettings, ScenarioPlan};
 use crate::system::{Layout, Registry, SystemPlan, SystemSpec};
 
 pub use check::{Assertion, Selection};
@@ -91,6 +88,9 @@ pub struct Plan {
     pub never_crossed_largest: bool,
     /// `[tune]`: `kfmc tune`'s method and elements, when the spec has the table.
     pub tune: Option<crate::experiment::tune_spec::TunePlan>,
+    /// The binary that loaded the plan (its registry's [`crate::system::Program`]): its name
+    /// and version go into the manifest beside kfmc's.
+    pub program: crate::system::Program,
 }
 
 impl std::ops::Deref for Plan {
@@ -106,7 +106,7 @@ impl std::ops::DerefMut for Plan {
     }
 }
 
-pub use crate::system::limits;
+pub(crate) use crate::system::limits;
 
 /// Command-line overrides of spec values.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -605,6 +605,7 @@ pub(crate) fn validate_into(
             .unwrap_or(false),
         never_crossed_largest,
         tune,
+        program: registry.program(),
     })
 }
 

@@ -35,10 +35,7 @@ pub(super) fn model_table<'r>(
     {
         c.err(
             "model.kind",
-            format!(
-                "unknown model `{k}`; expected one of: {}",
-                registry.kinds().join(", ")
-            ),
+            crate::system::checker::unknown_value("model", k, registry.kinds().into_iter()),
         );
     }
     (given.unwrap_or_default(), model, system)

@@ -43,7 +43,23 @@ pub(super) fn check_sizes(
         );
     }
     for (i, sc) in system.iter().flat_map(|s| s.scenarios().iter()).enumerate() {
-        if sc.steps as u64 > limits::MAX_STEPS {
+        if sc.steps == 0 {
+            // A system that does not check its lengths ([`Checker::scenario_steps`] does)
+            // would otherwise run scenarios of no step, whose cases `check` then calls
+            // incomplete instead of saying what is wrong.
+            let own = format!("scenarios[{i}].duration_s");
+            let (key, what) = match spec.scenarios.get(i).and_then(|t| t.get("duration_s")) {
+                Some(d) => (own, format!("duration_s = {d} gives")),
+                None => (format!("scenarios[{i}]"), "its length gives".to_string()),
+            };
+            c.err(
+                key,
+                format!(
+                    "scenario `{}`: {what} no step (duration / Δt rounds to 0); a run needs at least one",
+                    sc.name
+                ),
+            );
+        } else if sc.steps as u64 > limits::MAX_STEPS {
             c.err(
                 format!("scenarios[{i}]"),
                 format!(

@@ -102,3 +102,81 @@ fn the_world_stamp_follows_what_changes_the_world() {
         stamp(&WORLD.replace("master_seed = 7", "master_seed = 8"))
     );
 }
+
+/// A world system that takes its scenarios' lengths as given, without
+/// [`Checker::scenario_steps`]: the validation itself must refuse a scenario of no step.
+struct CarelessWorld;
+
+struct Still;
+
+impl crate::system::world::World<1, 0, 1> for Still {
+    fn simulate(&self, _: usize, _: f64, _: u64) -> crate::system::world::Realisation<1, 0, 1> {
+        crate::system::world::Realisation::default()
+    }
+}
+
+impl crate::system::System for CarelessWorld {
+    fn kind(&self) -> &str {
+        "careless"
+    }
+    fn catalogue(&self) -> crate::system::Catalogue {
+        crate::system::Catalogue::default()
+    }
+    fn configure(&self, spec: &SystemSpec<'_>, _: &mut Checker) -> Option<Arc<dyn SystemPlan>> {
+        let scenarios = spec
+            .scenarios
+            .iter()
+            .map(|t| crate::system::ScenarioInfo {
+                name: t["name"].as_str().unwrap_or("").to_string(),
+                // As a user's world might: a negative duration saturates to 0 steps.
+                steps: t["duration_s"].as_float().unwrap_or(0.0).round() as usize,
+            })
+            .collect();
+        let layout = Layout {
+            quantities: vec![crate::system::Quantity::new("x", "m")],
+            inputs: Vec::new(),
+            measurements: vec!["x".into()],
+            world_states: Vec::new(),
+            dt_s: 1.0,
+        };
+        Some(Arc::new(crate::system::world::WorldPlan::new(
+            Arc::new(Still),
+            layout,
+            scenarios,
+            Vec::new(),
+        )))
+    }
+}
+
+#[test]
+fn a_scenario_of_no_step_is_a_spec_error_at_its_duration() {
+    let registry = Registry::new().with(CarelessWorld);
+    let spec = |duration: &str| {
+        format!(
+            "name = \"n\"\n[model]\nkind = \"careless\"\n[[scenarios]]\nname = \"ok\"\nduration_s = 3.0\n[[scenarios]]\nname = \"back\"\nduration_s = {duration}\n"
+        )
+    };
+    for duration in ["-5.0", "0.2", "nan"] {
+        let errors = crate::experiment::parse_with(&spec(duration), Path::new("w.toml"), &registry)
+            .expect_err("a scenario of no step")
+            .0;
+        let at: Vec<&SpecError> = errors
+            .iter()
+            .filter(|e| e.key_path == "scenarios[1].duration_s")
+            .collect();
+        assert_eq!(at.len(), 1, "{duration}: {errors:?}");
+        assert_eq!(at[0].file, Path::new("w.toml"));
+        assert!(
+            at[0].message.contains("scenario `back`"),
+            "{}",
+            at[0].message
+        );
+        assert!(at[0].message.contains("no step"), "{}", at[0].message);
+        // The scenario of three steps is not blamed.
+        assert!(
+            !errors
+                .iter()
+                .any(|e| e.key_path.starts_with("scenarios[0]"))
+        );
+    }
+}

@@ -90,7 +90,7 @@ pub fn euler_of(r: &Matrix<3, 3>) -> Euler {
     )
 }
 
-pub use crate::linalg::so3::skew;
+pub(crate) use crate::linalg::so3::skew;
 
 /// exp(\[φ\]×): the rotation by the vector φ (Rodrigues).
 pub fn exp_so3(phi: &Vector<3>) -> Matrix<3, 3> {

@@ -114,7 +114,7 @@ pub fn detectable<const NX: usize, const NU: usize, const NZ: usize>(
 /// integrators of a constant-velocity model) is computed only to about √ε ≈ 1e-8.
 const UNIT_CIRCLE_MARGIN: f64 = 1e-6;
 
-pub use crate::analysis::unobservable_modes;
+pub(crate) use crate::analysis::unobservable_modes;
 
 /// Why (F, H) is not detectable (an unobservable mode on or outside the unit circle), or
 /// `None` when it is.

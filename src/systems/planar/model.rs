@@ -124,8 +124,6 @@ impl<const NZ: usize> Planar<NZ> {
     }
 }
 
-pub use crate::model::wrap_angle;
-
 /// θ, the attitude: an angle state of both sensor sets.
 const ANGLE_STATES: [usize; 1] = [4];
 /// Where F = I + A·Δt may be non-zero (eq. 15 of seed 000): the diagonal and five entries of A.
@@ -276,6 +274,7 @@ mod tests {
 
     #[test]
     fn wrap_matches_matlab_mod() {
+        use crate::model::wrap_angle;
         let pi = std::f64::consts::PI;
         assert!((wrap_angle(0.1) - 0.1).abs() < 1e-15);
         assert!((wrap_angle(2.0 * pi + 0.1) - 0.1).abs() < 1e-12);

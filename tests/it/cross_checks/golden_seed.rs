@@ -8,10 +8,10 @@ use kfmc::filter::{CovarianceUpdate, Ekf};
 use kfmc::linalg::{Matrix, Vector, diag_from_std};
 use kfmc::model::Model;
 use kfmc::sim::{NoiseDraws, TruthNoise, simulate};
+use kfmc::step_loop::{FilterOutput, Identity, Prior, RunContext, run_filter};
 use kfmc::systems::planar::model::{Planar, PlanarParams};
 use kfmc::systems::planar::running_mean::RunningMean;
 use kfmc::systems::planar::scenario::builtin;
-use kfmc::trial::{FilterOutput, Identity, Prior, RunContext, run_filter};
 
 const STATES: [&str; 6] = ["x", "xdot", "y", "ydot", "theta", "thetadot"];
 
@@ -91,7 +91,7 @@ where
         trace: true,
         export: false,
         consistency: None,
-        unit: kfmc::trial::Unit {
+        unit: kfmc::step_loop::Unit {
             scenario: 0,
             scale: 0,
             run: 0,

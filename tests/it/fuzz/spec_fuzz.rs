@@ -17,7 +17,7 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::Path;
 use std::time::Instant;
 
-use kfmc::experiment::checker::{key_path_parts, path_key};
+use kfmc::system::checker::{key_path_parts, path_key};
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 use toml::Value;

@@ -571,7 +571,7 @@ fn a_spilled_cell_gives_the_consistency_table_of_the_kept_sums() {
     let nf = plan.filters.len();
     let mut kept: Vec<Vec<RunConsistency>> = vec![Vec::new(); nf];
     for run in 0..runs {
-        let r = trial.run(&kfmc::trial::Unit {
+        let r = trial.run(&kfmc::step_loop::Unit {
             scenario: 0,
             scale: 0,
             run,

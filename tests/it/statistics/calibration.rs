@@ -6,7 +6,7 @@
 use kfmc::experiment;
 use kfmc::metrics::RunConsistency;
 use kfmc::metrics::consistency::{VERDICT, average_chi2_band, cell_tests};
-use kfmc::trial::Unit;
+use kfmc::step_loop::Unit;
 use rand::SeedableRng;
 use rand_distr::{ChiSquared, Distribution, StandardNormal};
 use rand_pcg::Pcg64;

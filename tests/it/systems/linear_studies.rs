@@ -11,9 +11,9 @@ use kfmc::filter::BatchInitial;
 use kfmc::linalg::{Matrix, SmallCholesky, Vector};
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
+use kfmc::step_loop::Unit;
 use kfmc::study::{ExecOptions, run};
 use kfmc::systems::linear_quadrotor::model::{Linear3, LinearSensor};
-use kfmc::trial::Unit;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 fn shipped(name: &str, out: &Path, overrides: Overrides) -> Plan {

@@ -74,6 +74,113 @@ fn the_users_binary_has_its_own_name_and_version() {
     assert!(err.contains("Usage: own_filter"), "{err}");
 }
 
+/// The subcommands a `--help` lists (the lines under `Commands:`), `help` left out.
+fn subcommands(help: &str) -> Vec<String> {
+    help.lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| l.starts_with("  "))
+        .filter_map(|l| l.split_whitespace().next())
+        .filter(|c| *c != "help")
+        .map(str::to_string)
+        .collect()
+}
+
+#[test]
+fn kfmc_appears_nowhere_in_the_users_help() {
+    // Every help page, down to `ulog nis`: only the metadata key `kfmc.world_stamp` (a name
+    // in the files, not the program) may remain.
+    let mut pages = vec![Vec::<String>::new()];
+    let mut seen = 0;
+    while let Some(path) = pages.pop() {
+        let mut args: Vec<&str> = path.iter().map(String::as_str).collect();
+        args.push("--help");
+        let (code, out, err) = own_filter(&args);
+        assert_eq!(code, 0, "{args:?}: {err}");
+        seen += 1;
+        let rest = out.replace("kfmc.world_stamp", "");
+        assert!(
+            !rest.contains("kfmc"),
+            "{args:?} names kfmc:\n{}",
+            rest.lines()
+                .filter(|l| l.contains("kfmc"))
+                .collect::<Vec<_>>()
+                .join("\n")
+        );
+        assert!(out.contains("own_filter"), "{args:?}: {out}");
+        for sub in subcommands(&out) {
+            let mut p = path.clone();
+            p.push(sub);
+            pages.push(p);
+        }
+    }
+    // The top page, its 18 commands and ulog's three.
+    assert!(seen >= 22, "{seen} help pages");
+}
+
+#[test]
+fn the_users_binary_names_itself_in_the_manifest_the_report_and_the_check() {
+    let s = spec("cv_range_bearing");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out_dir = dir.path().join("study");
+    let (code, out, err) = own_filter(&[
+        "check",
+        path_str(&s),
+        "--runs",
+        "20",
+        "--out",
+        path_str(&out_dir),
+    ]);
+    assert!(code == 0 || code == 3, "{out}\n{err}");
+    assert!(
+        out.lines()
+            .any(|l| l.starts_with("own_filter check own_filter_cv_range_bearing: ")),
+        "{out}"
+    );
+    // The manifest: the binary beside kfmc's library version (what merge and resume compare).
+    let manifest: kfmc::toml::Table = std::fs::read_to_string(out_dir.join("manifest.toml"))
+        .unwrap()
+        .parse()
+        .unwrap();
+    let get = |k: &str| {
+        manifest
+            .get(k)
+            .and_then(|v| v.as_str())
+            .unwrap_or("")
+            .to_string()
+    };
+    assert_eq!(get("program"), "own_filter");
+    assert_eq!(get("program_version"), "0.1.0");
+    assert_eq!(get("kfmc_version"), env!("CARGO_PKG_VERSION"));
+
+    // The report's "reproduce" line runs the user's binary, and running it gives the same
+    // tables byte for byte.
+    let (code, _, err) = own_filter(&["report", path_str(&out_dir)]);
+    assert_eq!(code, 0, "{err}");
+    let html = std::fs::read_to_string(out_dir.join("report.html")).unwrap();
+    let line = html
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("<pre>")
+                .filter(|l| l.starts_with("own_filter run "))
+        })
+        .unwrap_or_else(|| panic!("no reproduce line naming own_filter in the report"))
+        .to_string();
+    assert!(html.contains(&format!("own_filter report {}", path_str(&out_dir))));
+    assert!(html.contains("<th>program</th><td>own_filter 0.1.0</td>"));
+    let before = std::fs::read(out_dir.join("runs.parquet")).unwrap();
+    let words: Vec<&str> = line.split_whitespace().skip(1).collect();
+    assert!(words.contains(&"--runs") && words.contains(&"20"), "{line}");
+    let again = dir.path().join("again");
+    let mut args = words.clone();
+    let at = args.iter().position(|w| *w == "--out").unwrap();
+    args[at + 1] = path_str(&again);
+    args.push("-q");
+    let (code, _, err) = own_filter(&args);
+    assert_eq!(code, 0, "{line}: {err}");
+    assert_eq!(std::fs::read(again.join("runs.parquet")).unwrap(), before);
+}
+
 #[test]
 fn every_example_spec_validates_runs_and_passes_its_checks() {
     for name in ["cv_range_bearing", "planar_user_filter", "turning_target"] {
@@ -227,4 +334,66 @@ fn a_user_kind_on_the_other_sensor_set_is_named_as_the_user_kind() {
         "{err}"
     );
     assert!(!err.contains("reads y, θ, θ̇"), "{err}");
+}
+
+#[test]
+fn validate_lists_each_filter_label_once() {
+    let (code, out, err) = own_filter(&["validate", path_str(&spec("turning_target"))]);
+    assert_eq!(code, 0, "{err}");
+    let line = out
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("filters: "))
+        .unwrap_or_else(|| panic!("no filters line: {out}"));
+    // ekf runs at q_scale 1 and 100: one label with two variants, not two labels.
+    assert_eq!(
+        line,
+        "ekf (ekf, 2 variants), ukf (ukf), user_ekf (user_ekf)"
+    );
+}
+
+#[test]
+fn a_mistyped_kind_tag_gets_the_closest_one() {
+    let text = std::fs::read_to_string(spec("turning_target")).expect("spec");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cases = [
+        (
+            "kind = \"user_ekf\"",
+            "kind = \"user_ekff\"",
+            "filters[2].kind",
+            "user_ekf",
+        ),
+        (
+            "kind = \"turning_target\"",
+            "kind = \"turning_targte\"",
+            "model.kind",
+            "turning_target",
+        ),
+    ];
+    for (from, to, key, best) in cases {
+        let typo = text.replacen(from, to, 1);
+        assert_ne!(typo, text, "{from}");
+        let path = dir.path().join("typo.toml");
+        std::fs::write(&path, typo).expect("write spec");
+        let (code, _, err) = own_filter(&["validate", path_str(&path)]);
+        assert_eq!(code, 2, "{err}");
+        let line = err
+            .lines()
+            .find(|l| l.contains(&format!(": {key}: ")))
+            .unwrap_or_else(|| panic!("no error at {key}: {err}"));
+        assert!(
+            line.contains(&format!("; did you mean `{best}`?")),
+            "{line}"
+        );
+    }
+    // A word close to no tag gets the list alone.
+    let far = text.replacen("kind = \"user_ekf\"", "kind = \"particle\"", 1);
+    let path = dir.path().join("far.toml");
+    std::fs::write(&path, far).expect("write spec");
+    let (code, _, err) = own_filter(&["validate", path_str(&path)]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("unknown value `particle`; expected one of: "),
+        "{err}"
+    );
+    assert!(!err.contains("did you mean"), "{err}");
 }

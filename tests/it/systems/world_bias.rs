@@ -8,21 +8,22 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use kfmc::experiment::{self, Checker};
+use kfmc::experiment;
 use kfmc::filter::{CovarianceUpdate, Ekf};
 use kfmc::linalg::{Matrix, SmallCholesky, Vector};
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::output::table::read;
 use kfmc::runner::NullObserver;
 use kfmc::sim::seed::world_stream;
+use kfmc::step_loop::{Identity, Marginal};
 use kfmc::study::{ExecOptions, run};
+use kfmc::system::checker::Checker;
 use kfmc::system::world::{
     ModelFilter, NoiseSettings, Realisation, World, WorldFilter, WorldFilterEntry, WorldPlan,
 };
 use kfmc::system::{
     Catalogue, FilterInfo, Layout, Quantity, ScenarioInfo, System, SystemPlan, SystemSpec,
 };
-use kfmc::trial::{Identity, Marginal};
 use rand_distr::{Distribution, StandardNormal};
 
 const DT: f64 = 0.1;

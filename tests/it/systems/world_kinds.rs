@@ -7,7 +7,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use kfmc::experiment::{self, Checker};
+use kfmc::experiment;
 use kfmc::linalg::{Matrix, Vector};
 use kfmc::model::Model;
 use kfmc::output::table::read;
@@ -19,6 +19,7 @@ use kfmc::runner::NullObserver;
 use kfmc::scenario::Scenario;
 use kfmc::sim::{NoiseDraws, simulate};
 use kfmc::study::{ExecOptions, run};
+use kfmc::system::checker::Checker;
 
 const DT: f64 = 0.1;
 const STEPS: usize = 60;
