@@ -76,22 +76,22 @@ fn the_conditions_filter_is_the_study_engines_filter_on_the_same_runs() {
                 let pii = cov[k * n * (n + 1) / 2 + i * (i + 1) / 2 + i];
                 nees[i] += e * e / pii;
             }
-            for j in 0..nz {
+            for (j, sum) in nis.iter_mut().enumerate() {
                 let sjj = ex.s[k * nz * (nz + 1) / 2 + j * (j + 1) / 2 + j];
-                nis[j] += ex.nu[k * nz + j].powi(2) / sjj;
+                *sum += ex.nu[k * nz + j].powi(2) / sjj;
             }
         }
         let k = (steps - 1) as f64;
-        for i in 0..n {
-            let theirs = nees[i] / k;
+        for (i, sum) in nees.iter().enumerate() {
+            let theirs = sum / k;
             assert!(
                 (ours.nees[i] - theirs).abs() <= 1e-9 * theirs,
                 "run {run} state {i}: {} vs the engine's {theirs}",
                 ours.nees[i]
             );
         }
-        for j in 0..nz {
-            let theirs = nis[j] / k;
+        for (j, sum) in nis.iter().enumerate() {
+            let theirs = sum / k;
             assert!(
                 (ours.nis[j] - theirs).abs() <= 1e-9 * theirs,
                 "run {run} component {j}: {} vs the engine's {theirs}",
@@ -126,14 +126,7 @@ fn truth_recovers_the_true_q_and_r_on_a_fixed_seed() {
     }
     // Every start reaches the same root.
     let finals: Vec<&Vec<f64>> = (0..3)
-        .map(|s| {
-            &est.trace
-                .iter()
-                .filter(|r| r.start == s)
-                .last()
-                .unwrap()
-                .parameters
-        })
+        .map(|s| &est.trace.iter().rfind(|r| r.start == s).unwrap().parameters)
         .collect();
     for f in &finals[1..] {
         for (a, b) in f.iter().zip(finals[0]) {
@@ -158,20 +151,19 @@ fn the_sandwich_standard_error_matches_the_spread_across_seeds() {
             ..SearchSettings::default()
         };
         let (est, _, _) = prepared.search(&settings, 2, &|_| {}).unwrap();
-        for i in 0..4 {
-            logs[i].push(est.theta[i]);
-            ses[i] += est.se_log[i].unwrap() / seeds as f64;
+        for (i, (log, se)) in logs.iter_mut().zip(ses.iter_mut()).enumerate() {
+            log.push(est.theta[i]);
+            *se += est.se_log[i].unwrap() / seeds as f64;
         }
     }
-    for i in 0..4 {
-        let n = logs[i].len() as f64;
-        let mean = logs[i].iter().sum::<f64>() / n;
-        let sd = (logs[i].iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
-        let ratio = ses[i] / sd;
+    for (i, (log, se)) in logs.iter().zip(&ses).enumerate() {
+        let n = log.len() as f64;
+        let mean = log.iter().sum::<f64>() / n;
+        let sd = (log.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let ratio = se / sd;
         assert!(
             (1.0 / 1.5..=1.5).contains(&ratio),
-            "element {i}: mean sandwich se {} vs spread {sd} (ratio {ratio})",
-            ses[i]
+            "element {i}: mean sandwich se {se} vs spread {sd} (ratio {ratio})"
         );
     }
 }
