@@ -6,8 +6,8 @@
 //! each run r from the run's own prior, and the run's condition vector g_r(θ) has one entry per
 //! tuned element:
 //!
-//! * `consistency`: for Q[i,i], the run's mean over steps 1..K of e_i²/P_ii − 1 (e = x̂_k|k −
-//!   x_k, P = P_k|k); for R[j,j], the mean over the steps where component j reported of
+//! * `consistency`: for `Q[i,i]`, the run's mean over steps 1..K of e_i²/P_ii − 1 (e = x̂_k|k −
+//!   x_k, P = P_k|k); for `R[j,j]`, the mean over the steps where component j reported of
 //!   ν_j²/S_jj − 1. Both vanish in expectation at the true Q and R when the filter's model is
 //!   the world's and the prior is the distribution of x_0 (e ~ N(0, P), ν ~ N(0, S) at every
 //!   step).
