@@ -1,14 +1,15 @@
-//! The coverage of `kfmc tune --method ml`'s intervals, measured: the table of the tuning
-//! chapter.
+//! The coverage of `kfmc tune --method ml`'s and `--method truth`'s intervals, measured: the
+//! tables of the tuning chapter.
 //!
 //! ```text
-//! cargo run --release --example tune_coverage [-- REPLICATIONS [SPEC]]
+//! cargo run --release --example tune_coverage [-- REPLICATIONS [SPEC [ml|truth]]]
 //! ```
 //!
 //! SPEC (default `experiments/tune_ml_cv.toml`) is simulated with REPLICATIONS (default 200)
 //! independent master seeds 1, 2, …; each replication tunes the spec's `[tune] elements` by
-//! maximum likelihood from its own runs, starting from the spec's values, which are also the
-//! truth the runs are simulated with. Per element: the truth, the mean estimate, the bias
+//! the method (default `ml`: maximum likelihood; `truth`: the consistency conditions against
+//! the simulated truth, with sandwich intervals) from its own runs, starting from the spec's
+//! values, which are also the truth the runs are simulated with. Per element: the truth, the mean estimate, the bias
 //! (mean − truth) ± its standard error, the bias of ln(estimate), the mean standard error
 //! the tuning reported against the spread of the estimates, the share of 95 % intervals that
 //! hold the truth with its Clopper–Pearson 95 % interval, and the mean of z² =
@@ -20,8 +21,11 @@ use kfmc::experiment::Overrides;
 use kfmc::experiment::tune_spec::NoiseMatrix;
 use kfmc::power::clopper_pearson;
 use kfmc::runner::NullObserver;
+use kfmc::tune::conditions::TruthObjective;
+use kfmc::tune::estimate::Estimate;
 use kfmc::tune::estimate::SearchSettings;
 use kfmc::tune::ml::{MlOptions, prepare};
+use kfmc::tune::truth::TruthOptions;
 
 fn main() {
     let mut args = std::env::args().skip(1);
@@ -33,10 +37,22 @@ fn main() {
         .next()
         .map(PathBuf::from)
         .unwrap_or_else(|| PathBuf::from("experiments/tune_ml_cv.toml"));
+    let method = args.next().unwrap_or_else(|| "ml".into());
+    assert!(
+        method == "ml" || method == "truth",
+        "METHOD: ml or truth, not {method}"
+    );
     let base = kfmc::experiment::load(&spec).unwrap_or_else(|e| panic!("{e}"));
     let opts = MlOptions {
         elements: None,
         measurements: None,
+        search: SearchSettings::default(),
+        force: false,
+        threads: 0,
+    };
+    let truth_opts = TruthOptions {
+        elements: None,
+        objective: TruthObjective::Consistency,
         search: SearchSettings::default(),
         force: false,
         threads: 0,
@@ -59,15 +75,27 @@ fn main() {
             trace_runs: None,
         })
         .expect("overrides");
-        let prepared = prepare(&plan, &opts, &NullObserver).unwrap_or_else(|e| panic!("{e}"));
+        let (elements, model, est): (_, _, Estimate) = if method == "ml" {
+            let prepared = prepare(&plan, &opts, &NullObserver).unwrap_or_else(|e| panic!("{e}"));
+            let est = prepared
+                .search(&opts.search, opts.threads, &|_| {})
+                .unwrap_or_else(|e| panic!("replication {rep}: {e}"));
+            (prepared.elements, prepared.model, est)
+        } else {
+            let prepared = kfmc::tune::truth::prepare(&plan, &truth_opts, &NullObserver)
+                .unwrap_or_else(|e| panic!("{e}"));
+            let (est, _, _) = prepared
+                .search(&truth_opts.search, truth_opts.threads, &|_| {})
+                .unwrap_or_else(|e| panic!("replication {rep}: {e}"));
+            (prepared.elements, prepared.model, est)
+        };
         if names.is_empty() {
-            names = prepared.elements.iter().map(|e| e.name.clone()).collect();
-            truth = prepared
-                .elements
+            names = elements.iter().map(|e| e.name.clone()).collect();
+            truth = elements
                 .iter()
                 .map(|e| match e.matrix {
-                    NoiseMatrix::Q => prepared.model.q[(e.row, e.col)],
-                    NoiseMatrix::R => prepared.model.r[(e.row, e.col)],
+                    NoiseMatrix::Q => model.q[(e.row, e.col)],
+                    NoiseMatrix::R => model.r[(e.row, e.col)],
                 })
                 .collect();
             let m = names.len();
@@ -77,9 +105,6 @@ fn main() {
             se_sum = vec![0.0; m];
             log_err = vec![0.0; m];
         }
-        let est = prepared
-            .search(&opts.search, opts.threads, &|_| {})
-            .unwrap_or_else(|e| panic!("replication {rep}: {e}"));
         unconverged += usize::from(!est.converged);
         for i in 0..names.len() {
             let (v, _, ci) = est.natural(i);
@@ -96,7 +121,7 @@ fn main() {
     }
     let n = reps as f64;
     println!(
-        "{} replications of {} ({} runs each), {:.1} s; {unconverged} searches not converged",
+        "{} replications of {} by {method} ({} runs each), {:.1} s; {unconverged} searches not converged",
         reps,
         spec.display(),
         base.runs,

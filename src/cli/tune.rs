@@ -1,7 +1,9 @@
 //! `kfmc tune`: the `consistency` method searches a filter's Q scale (and R scale with
 //! --tune-r) for consistency or minimum RMSE on a coarse log grid, then a refinement, and
 //! writes tuning.parquet; the `ml` method estimates named elements of Q and R by maximum
-//! likelihood of the innovations, with intervals, and writes tuned.parquet.
+//! likelihood of the innovations, with intervals, and writes tuned.parquet; the `truth` method
+//! estimates them from a simulated study's truth by identifying conditions, with sandwich
+//! intervals, and writes the same tables.
 
 use super::*;
 
@@ -11,9 +13,11 @@ pub struct Tune {
     /// The spec and the shared overrides.
     #[command(flatten)]
     pub study: StudyArgs,
-    /// What to optimise.
-    #[arg(long, value_enum, default_value_t = crate::tune::Objective::Consistency)]
-    pub objective: crate::tune::Objective,
+    /// What to optimise: `consistency` or `rmse` for the consistency method, `consistency`
+    /// (E[e²/P] = 1, E[ν²/S] = 1 per element) or `mse` (the estimation MSE against truth) for
+    /// the truth method.
+    #[arg(long, value_enum, default_value_t = ObjectiveArg::Consistency)]
+    pub objective: ObjectiveArg,
     /// Also search the R scale (2-D grid).
     #[arg(long)]
     pub tune_r: bool,
@@ -23,7 +27,7 @@ pub struct Tune {
     /// The method (default: `tune.method` of the spec, else `consistency`).
     #[arg(long, value_enum)]
     pub method: Option<crate::experiment::tune_spec::TuneMethod>,
-    /// The elements the `ml` method estimates, e.g. `--elements 'q[px,px]' 'r[zx,zx]'`
+    /// The elements the `ml` and `truth` methods estimate, e.g. `--elements 'q[px,px]' 'r[zx,zx]'`
     /// (default: `tune.elements` of the spec).
     #[arg(long, num_args = 1..)]
     pub elements: Vec<String>,
@@ -31,6 +35,17 @@ pub struct Tune {
     /// instead of the spec's simulation; an `initial.parquet` beside it gives the priors.
     #[arg(long, value_name = "FILE")]
     pub measurements: Option<std::path::PathBuf>,
+}
+
+/// `--objective`: the union of what the methods optimise.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum ObjectiveArg {
+    /// Consistency (every method that has an objective).
+    Consistency,
+    /// The sum of normalised RMSEs (the consistency method).
+    Rmse,
+    /// The estimation MSE against truth (the truth method).
+    Mse,
 }
 
 impl Tune {
@@ -57,13 +72,47 @@ impl Tune {
                 force: study.force,
                 threads: study.threads(study.quiet),
             };
+            if objective != ObjectiveArg::Consistency {
+                anyhow::bail!(
+                    "--objective belongs to the consistency and truth methods; the ml method maximises the likelihood"
+                );
+            }
             return execute_ml(&plan, &study.spec, study.quiet, &opts);
+        }
+        if method == crate::experiment::tune_spec::TuneMethod::Truth {
+            if measurements.is_some() {
+                anyhow::bail!(
+                    "--measurements belongs to the ml method; the truth method tunes on the spec's simulated runs, whose truth it needs"
+                );
+            }
+            let objective = match objective {
+                ObjectiveArg::Consistency => crate::tune::conditions::TruthObjective::Consistency,
+                ObjectiveArg::Mse => crate::tune::conditions::TruthObjective::Mse,
+                ObjectiveArg::Rmse => anyhow::bail!(
+                    "--objective rmse belongs to the consistency method; the truth method takes consistency or mse"
+                ),
+            };
+            let opts = crate::tune::truth::TruthOptions {
+                elements: (!elements.is_empty()).then_some(elements),
+                objective,
+                search: Default::default(),
+                force: study.force,
+                threads: study.threads(study.quiet),
+            };
+            return execute_truth(&plan, &study.spec, study.quiet, &opts);
         }
         if !elements.is_empty() || measurements.is_some() {
             anyhow::bail!(
                 "--elements and --measurements belong to the ml method (--method ml); the consistency method tunes a Q scale and an R scale"
             );
         }
+        let objective = match objective {
+            ObjectiveArg::Consistency => crate::tune::Objective::Consistency,
+            ObjectiveArg::Rmse => crate::tune::Objective::Rmse,
+            ObjectiveArg::Mse => anyhow::bail!(
+                "--objective mse belongs to the truth method (--method truth); the consistency method takes consistency or rmse"
+            ),
+        };
         let threads = study.threads(study.quiet);
         let StudyArgs {
             spec, quiet, force, ..
@@ -158,6 +207,21 @@ fn execute_ml(
         },
         report.output.join("tuned.parquet").display()
     );
+    print_elements(&report.elements, &report.spec_values, est);
+    outln!(
+        "the tuned Q and R, ready to paste: {}",
+        report.output.join(crate::tune::ml::TUNED_TOML).display()
+    );
+    Ok(())
+}
+
+/// Each element against its spec value with its interval, and every direction the data do
+/// not identify (`ml` and `truth`).
+fn print_elements(
+    elements: &[crate::experiment::tune_spec::TuneElement],
+    spec_values: &[f64],
+    est: &crate::tune::estimate::Estimate,
+) {
     outln!(
         "  {:<24} {:>13} {:>13} {:>13}  95 % interval",
         "element",
@@ -165,7 +229,7 @@ fn execute_ml(
         "estimate",
         "std_error"
     );
-    for (i, e) in report.elements.iter().enumerate() {
+    for (i, e) in elements.iter().enumerate() {
         let (v, se, ci) = est.natural(i);
         let ci = ci.map_or("not identified".to_string(), |(lo, hi)| {
             format!("[{lo:.6e}, {hi:.6e}]")
@@ -178,7 +242,7 @@ fn execute_ml(
         outln!(
             "  {:<24} {:>13.6e} {:>13.6e} {:>13} {ci}{bound}",
             e.name,
-            report.spec_values[i],
+            spec_values[i],
             v,
             se.map_or("—".to_string(), |s| format!("{s:.6e}"))
         );
@@ -187,7 +251,7 @@ fn execute_ml(
         let terms: Vec<String> = d
             .components
             .iter()
-            .zip(&report.elements)
+            .zip(elements)
             .filter(|(c, _)| c.abs() >= crate::tune::estimate::DIRECTION_SHARE)
             .map(|(c, e)| format!("{c:+.3}·ln {}", e.name))
             .collect();
@@ -198,6 +262,66 @@ fn execute_ml(
             d.eigenvalue / d.largest,
             d.largest
         );
+    }
+}
+
+/// `kfmc tune --method truth`: solves the conditions and prints each element with its
+/// sandwich interval, the conditions' residuals and the identifiability report.
+fn execute_truth(
+    plan: &crate::experiment::Plan,
+    spec: &std::path::Path,
+    quiet: bool,
+    opts: &crate::tune::truth::TruthOptions,
+) -> anyhow::Result<()> {
+    let observer = ProgressObserver::new(!quiet);
+    let spinner = progress::IterationProgress::new(!quiet);
+    let report = crate::tune::truth::tune_truth(plan, opts, &observer, &|row| {
+        spinner.show(row.start, row.iteration, row.objective)
+    });
+    spinner.finish();
+    let report = report
+        .map_err(anyhow::Error::from)
+        .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
+    let est = &report.estimate;
+    let iterations = est
+        .trace
+        .iter()
+        .filter(|r| r.start == est.best_start)
+        .map(|r| r.iteration)
+        .max()
+        .unwrap_or(0);
+    outln!(
+        "kfmc tune {} (truth, objective {}): {} elements from {} runs ({})",
+        plan.name,
+        opts.objective.name(),
+        report.elements.len(),
+        report.runs,
+        report.data
+    );
+    outln!(
+        "objective {:.6e} after {iterations} iterations from the start at ×{} of the spec's values{} → {}",
+        est.objective,
+        opts.search.starts[est.best_start],
+        if est.converged {
+            ""
+        } else {
+            " (not converged)"
+        },
+        report.output.join("tuned.parquet").display()
+    );
+    print_elements(&report.elements, &report.spec_values, est);
+    let residuals: Vec<String> = report
+        .elements
+        .iter()
+        .zip(&report.residuals)
+        .map(|(e, g)| format!("{} {g:+.2e}", e.name))
+        .collect();
+    outln!(
+        "conditions at the estimate (0 at an exact root): {}",
+        residuals.join(", ")
+    );
+    for note in &report.notes {
+        outln!("note: {note}");
     }
     outln!(
         "the tuned Q and R, ready to paste: {}",

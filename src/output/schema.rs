@@ -415,7 +415,7 @@ pub fn tuning(states: &[&str]) -> Vec<ColumnDef> {
     c
 }
 
-/// `tuned.parquet` (`kfmc tune --method ml`): one row per tuned element of Q or R, with its
+/// `tuned.parquet` (`kfmc tune --method ml` and `--method truth`): one row per tuned element of Q or R, with its
 /// standard error and 95 % interval (null where the element is not identified).
 pub fn tuned() -> Vec<ColumnDef> {
     vec![
@@ -429,8 +429,8 @@ pub fn tuned() -> Vec<ColumnDef> {
     ]
 }
 
-/// `tune_trace.parquet` (`kfmc tune --method ml`): every iteration of every start of the
-/// search, with −ln L and each element's value (a column per element, named as in `tuned`).
+/// `tune_trace.parquet` (`kfmc tune --method ml` and `--method truth`): every iteration of
+/// every start of the search, with its objective and each element's value (a column per element, named as in `tuned`).
 pub fn tune_trace(elements: &[&str]) -> Vec<ColumnDef> {
     let mut c = vec![
         col("start", Dtype::I64),

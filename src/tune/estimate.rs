@@ -1,8 +1,10 @@
-//! Maximum likelihood in the log-parameters: Levenberg–Marquardt on the Fisher information
-//! (Fisher scoring with a damping that shrinks on success), then the observed information at
-//! the optimum for the intervals, and the identifiability of each element.
+//! The search every element-wise method shares: Levenberg–Marquardt in the log-parameters
+//! from a few starts within bounds ([`minimise`], on any [`Objective`]: the likelihood's
+//! Fisher scoring for `ml`, Gauss–Newton on the identifying conditions for `truth`), and the
+//! identifiability of each element from the curvature at the optimum ([`intervals`]). For
+//! `ml`, [`estimate`] adds the observed information at the optimum for the intervals.
 //!
-//! Everything is deterministic: the likelihood sums its runs in run order, the starts are
+//! Everything is deterministic: the objectives sum their runs in run order, the starts are
 //! fixed, and the observed information is a fixed set of central differences of the analytic
 //! score, so the estimates are the same bits on any number of threads.
 
@@ -10,6 +12,44 @@ use nalgebra::{DMatrix, SymmetricEigen};
 use rayon::prelude::*;
 
 use super::likelihood::{Evaluation, Problem};
+
+/// What [`minimise`] searches: a function of the log-parameters θ with its gradient and a
+/// positive semi-definite curvature to step with (the Fisher information of a likelihood, or
+/// JᵀJ of a least-squares problem).
+pub trait Objective: Sync {
+    /// θ of the spec's own values (the centre of the starts and of the bounds).
+    fn start(&self) -> Vec<f64>;
+    /// The value at θ, with the gradient and the curvature when `derivatives`; `None` where
+    /// θ makes no valid model.
+    fn evaluate(&self, theta: &[f64], derivatives: bool) -> Option<Evaluation>;
+}
+
+impl Objective for Problem<'_> {
+    fn start(&self) -> Vec<f64> {
+        Problem::start(self)
+    }
+
+    fn evaluate(&self, theta: &[f64], derivatives: bool) -> Option<Evaluation> {
+        Problem::evaluate(self, theta, derivatives)
+    }
+}
+
+/// The best optimum over the starts.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Minimum {
+    /// θ̂.
+    pub theta: Vec<f64>,
+    /// The objective at θ̂.
+    pub objective: f64,
+    /// The start it came from.
+    pub best_start: usize,
+    /// Whether that start's search met the tolerance.
+    pub converged: bool,
+    /// Per element: whether θ̂ sits on a bound of the search.
+    pub at_bound: Vec<bool>,
+    /// Every iteration of every start.
+    pub trace: Vec<TraceRow>,
+}
 
 /// z_{0.975}: the 95 % two-sided normal quantile.
 pub const Z95: f64 = 1.959_963_984_540_054;
@@ -64,7 +104,7 @@ pub struct TraceRow {
     pub start: usize,
     /// Iteration (0: the start itself).
     pub iteration: usize,
-    /// −ln L.
+    /// The objective (−ln L for `ml`, ½|ḡ|² of the conditions for `truth`).
     pub objective: f64,
     /// The elements' values (natural scale).
     pub parameters: Vec<f64>,
@@ -86,14 +126,15 @@ pub struct FlatDirection {
 pub struct Estimate {
     /// θ̂ (ln of each element).
     pub theta: Vec<f64>,
-    /// −ln L at θ̂.
+    /// The objective at θ̂ (−ln L for `ml`).
     pub objective: f64,
     /// The start the best optimum came from.
     pub best_start: usize,
     /// Whether that start's search met the tolerance (else it ran out of iterations or of
     /// damping).
     pub converged: bool,
-    /// The observed information in θ at θ̂ (the Hessian of −ln L).
+    /// The curvature the identifiability is judged on, in θ at θ̂: the observed information
+    /// (the Hessian of −ln L) for `ml`, JᵀJ of the conditions' Jacobian for `truth`.
     pub observed: DMatrix<f64>,
     /// Per element: the standard error of θ̂ (ln units); `None` when unidentified.
     pub se_log: Vec<Option<f64>>,
@@ -135,7 +176,39 @@ pub fn estimate(
     settings: &SearchSettings,
     on_iteration: &(dyn Fn(&TraceRow) + Sync),
 ) -> Result<Estimate, SearchError> {
-    let centre = problem.start();
+    let Minimum {
+        theta,
+        objective,
+        best_start,
+        converged,
+        at_bound,
+        trace,
+    } = minimise(problem, settings, on_iteration)?;
+    let observed = observed_information(problem, &theta)?;
+    let (se_log, identifiable, flat) = intervals(&observed);
+    Ok(Estimate {
+        theta,
+        objective,
+        best_start,
+        converged,
+        observed,
+        se_log,
+        identifiable,
+        at_bound,
+        flat,
+        trace,
+    })
+}
+
+/// Minimises `objective` from every start of `settings` (each θ within ln(`bound`) of the
+/// spec's value), reporting each iteration to `on_iteration`; the best optimum wins, ties to
+/// the earlier start.
+pub fn minimise<O: Objective + ?Sized>(
+    objective: &O,
+    settings: &SearchSettings,
+    on_iteration: &(dyn Fn(&TraceRow) + Sync),
+) -> Result<Minimum, SearchError> {
+    let centre = objective.start();
     let half = settings.bound.ln();
     let lower: Vec<f64> = centre.iter().map(|c| c - half).collect();
     let upper: Vec<f64> = centre.iter().map(|c| c + half).collect();
@@ -149,7 +222,7 @@ pub fn estimate(
             let theta0: Vec<f64> = centre.iter().map(|c| c + mult.ln()).collect();
             let mut trace = Vec::new();
             let result = search(
-                problem,
+                objective,
                 settings,
                 si,
                 theta0,
@@ -177,34 +250,28 @@ pub fn estimate(
             }
         }
     }
-    let Some((theta, objective, best_start, converged)) = best else {
+    let Some((theta, value, best_start, converged)) = best else {
         return Err(first_error.unwrap_or(SearchError("no start to search from".into())));
     };
-    let observed = observed_information(problem, &theta)?;
-    let (se_log, identifiable, flat) = intervals(&observed);
     let at_bound = theta
         .iter()
         .zip(lower.iter().zip(&upper))
         .map(|(t, (l, u))| *t <= *l || *t >= *u)
         .collect();
-    Ok(Estimate {
+    Ok(Minimum {
         theta,
-        objective,
+        objective: value,
         best_start,
         converged,
-        observed,
-        se_log,
-        identifiable,
         at_bound,
-        flat,
         trace,
     })
 }
 
-/// One start's Levenberg–Marquardt search: (θ̂, −ln L, converged).
+/// One start's Levenberg–Marquardt search: (θ̂, the objective, converged).
 #[allow(clippy::too_many_arguments)]
-fn search(
-    problem: &Problem<'_>,
+fn search<O: Objective + ?Sized>(
+    problem: &O,
     settings: &SearchSettings,
     start: usize,
     theta0: Vec<f64>,
@@ -221,7 +288,7 @@ fn search(
         .collect();
     let mut ev = problem.evaluate(&theta, true).ok_or_else(|| {
         SearchError(format!(
-            "start {start}: the likelihood cannot be evaluated (an innovation covariance S is not positive definite)"
+            "start {start}: the objective cannot be evaluated there (an innovation covariance S is not positive definite)"
         ))
     })?;
     let mut push = |iteration: usize, value: f64, theta: &[f64]| {

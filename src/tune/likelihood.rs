@@ -280,7 +280,7 @@ impl Problem<'_> {
 }
 
 /// (A + Aᵀ)/2 in place: rounding must not make a covariance asymmetric over many steps.
-fn symmetrise(a: &mut DMatrix<f64>) {
+pub(crate) fn symmetrise(a: &mut DMatrix<f64>) {
     let n = a.nrows();
     for i in 0..n {
         for j in 0..i {

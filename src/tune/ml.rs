@@ -15,14 +15,14 @@ use nalgebra::{DMatrix, DVector};
 
 use super::estimate::{Estimate, SearchSettings, TraceRow, estimate};
 use super::likelihood::{LinearModel, Parameter, Problem, Series};
+pub use super::tables::TUNED_TOML;
+use super::tables::{Timing, commit, tuned_toml};
 use crate::error::{KfmcError, OutputError, SpecError, SpecErrors};
 use crate::experiment::tune_spec::{NoiseMatrix, TuneElement, TuneMethod, parse_elements};
 use crate::experiment::{InitialMode, Plan};
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::StudyKind;
-use crate::output::{TableWriter, Value, schema};
 use crate::runner::RunObserver;
-use crate::study::ExecOptions;
 use crate::trial::Unit;
 
 /// The fewest scalar measurements per tuned element: below it the likelihood's curvature,
@@ -67,7 +67,7 @@ pub struct MlReport {
     pub output: PathBuf,
 }
 
-fn spec_error(plan: &Plan, key_path: &str, message: String) -> KfmcError {
+pub(crate) fn spec_error(plan: &Plan, key_path: &str, message: String) -> KfmcError {
     KfmcError::Spec(SpecErrors(vec![SpecError {
         file: plan.spec_path.clone(),
         key_path: key_path.into(),
@@ -75,8 +75,13 @@ fn spec_error(plan: &Plan, key_path: &str, message: String) -> KfmcError {
     }]))
 }
 
-/// The elements to tune: `flag` (the command line) when given, else `tune.elements`.
-pub fn elements_of(plan: &Plan, flag: Option<&[String]>) -> Result<Vec<TuneElement>, KfmcError> {
+/// The elements to tune by `method`: `flag` (the command line) when given, else
+/// `tune.elements`.
+pub fn elements_of(
+    plan: &Plan,
+    flag: Option<&[String]>,
+    method: TuneMethod,
+) -> Result<Vec<TuneElement>, KfmcError> {
     let layout = plan.layout();
     let (states, meas) = (layout.quantity_names(), layout.measurement_names());
     if let Some(list) = flag {
@@ -98,21 +103,30 @@ pub fn elements_of(plan: &Plan, flag: Option<&[String]>) -> Result<Vec<TuneEleme
         _ => Err(spec_error(
             plan,
             "tune.elements",
-            "the ml method needs the elements to tune: `[tune] elements = [\"q[px,px]\", …]` in the spec or --elements".into(),
+            format!(
+                "the {} method needs the elements to tune: `[tune] elements = [\"q[px,px]\", …]` in the spec or --elements",
+                method.name()
+            ),
         )),
     }
 }
 
-/// The model of a linear system: F, G, H and the truth's Q and R at noise scale 1, with the
-/// elements' spec values checked (a log-parameter needs a positive start).
-pub fn linear_model(plan: &Plan, elements: &[TuneElement]) -> Result<LinearModel, KfmcError> {
+/// The model of a linear system as `method` tunes it: F, G, H and the truth's Q and R at
+/// noise scale 1, with the elements' spec values checked (a log-parameter needs a positive
+/// start).
+pub fn linear_model(
+    plan: &Plan,
+    elements: &[TuneElement],
+    method: TuneMethod,
+) -> Result<LinearModel, KfmcError> {
     let fm = plan.system.filter_model().ok_or_else(|| {
         spec_error(
             plan,
             "model.kind",
             format!(
-                "the {} system's world is not one model with additive noise: the ml method tunes linear systems",
-                plan.kind
+                "the {} system's world is not one model with additive noise: the {} method tunes linear systems",
+                plan.kind,
+                method.name()
             ),
         )
     })?;
@@ -121,8 +135,13 @@ pub fn linear_model(plan: &Plan, elements: &[TuneElement]) -> Result<LinearModel
             plan,
             "model.kind",
             format!(
-                "the {} model is not linear: the ml method is built for linear-Gaussian systems (the EKF's quasi-likelihood is not built yet)",
-                plan.kind
+                "the {} model is not linear: the {} method is built for linear-Gaussian systems{}",
+                plan.kind,
+                method.name(),
+                match method {
+                    TuneMethod::Ml => " (the EKF's quasi-likelihood is not built yet)",
+                    _ => " (EKF support is not built yet)",
+                }
             ),
         )
     })?;
@@ -161,6 +180,20 @@ pub fn simulated_series(
     threads: usize,
     observer: &dyn RunObserver,
 ) -> Result<Vec<Series>, KfmcError> {
+    Ok(simulated_runs(plan, threads, observer)?
+        .into_iter()
+        .map(|(s, _)| s)
+        .collect())
+}
+
+/// [`simulated_series`] with each run's true quantities x_0..x_K (`n` per step, row by row):
+/// the study engine's trial simulates every run once, from the seeds `kfmc run` uses, so
+/// every candidate a search evaluates sees the same runs (common random numbers).
+pub fn simulated_runs(
+    plan: &Plan,
+    threads: usize,
+    observer: &dyn RunObserver,
+) -> Result<Vec<(Series, Vec<f64>)>, KfmcError> {
     let mut world_only = plan.clone();
     world_only.filters.clear();
     world_only.trace_runs = plan.runs;
@@ -199,12 +232,15 @@ pub fn simulated_series(
             for v in z.iter_mut().take(p) {
                 *v = f64::NAN;
             }
-            out.push(Series {
-                x0: DVector::from_vec(x0),
-                p0: from_lower_triangle(&p0, n),
-                u: tr.u,
-                z,
-            });
+            out.push((
+                Series {
+                    x0: DVector::from_vec(x0),
+                    p0: from_lower_triangle(&p0, n),
+                    u: tr.u,
+                    z,
+                },
+                tr.truth,
+            ));
             Ok(())
         },
     )?;
@@ -541,8 +577,8 @@ pub fn prepare(
     opts: &MlOptions,
     observer: &dyn RunObserver,
 ) -> Result<Prepared, KfmcError> {
-    let elements = elements_of(plan, opts.elements.as_deref())?;
-    let model = linear_model(plan, &elements)?;
+    let elements = elements_of(plan, opts.elements.as_deref(), TuneMethod::Ml)?;
+    let model = linear_model(plan, &elements, TuneMethod::Ml)?;
     let (series, data) = match &opts.measurements {
         Some(path) => (
             file_series(plan, path)?,
@@ -632,35 +668,31 @@ pub fn tune_ml(
         measurements,
         ..
     } = &prepared;
-    let tuned = tuned_table(plan, elements, &est)?;
-    let trace = trace_table(plan, elements, &est.trace)?;
-    let mut manifest = crate::study::manifest_for(
+    let text = tuned_toml(
         plan,
-        &ExecOptions {
+        TuneMethod::Ml,
+        &format!("−ln L = {}", est.objective),
+        elements,
+        &est,
+        model,
+        &q,
+        &r,
+        data,
+    );
+    commit(
+        plan,
+        &folder,
+        TuneMethod::Ml,
+        elements,
+        &est,
+        Timing {
+            started,
+            started_unix_s,
             threads: opts.threads,
             force: opts.force,
-            shard: None,
-            checkpoints: None,
         },
-        started_unix_s,
-        started.elapsed().as_secs_f64(),
-        0..plan.scenarios.len() * plan.noise_scales.len(),
-    );
-    manifest.kind = Some(StudyKind::Tune);
-    if crate::runner::interrupted() {
-        return Err(OutputError::Interrupted.into());
-    }
-    folder.commit(vec![tuned, trace], manifest)?;
-    let toml_path = plan.output.join(TUNED_TOML);
-    folder.claim_files(&[TUNED_TOML.to_string()], &|_| false)?;
-    let text = tuned_toml(plan, elements, &est, model, &q, &r, data);
-    crate::output::atomic::write_atomic(&toml_path, text.as_bytes()).map_err(|source| {
-        OutputError::Io {
-            action: "cannot write",
-            path: toml_path.clone(),
-            source,
-        }
-    })?;
+        &text,
+    )?;
     Ok(MlReport {
         elements: elements.clone(),
         spec_values,
@@ -672,105 +704,4 @@ pub fn tune_ml(
         data: data.clone(),
         output: plan.output.clone(),
     })
-}
-
-/// The file of the tuned filter's covariances.
-pub const TUNED_TOML: &str = "tuned.toml";
-
-/// `tuned.parquet`: one row per element.
-fn tuned_table(
-    plan: &Plan,
-    elements: &[TuneElement],
-    est: &Estimate,
-) -> Result<crate::output::folder::FinishedTable, KfmcError> {
-    let mut w = TableWriter::create(&plan.output, "tuned", schema::tuned())?;
-    for (i, e) in elements.iter().enumerate() {
-        let (v, se, ci) = est.natural(i);
-        w.push(&[
-            Value::Str(&e.name),
-            Value::F64(Some(v)),
-            Value::F64(se),
-            Value::F64(ci.map(|c| c.0)),
-            Value::F64(ci.map(|c| c.1)),
-            Value::Str(TuneMethod::Ml.name()),
-            Value::Bool(Some(est.identifiable[i])),
-        ])?;
-    }
-    Ok(w.finish()?)
-}
-
-/// `tune_trace.parquet`: every iteration of every start.
-fn trace_table(
-    plan: &Plan,
-    elements: &[TuneElement],
-    trace: &[TraceRow],
-) -> Result<crate::output::folder::FinishedTable, KfmcError> {
-    let names: Vec<&str> = elements.iter().map(|e| e.name.as_str()).collect();
-    let mut w = TableWriter::create(&plan.output, "tune_trace", schema::tune_trace(&names))?;
-    for row in trace {
-        let mut values = vec![
-            Value::I64(Some(row.start as i64)),
-            Value::I64(Some(row.iteration as i64)),
-            Value::F64(Some(row.objective)),
-        ];
-        values.extend(row.parameters.iter().map(|v| Value::F64(Some(*v))));
-        w.push(&values)?;
-    }
-    Ok(w.finish()?)
-}
-
-/// `tuned.toml`: the model's F, G, H with the tuned Q and R, in the discrete form of a
-/// `kind = "linear"` spec (filters take the model's Q and R; they have no keys of their own).
-fn tuned_toml(
-    plan: &Plan,
-    elements: &[TuneElement],
-    est: &Estimate,
-    model: &LinearModel,
-    q: &DMatrix<f64>,
-    r: &DMatrix<f64>,
-    data: &str,
-) -> String {
-    let rows = |m: &DMatrix<f64>| {
-        toml::Value::Array(
-            (0..m.nrows())
-                .map(|i| {
-                    toml::Value::Array(
-                        (0..m.ncols())
-                            .map(|j| toml::Value::Float(m[(i, j)]))
-                            .collect(),
-                    )
-                })
-                .collect(),
-        )
-    };
-    let mut table = toml::Table::new();
-    table.insert("f".into(), rows(&model.f));
-    if model.g.ncols() > 0 {
-        table.insert("g".into(), rows(&model.g));
-    }
-    table.insert("h".into(), rows(&model.h));
-    table.insert("q".into(), rows(q));
-    table.insert("r".into(), rows(r));
-    let mut doc = toml::Table::new();
-    doc.insert("model".into(), toml::Value::Table(table));
-    let mut head = format!(
-        "# kfmc tune --method ml of {} ({}): −ln L = {}\n",
-        plan.spec_path.display(),
-        data,
-        est.objective
-    );
-    head.push_str("# Tuned elements (estimate, 95 % interval):\n");
-    for (i, e) in elements.iter().enumerate() {
-        let (v, _, ci) = est.natural(i);
-        head.push_str(&match ci {
-            Some((lo, hi)) => format!("#   {} = {v} [{lo}, {hi}]\n", e.name),
-            None => format!("#   {} = {v} (not identified: no interval)\n", e.name),
-        });
-    }
-    head.push_str(
-        "# kfmc's filters assume the model's Q and R (a filter has no Q or R keys of its own), so\n\
-         # these are [model] keys of a kind = \"linear\" spec in its discrete form: f, g, h, q\n\
-         # and r replace a, b, c, gamma and q_tilde when the spec gives the continuous form.\n",
-    );
-    head + &toml::to_string(&doc).unwrap_or_default()
 }

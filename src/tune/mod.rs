@@ -5,6 +5,12 @@
 //! * `ml` ([`ml`]): the maximum-likelihood estimate of named elements of Q and R from the
 //!   innovations alone ([`likelihood`]), with intervals from the observed information
 //!   ([`estimate`]), for linear systems.
+//! * `truth` ([`truth`]): named elements of Q and R from a simulated study whose truth is
+//!   known, by identifying conditions ([`conditions`]: E[e_i²/P_ii] = 1, E[ν_j²/S_jj] = 1, or
+//!   the least MSE) on common random numbers, with sandwich intervals, for linear systems.
+//!
+//! `ml` and `truth` share the search and the identifiability report ([`estimate`]) and what
+//! they write ([`tables`]).
 //!
 //! The `consistency` search: each stage is an ordinary study whose filter variants are the
 //! candidate scales, so every candidate sees the same truths and measurements (paired
@@ -23,9 +29,12 @@
 //! The two-scalar search has two equations: with more unknowns it is flat along a set of
 //! solutions (only the overall balance of Q against R is fixed), which is why `ml` exists.
 
+pub mod conditions;
 pub mod estimate;
 pub mod likelihood;
 pub mod ml;
+pub mod tables;
+pub mod truth;
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;

@@ -56,6 +56,7 @@ mod statistics {
     #[allow(clippy::module_inception)]
     mod statistics;
     mod tune_ml;
+    mod tune_truth;
     mod unjudgeable;
     mod whiteness_scale;
 }
