@@ -2,7 +2,9 @@
 
 use std::path::PathBuf;
 
-use kfmc::experiment::tune_spec::{TuneMethod, method_of};
+use kfmc::experiment::tune_spec::{TuneElement, TuneMethod, method_of};
+use kfmc::tune::conditions::TruthObjective;
+use kfmc::tune::estimate::Estimate;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
@@ -40,15 +42,11 @@ pub(crate) fn tune<'py>(
         let method = method
             .map(|m| method_of(m).map_err(|e| SpecError::new_err(format!("method={m:?}: {e}"))))
             .transpose()?;
-        let objective = match objective {
-            "consistency" => kfmc::tune::Objective::Consistency,
-            "rmse" => kfmc::tune::Objective::Rmse,
-            other => {
-                return Err(SpecError::new_err(format!(
-                    "objective={other:?}: not an objective (\"consistency\" or \"rmse\")"
-                )));
-            }
-        };
+        if !["consistency", "rmse", "mse"].contains(&objective) {
+            return Err(SpecError::new_err(format!(
+                "objective={objective:?}: not an objective (\"consistency\" or \"rmse\" for the consistency method, \"consistency\" or \"mse\" for truth)"
+            )));
+        }
         let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
         // As the command: the keyword, else the spec's `tune.method`, else `consistency`.
         let method = method
@@ -60,6 +58,11 @@ pub(crate) fn tune<'py>(
         d.set_item("folder", plan.output.clone())?;
         match method {
             TuneMethod::Ml => {
+                if objective != "consistency" {
+                    return Err(SpecError::new_err(
+                        "objective= belongs to the consistency and truth methods; the ml method maximises the likelihood",
+                    ));
+                }
                 if tune_r || filter.is_some() {
                     return Err(SpecError::new_err(
                         "tune_r= and filter= belong to the consistency method; the ml method estimates the elements= of Q and R of the spec's filter model",
@@ -82,15 +85,46 @@ pub(crate) fn tune<'py>(
                 d.set_item("runs", report.runs)?;
                 d.set_item("measurements", report.measurements)?;
                 d.set_item("data", &report.data)?;
-                let flat = PyList::empty(py);
-                for direction in &est.flat {
-                    let entry = PyDict::new(py);
-                    for (c, e) in direction.components.iter().zip(&report.elements) {
-                        entry.set_item(&e.name, c)?;
-                    }
-                    flat.append(entry)?;
+                d.set_item("not_identified", directions(py, est, &report.elements)?)?;
+            }
+            TuneMethod::Truth => {
+                if tune_r || filter.is_some() || measurements.is_some() {
+                    return Err(SpecError::new_err(
+                        "tune_r=, filter= and measurements= do not belong to the truth method, which estimates the elements= of Q and R of the spec's filter model on its simulated runs",
+                    ));
                 }
-                d.set_item("not_identified", flat)?;
+                let objective = match objective {
+                    "consistency" => TruthObjective::Consistency,
+                    "mse" => TruthObjective::Mse,
+                    other => {
+                        return Err(SpecError::new_err(format!(
+                            "objective={other:?} belongs to the consistency method; the truth method takes \"consistency\" or \"mse\""
+                        )));
+                    }
+                };
+                let opts = kfmc::tune::truth::TruthOptions {
+                    elements,
+                    objective,
+                    search: Default::default(),
+                    force,
+                    threads,
+                };
+                let report = run_study(py, quiet, move |obs| {
+                    kfmc::tune::truth::tune_truth(&plan, &opts, obs, &|_| {})
+                        .map_err(|e| Failure::from(e).context(format!("tuning {}", path.display())))
+                })?;
+                let est = &report.estimate;
+                d.set_item("objective", est.objective)?;
+                d.set_item("converged", est.converged)?;
+                d.set_item("runs", report.runs)?;
+                d.set_item("data", &report.data)?;
+                let residuals = PyDict::new(py);
+                for (g, e) in report.residuals.iter().zip(&report.elements) {
+                    residuals.set_item(&e.name, g)?;
+                }
+                d.set_item("conditions", residuals)?;
+                d.set_item("notes", report.notes.clone())?;
+                d.set_item("not_identified", directions(py, est, &report.elements)?)?;
             }
             TuneMethod::Consistency => {
                 if elements.is_some() || measurements.is_some() {
@@ -98,6 +132,15 @@ pub(crate) fn tune<'py>(
                         "elements= and measurements= belong to the ml method (method=\"ml\"); the consistency method tunes a Q scale and an R scale",
                     ));
                 }
+                let objective = match objective {
+                    "consistency" => kfmc::tune::Objective::Consistency,
+                    "rmse" => kfmc::tune::Objective::Rmse,
+                    other => {
+                        return Err(SpecError::new_err(format!(
+                            "objective={other:?} belongs to the truth method (method=\"truth\"); the consistency method takes \"consistency\" or \"rmse\""
+                        )));
+                    }
+                };
                 let opts = kfmc::tune::TuneOptions {
                     objective,
                     tune_r,
@@ -121,4 +164,22 @@ pub(crate) fn tune<'py>(
         }
         Ok(d)
     })
+}
+
+/// The directions the data do not identify: one dict per direction, element name → its
+/// component in ln units.
+fn directions<'py>(
+    py: Python<'py>,
+    est: &Estimate,
+    elements: &[TuneElement],
+) -> PyResult<Bound<'py, PyList>> {
+    let flat = PyList::empty(py);
+    for direction in &est.flat {
+        let entry = PyDict::new(py);
+        for (c, e) in direction.components.iter().zip(elements) {
+            entry.set_item(&e.name, c)?;
+        }
+        flat.append(entry)?;
+    }
+    Ok(flat)
 }

@@ -1208,14 +1208,18 @@ def power(
 class TuneResult:
     """What :func:`tune` found, and the folder holding its tables.
 
-    ``method`` is ``"ml"`` or ``"consistency"``. For ``"ml"``, :attr:`table` is
+    ``method`` is ``"ml"``, ``"truth"`` or ``"consistency"``. For ``"ml"`` and ``"truth"``,
+    :attr:`table` is
     ``tuned.parquet`` (one row per element: its estimate, standard error, 95 % interval
     ``ci_low``–``ci_high`` and whether it is identified),
     :attr:`trace` is ``tune_trace.parquet`` (every iteration of every start) and
     :attr:`tuned_toml` the tuned Q and R as TOML, ready to paste into a spec; ``details``
     holds −ln L (``objective``), ``converged``, ``runs``, ``measurements``, where the data
     came from (``data``) and ``not_identified``: one dict per direction the data do not
-    identify (element name → component in ln units). For ``"consistency"``, :attr:`table` is
+    identify (element name → component in ln units); for ``"truth"`` ``objective`` is the
+    conditions' sum of squares and ``conditions`` their mean at the estimate (element name →
+    value, 0 at an exact root), ``notes`` what the identifiability report adds (the scale
+    ``objective="mse"`` cannot fix). For ``"consistency"``, :attr:`table` is
     ``tuning.parquet`` (every candidate in every cell) and ``details`` holds the tuned
     ``filter``, the best ``q_scale`` and ``r_scale``, their ``objective`` and their
     ``anees``/``anis``.
@@ -1236,22 +1240,23 @@ class TuneResult:
 
     @property
     def table(self) -> pl.DataFrame:
-        """``tuned.parquet`` (``ml``) or ``tuning.parquet`` (``consistency``)."""
-        name = "tuned" if self.method == "ml" else "tuning"
+        """``tuned.parquet`` (``ml``, ``truth``) or ``tuning.parquet`` (``consistency``)."""
+        name = "tuning" if self.method == "consistency" else "tuned"
         return pl.read_parquet(self.folder / f"{name}.parquet", memory_map=False)
 
     @property
     def trace(self) -> pl.DataFrame:
-        """``tune_trace.parquet``: every iteration of every start of the ``ml`` search."""
-        if self.method != "ml":
-            raise StudyError(f"the {self.method} method keeps no iteration trace (method=\"ml\" does)")
+        """``tune_trace.parquet``: every iteration of every start of the ``ml`` or ``truth``
+        search."""
+        if self.method == "consistency":
+            raise StudyError("the consistency method keeps no iteration trace (method=\"ml\" and \"truth\" do)")
         return pl.read_parquet(self.folder / "tune_trace.parquet", memory_map=False)
 
     @property
     def tuned_toml(self) -> str:
-        """The tuned model as TOML (``tuned.toml``; the ``ml`` method)."""
-        if self.method != "ml":
-            raise StudyError(f"the {self.method} method writes no tuned.toml (method=\"ml\" does)")
+        """The tuned model as TOML (``tuned.toml``; the ``ml`` and ``truth`` methods)."""
+        if self.method == "consistency":
+            raise StudyError("the consistency method writes no tuned.toml (method=\"ml\" and \"truth\" do)")
         return (self.folder / "tuned.toml").read_text()
 
 
@@ -1274,8 +1279,8 @@ def tune(
 ) -> TuneResult:
     """Tunes a filter's noise covariances (``kfmc tune``) → :class:`TuneResult`.
 
-    ``method`` is ``"ml"`` or ``"consistency"`` (default: the spec's ``tune.method``, else
-    ``"consistency"``).
+    ``method`` is ``"ml"``, ``"truth"`` or ``"consistency"`` (default: the spec's
+    ``tune.method``, else ``"consistency"``).
 
     * ``"ml"``: the maximum-likelihood estimate of the ``elements`` of Q and R (e.g.
       ``["q[px,px]", "r[zx,zx]"]``; default the spec's ``tune.elements``) from the innovations
@@ -1283,6 +1288,11 @@ def tune(
       are the spec's simulation, or with ``measurements=`` a ``measurements.parquet`` in the
       layout :func:`simulate` writes (your own recorded measurements; an ``initial.parquet``
       beside it gives the priors).
+    * ``"truth"``: the ``elements`` of Q and R from the spec's simulated runs and their truth,
+      as the roots of one identifying condition each (``objective="consistency"``: per state
+      E[e²/P] = 1, per measurement component E[ν²/S] = 1; ``objective="mse"``: the
+      estimation error's minimum, which fixes ratios only), every candidate on the same runs,
+      with 95 % intervals from the sandwich over runs; linear systems.
     * ``"consistency"``: the grid search of a Q multiplier (and with ``tune_r=True`` an R
       multiplier) of ``filter`` (default the first filter with a covariance) for
       ``objective="consistency"`` (ANEES closest to n and ANIS to p) or ``"rmse"``.

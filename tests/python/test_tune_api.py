@@ -106,3 +106,22 @@ def test_the_tuning_chapters_python_example_runs(root, tmp_path, monkeypatch, ca
     printed = capsys.readouterr().out
     assert "q[vx,vx]" in printed.lower() and "[model]" in printed
     assert list(tmp_path.iterdir()) == []
+
+
+def test_truth_equals_the_command(tmp_path, kfmc_bin):
+    spec = kfmc.examples()["tune_truth_cv"]
+    _cli(kfmc_bin, "tune", str(spec), "--quiet", "--out", str(tmp_path / "cli"))
+    result = kfmc.tune(spec, quiet=True, out=tmp_path / "py")
+    assert result.method == "truth"
+    _frames_equal(result.table, pl.read_parquet(tmp_path / "cli" / "tuned.parquet"))
+    _frames_equal(result.trace, pl.read_parquet(tmp_path / "cli" / "tune_trace.parquet"))
+    assert result.tuned_toml == (tmp_path / "cli" / "tuned.toml").read_text()
+    d = result.details
+    assert d["converged"] is True and d["not_identified"] == []
+    # At the estimate every condition holds (one equation per element, solved to its root).
+    assert set(d["conditions"]) == set(result.table["element"])
+    assert max(abs(g) for g in d["conditions"].values()) < 1e-6
+    with pytest.raises(kfmc.SpecError, match="truth method takes"):
+        kfmc.tune(spec, objective="rmse", quiet=True)
+    with pytest.raises(kfmc.SpecError, match="do not belong to the truth method"):
+        kfmc.tune(spec, tune_r=True, quiet=True)
