@@ -58,6 +58,7 @@ def run(
     force: bool = False,
     allow_large: bool = False,
     checkpoint_every: float = 10.0,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def simulate(
     spec: _Spec,
@@ -69,6 +70,7 @@ def simulate(
     quiet: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def score(
     simulation: _Path,
@@ -100,6 +102,7 @@ def check(
     spending: Optional[str] = None,
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def power(
     spec: _Spec,
@@ -119,6 +122,7 @@ def power(
     futility_rho: Optional[float] = None,
     target_power: Optional[float] = None,
     against: Optional[str] = None,
+    lanes: Optional[str] = None,
 ) -> Tuple["os.PathLike[str]", Optional[str]]: ...
 def describe(spec: _Spec) -> Dict[str, Any]: ...
 def schema(kind: str, spec: _Spec) -> Dict[str, Any]: ...
