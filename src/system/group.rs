@@ -3,11 +3,11 @@
 //! A Kalman filter on a linear model has a covariance recursion (P, S, K) that does not depend
 //! on the run: not on the estimate, not on the measurements' values, only on P_0 and on which
 //! components report at each step. When every run of a group starts from the same P_0 and
-//! sees the same sensor schedule, [`GroupedEkf`] computes that recursion once for the group
-//! and runs only the estimate recursion per run ([`run_group_shared`]), through the same step loop with the same
-//! operations in the same order on each run's estimate (the gain's functions are the scalar
-//! update's own, [`Ekf::gain`] and [`Ekf::update_covariance`]), so every value is the scalar
-//! path's, bit for bit. A group that does not qualify (a nonlinear model, different P_0 or
+//! sees the same sensor schedule, [`run_group_shared`] computes that recursion once for the
+//! group and runs only the estimate recursion per run, through the same step loop with the
+//! same operations in the same order on each run's estimate (the gain's functions are the
+//! scalar update's own, [`Ekf::gain`] and [`Ekf::update_covariance`]), so every value is the
+//! scalar path's, bit for bit. A group that does not qualify (a nonlinear model, different P_0 or
 //! schedules, a covariance the step loop would have to repair) runs one run at a time.
 
 use crate::filter::ekf::{Ekf, Gaussian, UpdateGain};

@@ -153,12 +153,10 @@ fn group(steps: usize) -> Group {
             z: Vector::<3>::zeros(),
             available: Availability::all(3),
         }];
-        for k in 1..=steps {
-            x = model.propagate(&x, &inputs[k])
-                + Vector::<6>::from_fn(|i, _| 0.01 * wobble(r, k, i));
+        for (k, u) in inputs.iter().enumerate().skip(1) {
+            x = model.propagate(&x, u) + Vector::<6>::from_fn(|i, _| 0.01 * wobble(r, k, i));
             xs.push(x);
-            let mut z =
-                model.measure(&x, &inputs[k]) + Vector::<3>::from_fn(|i, _| wobble(r, k, i + 6));
+            let mut z = model.measure(&x, u) + Vector::<3>::from_fn(|i, _| wobble(r, k, i + 6));
             if r == 2 && k == 40 {
                 z[1] = f64::NAN;
             }
@@ -308,7 +306,9 @@ fn the_flag_wins_over_kfmc_lanes_which_wins_over_auto_and_the_manifest_records_t
     let dir = tempfile::tempdir().unwrap();
     let spec = repo().join("experiments/linear_nees.toml");
     let detected = Isa::detect();
-    let cases: [(Option<&str>, Option<&str>, (usize, Isa)); 4] = [
+    // (KFMC_LANES, --lanes, the lanes and ISA the manifest must record)
+    type Case<'a> = (Option<&'a str>, Option<&'a str>, (usize, Isa));
+    let cases: [Case<'_>; 4] = [
         (None, None, (detected.width(), detected)),
         (Some("off"), None, (1, Isa::Scalar)),
         (Some("off"), Some("auto"), (detected.width(), detected)),
