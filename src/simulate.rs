@@ -16,7 +16,7 @@ use crate::experiment::Plan;
 use crate::output::folder::StudyFolder;
 use crate::output::manifest::{ExchangeEntry, ExternalFilterEntry, StudyKind};
 use crate::output::{TableWriter, Value, schema};
-use crate::runner::{RunObserver, execute_windowed, window_for};
+use crate::runner::{RunObserver, execute_groups, window_for};
 use crate::study::{ExecOptions, StudyReport};
 use crate::trial::Unit;
 
@@ -135,11 +135,12 @@ pub fn simulate(
     };
     let first_unit = cells.start * n_runs;
     // Every run keeps its trajectory: the window holds as many as fit its bytes.
-    execute_windowed::<_, KfmcError>(
+    execute_groups::<_, KfmcError>(
         (cells.end - cells.start) * n_runs,
         opts.threads,
         window_for(crate::study::trajectory_bytes(&world_only), opts.threads),
-        |i| trial.run(&unit_of(first_unit + i)),
+        (n_runs, trial.lanes()),
+        |g| crate::study::run_group(trial.as_ref(), g, first_unit, &unit_of),
         observer,
         |r| {
             let u = r.unit;

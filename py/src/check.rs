@@ -14,7 +14,7 @@ use crate::study::{clamp_threads, gate_override_error, gate_overrides};
 
 /// `kfmc check`: returns (exit code, report text, JUnit XML, cases, folder).
 #[pyfunction]
-#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None, truth=None))]
+#[pyo3(signature = (spec, paths, streams, *, out=None, runs=None, seed=None, threads=None, quiet=false, replications=None, allow_unstamped=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None, truth=None, lanes=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -39,10 +39,12 @@ pub(crate) fn check<'py>(
     futility: Option<f64>,
     futility_rho: Option<f64>,
     truth: Option<Bound<'py, PyAny>>,
+    lanes: Option<&str>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let overrides = gate_overrides(sequential, looks, spending, futility, futility_rho)?;
         let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        plan.lanes = crate::study::lanes_mode(lanes)?;
         // As `kfmc check --sequential …`: the keywords over the spec's `[check]` keys; whether
         // they make a gate for the study's runs is judged with the spec (a SpecError naming
         // the `check.*` key).

@@ -77,9 +77,20 @@ pub(crate) fn validate<'py>(
     })
 }
 
+/// The lanes mode of a Python call: `lanes=` when given (`"auto"` or `"off"`), else
+/// `KFMC_LANES`, else auto (`kfmc run --lanes`); a `ValueError` naming what is wrong.
+pub(crate) fn lanes_mode(lanes: Option<&str>) -> PyResult<kfmc::runner::lanes::LanesMode> {
+    use kfmc::runner::lanes::LanesMode;
+    let flag = lanes
+        .map(LanesMode::parse)
+        .transpose()
+        .map_err(|e| PyValueError::new_err(format!("lanes: {e}")))?;
+    LanesMode::resolve(flag).map_err(PyValueError::new_err)
+}
+
 /// `kfmc run`: returns the report as a dict (folder, runs, wall_s, cells_resumed, tables).
 #[pyfunction]
-#[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, resume=false, force=false, allow_large=false, checkpoint_every=10.0))]
+#[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, resume=false, force=false, allow_large=false, checkpoint_every=10.0, lanes=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -96,6 +107,7 @@ pub(crate) fn run<'py>(
     force: bool,
     allow_large: bool,
     checkpoint_every: f64,
+    lanes: Option<&str>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let every = Duration::try_from_secs_f64(checkpoint_every).map_err(|_| {
@@ -103,7 +115,8 @@ pub(crate) fn run<'py>(
                 "checkpoint_every: {checkpoint_every} is not a number of seconds ≥ 0"
             ))
         })?;
-        let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        plan.lanes = lanes_mode(lanes)?;
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
             force,
@@ -130,7 +143,7 @@ pub(crate) fn run<'py>(
 
 /// `kfmc simulate`: returns the report as a dict.
 #[pyfunction]
-#[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
+#[pyo3(signature = (spec, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, lanes=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -145,9 +158,11 @@ pub(crate) fn simulate<'py>(
     quiet: bool,
     force: bool,
     allow_large: bool,
+    lanes: Option<&str>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
-        let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        plan.lanes = lanes_mode(lanes)?;
         let exec = kfmc::study::ExecOptions {
             threads: clamp_threads(threads.unwrap_or(0)),
             force,
@@ -165,7 +180,7 @@ pub(crate) fn simulate<'py>(
 /// `kfmc power`: returns the folder holding power.parquet and, with `target_power` and
 /// `against`, the runs-needed text `kfmc power --target-power` prints.
 #[pyfunction]
-#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None, target_power=None, against=None))]
+#[pyo3(signature = (spec, replications, *, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, sequential=false, looks=None, spending=None, futility=None, futility_rho=None, target_power=None, against=None, lanes=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -188,6 +203,7 @@ pub(crate) fn power(
     futility_rho: Option<f64>,
     target_power: Option<f64>,
     against: Option<&str>,
+    lanes: Option<&str>,
 ) -> PyResult<(PathBuf, Option<String>)> {
     guarded(|| {
         let target = match (target_power, against) {
@@ -212,7 +228,8 @@ pub(crate) fn power(
         let settings = gate_overrides(sequential, looks, spending, futility, futility_rho)?
             .apply(None)
             .map_err(gate_override_error)?;
-        let (plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
+        let (mut plan, path) = prepared(spec, None, runs, seed, allow_large, Some(0))?;
+        plan.lanes = lanes_mode(lanes)?;
         let gate = settings
             .map(|s| s.gate(plan.runs, plan.alpha))
             .transpose()

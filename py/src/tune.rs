@@ -16,7 +16,7 @@ use crate::study::clamp_threads;
 /// `kfmc tune`: tunes the spec's filter and returns what the command prints, as a dict
 /// (`method`, `folder`, and the method's own keys); the tables are in `folder`.
 #[pyfunction]
-#[pyo3(signature = (spec, *, method=None, elements=None, measurements=None, objective="consistency", tune_r=false, filter=None, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false))]
+#[pyo3(signature = (spec, *, method=None, elements=None, measurements=None, objective="consistency", tune_r=false, filter=None, out=None, runs=None, seed=None, threads=None, quiet=false, force=false, allow_large=false, lanes=None))]
 #[allow(
     clippy::too_many_arguments,
     reason = "each argument is one of the Python function's keyword arguments, its public API"
@@ -37,6 +37,7 @@ pub(crate) fn tune<'py>(
     quiet: bool,
     force: bool,
     allow_large: bool,
+    lanes: Option<&str>,
 ) -> PyResult<Bound<'py, PyDict>> {
     guarded(|| {
         let method = method
@@ -47,7 +48,8 @@ pub(crate) fn tune<'py>(
                 "objective={objective:?}: not an objective (\"consistency\" or \"rmse\" for the consistency method, \"consistency\" or \"mse\" for truth)"
             )));
         }
-        let (plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        let (mut plan, path) = prepared(spec, out, runs, seed, allow_large, None)?;
+        plan.lanes = crate::study::lanes_mode(lanes)?;
         // As the command: the keyword, else the spec's `tune.method`, else `consistency`.
         let method = method
             .or_else(|| plan.tune.as_ref().and_then(|t| t.method))

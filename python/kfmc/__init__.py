@@ -798,6 +798,7 @@ def run(
     force: bool = False,
     allow_large: bool = False,
     checkpoint_every: float = 10.0,
+    lanes: Optional[str] = None,
 ) -> Study:
     """Runs a Monte Carlo study (``kfmc run``) and returns its folder.
 
@@ -809,6 +810,8 @@ def run(
     ``force=True`` discards a checkpoint instead, and writes into a non-empty folder that is
     not a kfmc study. A checkpoint follows a complete cell once ``checkpoint_every`` seconds
     have passed since the last (0: after every cell). ``allow_large`` lifts the size limits.
+    ``lanes`` is ``"auto"`` (runs of a cell in groups) or ``"off"`` (one at a time); without
+    it ``KFMC_LANES`` decides, else auto. It does not change any result (``kfmc run --lanes``).
     """
     folder, scratch = _out(out, resume)
     r = _pythonic(
@@ -823,6 +826,7 @@ def run(
             force=force,
             allow_large=allow_large,
             checkpoint_every=checkpoint_every,
+            lanes=lanes,
         )
     )
     return Study(r["folder"], r, _scratch=scratch)
@@ -838,10 +842,12 @@ def simulate(
     quiet: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    lanes: Optional[str] = None,
 ) -> Simulation:
     """Writes every run's world (``kfmc simulate``): truth, measurements and priors for a
     filter outside kfmc, the same runs ``kfmc run`` gives its own filters. Without ``out``
-    they go to a temporary folder that lives as long as the returned :class:`Simulation`."""
+    they go to a temporary folder that lives as long as the returned :class:`Simulation`.
+    ``lanes`` is as in :func:`run`."""
     folder, scratch = _out(out)
     r = _pythonic(
         lambda: _kfmc.simulate(
@@ -853,6 +859,7 @@ def simulate(
             quiet=quiet,
             force=force,
             allow_large=allow_large,
+            lanes=lanes,
         )
     )
     return Simulation(r["folder"], r, _scratch=scratch)
@@ -1061,6 +1068,7 @@ def check(
     futility_rho: Optional[float] = None,
     futility_beta: Optional[float] = None,
     truth: Any = None,
+    lanes: Optional[str] = None,
 ) -> CheckResult:
     """Runs the study and evaluates its ``[check]`` assertions (``kfmc check``). A failing
     or incomplete gate is a result (``.ok`` false, ``.exit_code`` 3 or 4), not an exception:
@@ -1081,7 +1089,7 @@ def check(
     ``futility_rho`` (their β-spending exponent, default 2) are ``--looks``, ``--spending``,
     ``--futility`` and ``--futility-rho``: each given one wins over the spec's key. A setting
     without the gate, or settings that make no gate for the study's runs, raise
-    :class:`SpecError` (the command's exit 2).
+    :class:`SpecError` (the command's exit 2). ``lanes`` is as in :func:`run`.
 
     With ``truth`` (a Parquet file's path or a DataFrame, as for :func:`score`) the spec is
     one of ``model.kind = "recorded"`` and the runs are the user's own (``kfmc check
@@ -1125,6 +1133,7 @@ def check(
             futility=beta,
             futility_rho=futility_rho,
             truth=truth_table,
+            lanes=lanes,
         )
     )
     return CheckResult(r, scratch)
@@ -1156,6 +1165,7 @@ def power(
     futility_beta: Optional[float] = None,
     target_power: Optional[float] = None,
     against: Optional[str] = None,
+    lanes: Optional[str] = None,
 ) -> pl.DataFrame:
     """Runs the study ``replications`` times with independent seeds (``kfmc power``) and
     returns power.parquet: per (cell, filter variant, test) the rejection rate with its 95 %
@@ -1174,7 +1184,8 @@ def power(
     --target-power P --against …``) every test is also evaluated on the first N/10, 2N/10, …
     runs of each cell (rows with those ``runs``), and unless ``quiet`` the smallest N whose
     verdict reaches power P against that variant is printed, as the command prints it. A
-    variant no filter of the spec has raises :class:`SpecError` before any run."""
+    variant no filter of the spec has raises :class:`SpecError` before any run. ``lanes`` is
+    as in :func:`run`."""
     beta = _futility(futility, futility_beta)
     target, scratch = _out(out)
     folder, answer = _pythonic(
@@ -1195,6 +1206,7 @@ def power(
             futility_rho=futility_rho,
             target_power=target_power,
             against=against,
+            lanes=lanes,
         )
     )
     if answer is not None and not quiet:
@@ -1276,6 +1288,7 @@ def tune(
     quiet: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    lanes: Optional[str] = None,
 ) -> TuneResult:
     """Tunes a filter's noise covariances (``kfmc tune``) → :class:`TuneResult`.
 
@@ -1299,7 +1312,8 @@ def tune(
 
     Tables go to ``out``, or without it to a temporary folder that lives as long as the
     returned object. ``runs`` and ``seed`` override the spec's; ``force=True`` writes into a
-    non-empty folder that is not a kfmc study. Invalid settings raise :class:`SpecError`.
+    non-empty folder that is not a kfmc study; ``lanes`` is as in :func:`run`. Invalid settings
+    raise :class:`SpecError`.
     """
     folder, scratch = _out(out)
     details = _pythonic(
@@ -1318,6 +1332,7 @@ def tune(
             quiet=quiet,
             force=force,
             allow_large=allow_large,
+            lanes=lanes,
         )
     )
     return TuneResult(details, _scratch=scratch)

@@ -60,6 +60,7 @@ def run(
     force: bool = False,
     allow_large: bool = False,
     checkpoint_every: float = 10.0,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def simulate(
     spec: _Spec,
@@ -71,6 +72,7 @@ def simulate(
     quiet: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def score(
     simulation: _Path,
@@ -103,6 +105,7 @@ def check(
     futility: Optional[float] = None,
     futility_rho: Optional[float] = None,
     truth: Any = None,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def stamp(spec: _Spec, truth: Any, files: Sequence[_Path]) -> Dict[str, str]: ...
 def power(
@@ -123,6 +126,7 @@ def power(
     futility_rho: Optional[float] = None,
     target_power: Optional[float] = None,
     against: Optional[str] = None,
+    lanes: Optional[str] = None,
 ) -> Tuple["os.PathLike[str]", Optional[str]]: ...
 def tune(
     spec: _Spec,
@@ -140,6 +144,7 @@ def tune(
     quiet: bool = False,
     force: bool = False,
     allow_large: bool = False,
+    lanes: Optional[str] = None,
 ) -> Dict[str, Any]: ...
 def describe(spec: _Spec) -> Dict[str, Any]: ...
 def schema(kind: str, spec: _Spec) -> Dict[str, Any]: ...

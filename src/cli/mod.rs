@@ -21,6 +21,7 @@ use clap::{Parser, Subcommand};
 use crate::error::KfmcError;
 use crate::experiment::{self, Overrides, Plan};
 use crate::plot::{FigureKind, Format, PlotOptions};
+use crate::runner::lanes::LanesMode;
 use crate::system::{Program, Registry};
 use progress::ProgressObserver;
 
@@ -94,11 +95,34 @@ pub struct StudyArgs {
     /// Run a plan above the documented memory, disk or step limits.
     #[arg(long)]
     pub allow_large: bool,
+    /// Runs of a cell in groups (`auto`, the default unless `KFMC_LANES` says otherwise) or
+    /// one at a time (`off`, the per-unit scalar path). Results do not depend on it.
+    #[arg(long, value_parser = lanes_mode, value_name = "auto|off")]
+    pub lanes: Option<LanesMode>,
+}
+
+/// clap's value parser for `--lanes`.
+fn lanes_mode(text: &str) -> Result<LanesMode, String> {
+    LanesMode::parse(text)
+}
+
+/// The lanes mode of a command: `--lanes` when given, else `KFMC_LANES` (a usage error
+/// naming the variable when it holds anything but `auto` or `off`), else auto.
+pub(crate) fn lanes(flag: Option<LanesMode>) -> Result<LanesMode, UsageError> {
+    LanesMode::resolve(flag).map_err(|message| usage(crate::runner::lanes::ENV, message))
 }
 
 impl StudyArgs {
     /// Loads and validates the spec and applies the overrides.
-    fn plan(&self, registry: &Registry, trace_runs: Option<usize>) -> Result<Plan, KfmcError> {
+    fn plan(&self, registry: &Registry, trace_runs: Option<usize>) -> anyhow::Result<Plan> {
+        let lanes = lanes(self.lanes)?;
+        let mut plan = self.load(registry, trace_runs)?;
+        plan.lanes = lanes;
+        Ok(plan)
+    }
+
+    /// [`StudyArgs::plan`] before the lanes mode is applied.
+    fn load(&self, registry: &Registry, trace_runs: Option<usize>) -> Result<Plan, KfmcError> {
         let mut plan = experiment::load_with(&self.spec, registry)?;
         plan.apply(&Overrides {
             runs: self.runs,

@@ -34,6 +34,9 @@ pub struct Score {
     /// a folder that holds another command's result.
     #[arg(long)]
     pub force: bool,
+    /// Runs of a cell in groups (`auto`) or one at a time (`off`); see `kfmc run --lanes`.
+    #[arg(long, value_parser = super::lanes_mode, value_name = "auto|off")]
+    pub lanes: Option<crate::runner::lanes::LanesMode>,
 }
 
 impl Score {
@@ -48,7 +51,9 @@ impl Score {
             threads,
             quiet,
             force,
+            lanes,
         } = self;
+        let lanes = super::lanes(lanes)?;
         let (mut plan, against) = match (dir, truth, spec) {
             (_, Some(truth), Some(spec)) => {
                 let plan = crate::check::recorded_plan(&spec, &truth, out, registry)
@@ -68,6 +73,7 @@ impl Score {
         };
         let dir = against;
         attach_estimates(&mut plan, &estimates, Unstamped::Warn)?;
+        plan.lanes = lanes;
         let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
         let observer = ProgressObserver::new(!quiet);
         let report = crate::study::run(

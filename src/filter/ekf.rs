@@ -107,6 +107,125 @@ fn check_finite<const NX: usize>(b: &Gaussian<NX>) -> Result<(), FilterError> {
     Ok(())
 }
 
+/// What a measurement update computes from P⁻ alone (with H and R): S, its factor, the gain K
+/// and what the covariance update reads. For a linear model it does not depend on the
+/// estimate, so a group of runs with one P can share it ([`Ekf::gain`]).
+#[derive(Clone, Debug)]
+pub struct UpdateGain<const NX: usize, const NZ: usize> {
+    /// K = P⁻ Hᵀ S⁻¹.
+    pub k: Matrix<NX, NZ>,
+    /// The factor of S.
+    pub chol: SmallCholesky<NZ>,
+    /// S = H P⁻ Hᵀ + R (masked rows and columns the identity).
+    pub s: Matrix<NZ, NZ>,
+    hp: Matrix<NZ, NX>,
+    selection: Option<[usize; NZ]>,
+    /// H and the masked R when the dense path is taken.
+    dense: Option<(Matrix<NZ, NX>, Matrix<NZ, NZ>)>,
+}
+
+impl<const NX: usize, const NZ: usize> UpdateGain<NX, NZ> {
+    /// Zeroes the components of ν that did not report, as the update does before forming
+    /// K ν (the dense path masks ν with H and R; the selection path has every component).
+    #[inline]
+    pub fn mask_residual(&self, available: crate::model::Availability, nu: &mut Vector<NZ>) {
+        if self.dense.is_some() && available != crate::model::Availability::all(NZ) {
+            for i in 0..NZ {
+                if !available.has(i) {
+                    nu[i] = 0.0;
+                }
+            }
+        }
+    }
+}
+
+impl<const NX: usize, const NZ: usize> Ekf<NX, NZ> {
+    /// S, its factor and K at the belief's P⁻ for a measurement over `available` (H at the
+    /// belief's estimate), masking ν's missing components as it goes; the error when S is
+    /// not positive definite.
+    #[inline]
+    pub fn gain<const NU: usize, M: Model<NX, NU, NZ>>(
+        &self,
+        model: &M,
+        b: &Gaussian<NX>,
+        u: &Vector<NU>,
+        available: crate::model::Availability,
+        nu: &mut Vector<NZ>,
+    ) -> Result<UpdateGain<NX, NZ>, FilterError> {
+        // A selection H with every component reporting: H P⁻ is rows of P⁻ and (I − K H) P⁻
+        // is formed over its non-zero entries, the dense results at a fraction of the cost.
+        // Missing components (masked rows) take the dense path.
+        let selection = model
+            .measurement_selection()
+            .filter(|_| available == crate::model::Availability::all(NZ));
+        // `dense` holds H and the masked R when the dense path is taken.
+        let (hp, s, dense) = match &selection {
+            Some(sel) => {
+                let hp = select_rows(sel, &b.p);
+                let s = Matrix::<NZ, NZ>::from_fn(|i, j| hp[(i, sel[j])]) + self.r;
+                (hp, s, None)
+            }
+            None => {
+                let mut h = model.measurement_jacobian(&b.x, u);
+                let r = super::mask_rows(&self.r, available, &mut h, nu);
+                let hp = h * b.p;
+                (hp, hp * h.transpose() + r, Some((h, r)))
+            }
+        };
+        let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
+            which: "innovation covariance S",
+        })?;
+        // Kᵀ = S⁻¹ H P⁻ because S and P⁻ are symmetric.
+        let k = chol.solve(&hp).transpose();
+        Ok(UpdateGain {
+            k,
+            chol,
+            s,
+            hp,
+            selection,
+            dense,
+        })
+    }
+
+    /// The covariance half of an update with `gain` (formed at this belief's P⁻): P and what
+    /// the error transition reads. The estimate is left alone.
+    #[inline]
+    pub fn update_covariance(&self, b: &mut Gaussian<NX>, gain: &UpdateGain<NX, NZ>) {
+        let k = &gain.k;
+        match (&gain.selection, &gain.dense) {
+            // K fits in `i_kh` when NZ ≤ NX; Joseph's form reads I − K H at once.
+            (Some(sel), _) if NZ <= NX && self.update_form == CovarianceUpdate::Standard => {
+                for l in 0..NZ {
+                    b.i_kh.column_mut(l).copy_from(&k.column(l));
+                }
+                let mut padded = [0; NX];
+                padded[..NZ].copy_from_slice(sel);
+                b.gain = Gain::Selected { sel: padded };
+            }
+            (Some(sel), _) => {
+                select_i_kh(k, sel, &mut b.i_kh);
+                b.gain = Gain::Formed;
+            }
+            (None, Some((h, _))) => {
+                b.i_kh = Matrix::<NX, NX>::identity() - k * h;
+                b.gain = Gain::Formed;
+            }
+            (None, None) => unreachable!("the dense path keeps its H"),
+        }
+        match self.update_form {
+            // (I − K H) P⁻ as P⁻ − K (H P⁻): H P⁻ is at hand (the selected rows, or the dense
+            // product), so the update is one NX×NZ by NZ×NX product instead of an NX×NX one,
+            // and the selection and dense paths give the same bits.
+            CovarianceUpdate::Standard => subtract_product(&mut b.p, k, &gain.hp),
+            CovarianceUpdate::Joseph => {
+                let r = gain.dense.as_ref().map_or(self.r, |(_, r)| *r);
+                b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();
+                mirror_lower(&mut b.p);
+            }
+        }
+    }
+}
+
 impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Filter<NX, NU, NZ, M>
     for Ekf<NX, NZ>
 {
@@ -150,67 +269,13 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
             return Ok(None);
         }
         let mut nu = model.residual(&z.z, &model.measure(&b.x, u));
-        // A selection H with every component reporting: H P⁻ is rows of P⁻ and (I − K H) P⁻
-        // is formed over its non-zero entries, the dense results at a fraction of the cost.
-        // Missing components (masked rows) take the dense path.
-        let selection = model
-            .measurement_selection()
-            .filter(|_| z.available == crate::model::Availability::all(NZ));
-        // `dense` holds H and the masked R when the dense path is taken.
-        let (hp, s, dense) = match &selection {
-            Some(sel) => {
-                let hp = select_rows(sel, &b.p);
-                let s = Matrix::<NZ, NZ>::from_fn(|i, j| hp[(i, sel[j])]) + self.r;
-                (hp, s, None)
-            }
-            None => {
-                let mut h = model.measurement_jacobian(&b.x, u);
-                let r = super::mask_rows(&self.r, z.available, &mut h, &mut nu);
-                let hp = h * b.p;
-                (hp, hp * h.transpose() + r, Some((h, r)))
-            }
-        };
-        let chol = SmallCholesky::new(&s).ok_or(FilterError::NotPositiveDefinite {
-            which: "innovation covariance S",
-        })?;
-        // Kᵀ = S⁻¹ H P⁻ because S and P⁻ are symmetric.
-        let k = chol.solve(&hp).transpose();
-        let whitened = chol.solve_lower(&nu);
-        b.x += k * nu;
-        match (&selection, &dense) {
-            // K fits in `i_kh` when NZ ≤ NX; Joseph's form reads I − K H at once.
-            (Some(sel), _) if NZ <= NX && self.update_form == CovarianceUpdate::Standard => {
-                for l in 0..NZ {
-                    b.i_kh.column_mut(l).copy_from(&k.column(l));
-                }
-                let mut padded = [0; NX];
-                padded[..NZ].copy_from_slice(sel);
-                b.gain = Gain::Selected { sel: padded };
-            }
-            (Some(sel), _) => {
-                select_i_kh(&k, sel, &mut b.i_kh);
-                b.gain = Gain::Formed;
-            }
-            (None, Some((h, _))) => {
-                b.i_kh = Matrix::<NX, NX>::identity() - k * h;
-                b.gain = Gain::Formed;
-            }
-            (None, None) => unreachable!("the dense path keeps its H"),
-        }
-        match self.update_form {
-            // (I − K H) P⁻ as P⁻ − K (H P⁻): H P⁻ is at hand (the selected rows, or the dense
-            // product), so the update is one NX×NZ by NZ×NX product instead of an NX×NX one,
-            // and the selection and dense paths give the same bits.
-            CovarianceUpdate::Standard => subtract_product(&mut b.p, &k, &hp),
-            CovarianceUpdate::Joseph => {
-                let r = dense.map_or(self.r, |(_, r)| r);
-                b.p = b.i_kh * b.p * b.i_kh.transpose() + k * r * k.transpose();
-                mirror_lower(&mut b.p);
-            }
-        }
+        let gain = self.gain(model, b, u, z.available, &mut nu)?;
+        let whitened = gain.chol.solve_lower(&nu);
+        b.x += gain.k * nu;
+        self.update_covariance(b, &gain);
         check_finite(b)?;
         Ok(Some(
-            Innovation::new(nu, whitened, z.available).with_covariance(s),
+            Innovation::new(nu, whitened, z.available).with_covariance(gain.s),
         ))
     }
 
@@ -243,6 +308,10 @@ impl<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX, NU, NZ>> Fi
 
     fn repair_covariance(&self, b: &mut Gaussian<NX>) -> bool {
         super::repair_spd(&mut b.p).is_some()
+    }
+
+    fn as_kalman(&self) -> Option<&Ekf<NX, NZ>> {
+        Some(self)
     }
 }
 

@@ -212,6 +212,13 @@ pub trait Filter<const NX: usize, const NU: usize, const NZ: usize, M: Model<NX,
     fn internal_repairs(&self, _belief: &Self::Belief) -> u32 {
         0
     }
+
+    /// The covariance-form Kalman filter this filter is, if it is one: on a linear model a
+    /// group of runs of one cell then computes its covariance recursion once and runs only
+    /// the estimates per run, with the same bits. `None` (the default) for every other filter.
+    fn as_kalman(&self) -> Option<&Ekf<NX, NZ>> {
+        None
+    }
 }
 
 /// The covariance repair every filter shares: symmetrise, then add the smallest jitter

@@ -283,6 +283,14 @@ pub struct Manifest {
     pub filter_steps: u64,
     /// Worker threads (results do not depend on it).
     pub threads: u64,
+    /// Runs per group handed to the trials (`--lanes`; 1 when off). Results do not depend on
+    /// it. Absent in manifests written before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lanes: Option<u64>,
+    /// The vector instruction set detected at run time (`avx512`, `avx2`, `sse2`, `neon`, or
+    /// `scalar` when lanes are off). Results do not depend on it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub isa: Option<String>,
     /// Unix time the run started.
     pub started_unix_s: u64,
     /// Wall-clock duration.

@@ -5,6 +5,8 @@
 //! in a fixed order, the output is bit-identical for any thread count, while only one window
 //! of results is in memory at a time.
 
+pub mod lanes;
+
 use rayon::prelude::*;
 
 use crate::error::KfmcError;
@@ -257,6 +259,26 @@ impl<'o> Executor<'o> {
         &self,
         units: std::ops::Range<usize>,
         work: impl Fn(usize) -> R + Sync,
+        sink: impl FnMut(R) -> Result<(), E> + Send,
+    ) -> Result<(), E>
+    where
+        R: Send,
+        E: From<KfmcError> + Send,
+    {
+        self.run_groups(units, 1, 1, |g| g.map(&work).collect(), sink)
+    }
+
+    /// [`Executor::run`] in groups: `work(g)` runs the units of group `g` (up to `width`
+    /// consecutive runs of one cell, [`lanes::groups`], for `runs` runs per cell) and returns
+    /// one result per unit, in order. A group never crosses a window, so a checkpoint or a
+    /// shard boundary (always at a cell) never splits one; the sink still sees every unit's
+    /// result in index order.
+    pub fn run_groups<R, E>(
+        &self,
+        units: std::ops::Range<usize>,
+        runs: usize,
+        width: usize,
+        work: impl Fn(std::ops::Range<usize>) -> Vec<R> + Sync,
         mut sink: impl FnMut(R) -> Result<(), E> + Send,
     ) -> Result<(), E>
     where
@@ -267,11 +289,11 @@ impl<'o> Executor<'o> {
         let failed = std::sync::atomic::AtomicBool::new(false);
         std::thread::scope(|scope| {
             // One window in flight towards the sink bounds memory at two windows.
-            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<R>>(1);
+            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Vec<R>>>(1);
             let failed = &failed;
             let consumer = scope.spawn(move || {
                 for window in rx {
-                    for r in window {
+                    for r in window.into_iter().flatten() {
                         if let Err(e) = sink(r) {
                             failed.store(true, std::sync::atomic::Ordering::Relaxed);
                             return Err(e);
@@ -290,12 +312,15 @@ impl<'o> Executor<'o> {
                     break;
                 }
                 let window = start..(start + window_units).min(units.end);
-                let results: Vec<R> = pool.install(|| {
-                    window
+                let groups: Vec<_> = lanes::groups(window, runs, width).collect();
+                let results: Vec<Vec<R>> = pool.install(|| {
+                    groups
                         .into_par_iter()
-                        .map(|u| {
-                            let r = work(u);
-                            observer.on_units_done(1);
+                        .map(|g| {
+                            let n = g.len();
+                            let r = work(g);
+                            debug_assert_eq!(r.len(), n, "one result per unit of a group");
+                            observer.on_units_done(n as u64);
                             r
                         })
                         .collect()
@@ -316,6 +341,27 @@ impl<'o> Executor<'o> {
             }
         })
     }
+}
+
+/// [`execute_windowed`] in groups ([`Executor::run_groups`]): `work(g)` returns one result
+/// per unit of group `g`.
+pub fn execute_groups<R, E>(
+    units: usize,
+    threads: usize,
+    window: usize,
+    (runs, width): (usize, usize),
+    work: impl Fn(std::ops::Range<usize>) -> Vec<R> + Sync,
+    observer: &dyn RunObserver,
+    sink: impl FnMut(R) -> Result<(), E> + Send,
+) -> Result<(), E>
+where
+    R: Send,
+    E: From<KfmcError> + Send,
+{
+    let executor = Executor::new(threads, window, observer, units as u64)?;
+    let result = executor.run_groups(0..units, runs, width, work, sink);
+    executor.finish();
+    result
 }
 
 /// The number of worker threads `threads = 0` resolves to.
@@ -373,6 +419,30 @@ mod tests {
             .unwrap();
             assert_eq!(seen, units.iter().map(|u| u * 3).collect::<Vec<_>>());
         }
+    }
+
+    #[test]
+    fn groups_reach_the_sink_in_unit_order_and_never_cross_a_cell() {
+        let mut seen = Vec::new();
+        execute_groups::<_, KfmcError>(
+            50,
+            2,
+            16,
+            (7, 4),
+            |g| {
+                // Every unit of a group is of one cell (7 runs per cell).
+                assert!(g.clone().all(|u| u / 7 == g.start / 7), "{g:?}");
+                assert!(g.len() <= 4);
+                g.map(|u| u * 3).collect()
+            },
+            &NullObserver,
+            |r| {
+                seen.push(r);
+                Ok(())
+            },
+        )
+        .unwrap();
+        assert_eq!(seen, (0..50).map(|u| u * 3).collect::<Vec<_>>());
     }
 
     /// Cancels its token once `after` units are done.

@@ -60,6 +60,8 @@ pub(crate) fn manifest_for(
         filter_runs: size.filter_runs as u64,
         filter_steps: size.filter_steps,
         threads: threads as u64,
+        lanes: Some(plan.lanes.width() as u64),
+        isa: Some(plan.lanes.isa().name().to_string()),
         started_unix_s,
         wall_s,
         runs_per_s: size.runs as f64 / wall_s.max(1e-9),

@@ -30,8 +30,8 @@ use crate::metrics::blocks::QuantityBlock;
 use crate::metrics::consistency::BandCache;
 use crate::output::folder::StudyFolder;
 use crate::output::{TableWriter, Value, schema};
-use crate::runner::{Executor, RunObserver, execute_windowed, window_for};
-use crate::trial::{Trial, Unit};
+use crate::runner::{Executor, RunObserver, execute_groups, window_for};
+use crate::trial::{Trial, Unit, UnitResult};
 
 use fold::{Aggregator, EstimatesTable, SequentialState};
 use resources::window_unit_bytes;
@@ -414,14 +414,29 @@ fn execute(
         executor.finish();
         return result;
     }
-    execute_windowed::<_, KfmcError>(
+    execute_groups::<_, KfmcError>(
         cells.len() * n_runs,
         opts.threads,
         window,
-        |i| trial.run(&unit_of(first_unit + i)),
+        (n_runs, trial.lanes()),
+        |g| run_group(trial, g, first_unit, &unit_of),
         observer,
         |r| agg.fold(r).map_err(KfmcError::from),
     )
+}
+
+/// Runs the units `first + g` as one group on `trial` ([`Trial::run_group`]).
+pub(crate) fn run_group(
+    trial: &dyn Trial,
+    g: std::ops::Range<usize>,
+    first: usize,
+    unit_of: &(dyn Fn(usize) -> Unit + Sync),
+) -> Vec<UnitResult> {
+    if g.len() == 1 {
+        return vec![trial.run(&unit_of(first + g.start))];
+    }
+    let units: Vec<Unit> = g.map(|i| unit_of(first + i)).collect();
+    trial.run_group(&units)
 }
 
 /// [`execute`] under a sequential gate: each cell's runs in batches up to the gate's looks,
@@ -442,9 +457,11 @@ fn execute_looks(
         let first_unit = cell * n_runs;
         let mut done = 0;
         for (k, &look) in gate.looks.iter().enumerate() {
-            executor.run::<_, KfmcError>(
+            executor.run_groups::<_, KfmcError>(
                 first_unit + done..first_unit + look,
-                |i| trial.run(&unit_of(i)),
+                n_runs,
+                trial.lanes(),
+                |g| run_group(trial, g, 0, unit_of),
                 |r| agg.fold(r).map_err(KfmcError::from),
             )?;
             done = look;

@@ -318,6 +318,22 @@ where
         filter.run(&self.sys.model, &prior, ctx)
     }
 
+    fn run_filter_group(
+        &self,
+        filter: &dyn RunFilter<NX, NU, NZ, M>,
+        runs: &[&AdditiveRun<NX, NZ>],
+        ctxs: &[RunContext<'_, NX, NU, NZ>],
+    ) -> Vec<FilterOutput> {
+        let priors: Vec<Prior<'_, NX>> = runs
+            .iter()
+            .map(|run| Prior {
+                x0_hat: &run.trajectory.x0_hat,
+                p0: &run.p0,
+            })
+            .collect();
+        filter.run_group(&self.sys.model, &priors, ctxs)
+    }
+
     fn replay_model(&self) -> &M {
         &self.sys.model
     }
@@ -334,6 +350,14 @@ where
 {
     fn run(&self, unit: &Unit) -> UnitResult {
         self.runner.run(self, unit)
+    }
+
+    fn run_group(&self, units: &[Unit]) -> Vec<UnitResult> {
+        self.runner.run_group(self, units)
+    }
+
+    fn lanes(&self) -> usize {
+        self.settings.lanes.width()
     }
 
     fn steps(&self, scenario: usize) -> usize {

@@ -64,6 +64,20 @@ pub trait RunFilter<const NX: usize, const NU: usize, const NZ: usize, M>: Send 
         prior: &Prior<'_, NX>,
         ctx: &RunContext<'_, NX, NU, NZ>,
     ) -> FilterOutput;
+    /// Runs the filter on a group of runs of one cell (`priors[i]` with `ctxs[i]`), one
+    /// output per run, each equal to [`RunFilter::run`]'s; the default runs them one by one.
+    fn run_group(
+        &self,
+        model: &M,
+        priors: &[Prior<'_, NX>],
+        ctxs: &[RunContext<'_, NX, NU, NZ>],
+    ) -> Vec<FilterOutput> {
+        priors
+            .iter()
+            .zip(ctxs)
+            .map(|(p, c)| self.run(model, p, c))
+            .collect()
+    }
 }
 
 impl<const NX: usize, const NU: usize, const NZ: usize, M, F> RunFilter<NX, NU, NZ, M> for F
@@ -78,6 +92,23 @@ where
         ctx: &RunContext<'_, NX, NU, NZ>,
     ) -> FilterOutput {
         run_filter(model, self, &Identity, prior, ctx)
+    }
+
+    fn run_group(
+        &self,
+        model: &M,
+        priors: &[Prior<'_, NX>],
+        ctxs: &[RunContext<'_, NX, NU, NZ>],
+    ) -> Vec<FilterOutput> {
+        self.as_kalman()
+            .and_then(|ekf| super::group::run_group_shared(ekf, model, priors, ctxs))
+            .unwrap_or_else(|| {
+                priors
+                    .iter()
+                    .zip(ctxs)
+                    .map(|(p, c)| self.run(model, p, c))
+                    .collect()
+            })
     }
 }
 

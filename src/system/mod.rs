@@ -22,6 +22,7 @@ pub mod checker;
 pub mod describe;
 pub mod filter_kind;
 pub mod filter_model;
+pub mod group;
 pub mod kinds;
 pub mod limits;
 mod program;

@@ -176,6 +176,9 @@ pub struct RunSettings {
     /// The truth of a system that cannot simulate ([`super::SystemPlan::recorded`]), read from
     /// a user's table (`kfmc score --truth`); its runs stand in for simulated ones.
     pub truth: Option<Arc<crate::exchange::recorded::RecordedTable>>,
+    /// Whether runs of a cell are handed to the trial in groups (`--lanes`, `KFMC_LANES`):
+    /// never a result, only the path that computes it.
+    pub lanes: crate::runner::lanes::LanesMode,
 }
 
 impl RunSettings {

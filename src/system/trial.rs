@@ -21,6 +21,18 @@ use crate::step_loop::{
 pub trait Trial: Sync {
     /// Runs one unit.
     fn run(&self, unit: &Unit) -> UnitResult;
+    /// Runs a group of consecutive units of one cell (same scenario and noise scale, runs in
+    /// order), one result per unit in the same order; each must equal [`Trial::run`]'s, bit
+    /// for bit. The default runs them one by one, so a trial that shares nothing across runs
+    /// needs nothing here.
+    fn run_group(&self, units: &[Unit]) -> Vec<UnitResult> {
+        units.iter().map(|u| self.run(u)).collect()
+    }
+    /// Up to how many units the executor hands [`Trial::run_group`] at once: 1 (the
+    /// default) for a trial that runs units one by one.
+    fn lanes(&self) -> usize {
+        1
+    }
     /// Number of transitions K of a plan scenario.
     fn steps(&self, scenario: usize) -> usize;
     /// Column names.
@@ -82,6 +94,19 @@ pub(super) trait TrialKit<const NQ: usize, const NU: usize, const NZ: usize> {
         run: &Self::Run,
         ctx: &RunContext<'_, NQ, NU, NZ>,
     ) -> FilterOutput;
+    /// Runs a prepared filter on a group of runs of one cell, one output per run in order;
+    /// each must equal [`TrialKit::run_filter`]'s. The default runs them one by one.
+    fn run_filter_group(
+        &self,
+        filter: &Self::Filter,
+        runs: &[&Self::Run],
+        ctxs: &[RunContext<'_, NQ, NU, NZ>],
+    ) -> Vec<FilterOutput> {
+        runs.iter()
+            .zip(ctxs)
+            .map(|(run, ctx)| self.run_filter(filter, run, ctx))
+            .collect()
+    }
     /// The model of [`TrialKit::ReplayModel`].
     fn replay_model(&self) -> &Self::ReplayModel;
     /// The world's per-run metrics of a run ([`UnitResult::world_metrics`]).
@@ -158,17 +183,8 @@ impl<'a, F: ?Sized> UnitRunner<'a, F> {
         }
     }
 
-    /// Runs one unit ([`Trial::run`]): simulates it once through `kit`, runs every filter
-    /// variant of the plan on it in plan order (external ones replayed from their rows), and
-    /// keeps the trace of a traced or exported run.
-    pub(super) fn run<K, const NQ: usize, const NU: usize, const NZ: usize>(
-        &self,
-        kit: &K,
-        unit: &Unit,
-    ) -> UnitResult
-    where
-        K: TrialKit<NQ, NU, NZ, Filter = F>,
-    {
+    /// The cell of a unit and the unit's seed.
+    fn cell_and_seed(&self, unit: &Unit) -> (Cell, u64) {
         let settings = self.settings;
         let si = settings.scenarios[unit.scenario].index;
         let noise_scale = settings.noise_scales[unit.scale];
@@ -181,17 +197,122 @@ impl<'a, F: ?Sized> UnitRunner<'a, F> {
             },
         };
         let seed = settings.run_seed(&self.scenarios[si].name, unit.scale, unit.run);
-        let run = kit.simulate(&cell, unit, seed);
-        let sim = kit.view(&run);
-        let ctx = self.context(unit, &sim);
-        let mut trace = (ctx.trace || ctx.export).then(|| {
+        (cell, seed)
+    }
+
+    /// The world's part of a traced or exported run's trace (`None` for other runs).
+    fn world_trace<const NQ: usize, const NU: usize, const NZ: usize>(
+        sim: &Simulated<'_, NQ, NU, NZ>,
+        ctx: &RunContext<'_, NQ, NU, NZ>,
+    ) -> Option<RunTrace> {
+        (ctx.trace || ctx.export).then(|| {
             let mut t =
                 RunTrace::of_world(sim.inputs, sim.truth, sim.measurements, sim.world.to_vec());
             t.initial = sim
                 .prior
                 .map(|p| (p.x0_hat.as_slice().to_vec(), lower_triangle(p.p0)));
             t
-        });
+        })
+    }
+
+    /// Runs a group of consecutive units of one cell ([`Trial::run_group`]): simulates each
+    /// once, then runs every filter variant on the whole group in plan order (a prepared
+    /// filter may share work across its runs, [`TrialKit::run_filter_group`]), and assembles
+    /// each unit's result exactly as [`UnitRunner::run`] does.
+    pub(super) fn run_group<K, const NQ: usize, const NU: usize, const NZ: usize>(
+        &self,
+        kit: &K,
+        units: &[Unit],
+    ) -> Vec<UnitResult>
+    where
+        K: TrialKit<NQ, NU, NZ, Filter = F>,
+    {
+        if units.len() < 2 {
+            return units.iter().map(|u| self.run(kit, u)).collect();
+        }
+        let settings = self.settings;
+        let (cell, _) = self.cell_and_seed(&units[0]);
+        let seeds: Vec<u64> = units.iter().map(|u| self.cell_and_seed(u).1).collect();
+        let runs: Vec<K::Run> = units
+            .iter()
+            .zip(&seeds)
+            .map(|(u, &seed)| kit.simulate(&cell, u, seed))
+            .collect();
+        let per_unit: Vec<(Option<RunTrace>, Vec<crate::metrics::FilterRun>)> = {
+            let sims: Vec<_> = runs.iter().map(|r| kit.view(r)).collect();
+            let ctxs: Vec<_> = units
+                .iter()
+                .zip(&sims)
+                .map(|(u, sim)| self.context(u, sim))
+                .collect();
+            let mut traces: Vec<Option<RunTrace>> = sims
+                .iter()
+                .zip(&ctxs)
+                .map(|(sim, ctx)| Self::world_trace(sim, ctx))
+                .collect();
+            let mut filters: Vec<Vec<_>> = units
+                .iter()
+                .map(|_| Vec::with_capacity(settings.filters.len()))
+                .collect();
+            let run_refs: Vec<&K::Run> = runs.iter().collect();
+            for (fi, f) in settings.filters.iter().enumerate() {
+                let outs: Vec<FilterOutput> = if f.external {
+                    ctxs.iter()
+                        .map(|ctx| {
+                            crate::score::replay(
+                                settings.estimates.as_deref(),
+                                fi,
+                                &f.label,
+                                kit.replay_model(),
+                                ctx,
+                            )
+                        })
+                        .collect()
+                } else {
+                    let slot = &self.prepared[fi * settings.noise_scales.len() + units[0].scale];
+                    let filter = slot.get_or_init(|| kit.prepare(f, &cell));
+                    kit.run_filter_group(filter, &run_refs, &ctxs)
+                };
+                for ((mut out, trace), runs) in outs.into_iter().zip(&mut traces).zip(&mut filters)
+                {
+                    if let Some(t) = trace.as_mut() {
+                        t.push_filter(&mut out, NQ);
+                    }
+                    runs.push(out.run);
+                }
+            }
+            traces.into_iter().zip(filters).collect()
+        };
+        runs.into_iter()
+            .zip(per_unit)
+            .zip(units.iter().zip(seeds))
+            .map(|((run, (trace, filters)), (unit, seed))| UnitResult {
+                unit: *unit,
+                seed,
+                filters,
+                trace,
+                world_metrics: kit.world_metrics(run),
+            })
+            .collect()
+    }
+
+    /// Runs one unit ([`Trial::run`]): simulates it once through `kit`, runs every filter
+    /// variant of the plan on it in plan order (external ones replayed from their rows), and
+    /// keeps the trace of a traced or exported run.
+    pub(super) fn run<K, const NQ: usize, const NU: usize, const NZ: usize>(
+        &self,
+        kit: &K,
+        unit: &Unit,
+    ) -> UnitResult
+    where
+        K: TrialKit<NQ, NU, NZ, Filter = F>,
+    {
+        let settings = self.settings;
+        let (cell, seed) = self.cell_and_seed(unit);
+        let run = kit.simulate(&cell, unit, seed);
+        let sim = kit.view(&run);
+        let ctx = self.context(unit, &sim);
+        let mut trace = Self::world_trace(&sim, &ctx);
         let mut filters = Vec::with_capacity(settings.filters.len());
         for (fi, f) in settings.filters.iter().enumerate() {
             let mut out = if f.external {

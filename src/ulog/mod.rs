@@ -961,6 +961,8 @@ pub fn nis(
         filter_runs: n as u64,
         filter_steps: total_samples as u64,
         threads: 1,
+        lanes: None,
+        isa: None,
         started_unix_s: std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs()),

@@ -35,6 +35,7 @@ mod pipeline {
     mod check_assertions;
     mod cli;
     mod disk_full;
+    mod lanes;
     mod memory;
     mod ownership;
     mod per_step_runs;

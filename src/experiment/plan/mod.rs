@@ -589,6 +589,7 @@ pub(crate) fn validate_into(
             export_precision: crate::score::EstimatePrecision::F64,
             estimates: None,
             truth: None,
+            lanes: crate::runner::lanes::LanesMode::env_or_auto(),
         },
         system,
         output,

@@ -391,9 +391,9 @@ struct LinearTrial<'a> {
     inputs: usize,
 }
 
-impl Trial for LinearTrial<'_> {
-    fn run(&self, unit: &Unit) -> UnitResult {
-        let mut r = self.inner.run(unit);
+impl LinearTrial<'_> {
+    /// Drops the padding inputs from a result's trace.
+    fn trim(&self, mut r: UnitResult) -> UnitResult {
         if let Some(t) = r.trace.as_mut()
             && self.inputs < NU_MAX
         {
@@ -403,6 +403,19 @@ impl Trial for LinearTrial<'_> {
                     .collect();
         }
         r
+    }
+}
+
+impl Trial for LinearTrial<'_> {
+    fn run(&self, unit: &Unit) -> UnitResult {
+        self.trim(self.inner.run(unit))
+    }
+    fn run_group(&self, units: &[Unit]) -> Vec<UnitResult> {
+        let results = self.inner.run_group(units);
+        results.into_iter().map(|r| self.trim(r)).collect()
+    }
+    fn lanes(&self) -> usize {
+        self.inner.lanes()
     }
     fn steps(&self, scenario: usize) -> usize {
         self.inner.steps(scenario)
