@@ -13,10 +13,10 @@ use kfmc::metrics::RunStatus;
 use kfmc::model::{Availability, Measurement, Model};
 use kfmc::runner::NullObserver;
 use kfmc::runner::lanes::{Isa, LanesMode, groups};
+use kfmc::step_loop::Unit;
 use kfmc::step_loop::{Identity, Prior, RunContext, run_filter};
 use kfmc::study::{ExecOptions, run};
 use kfmc::systems::linear_quadrotor::model::{Linear, LinearSensor};
-use kfmc::trial::Unit;
 
 /// The first runs of every cell of every bundled spec, run in the executor's groups with
 /// lanes on, against each run alone with lanes off: the full debug form of each result (every

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use kfmc::experiment::{self, Overrides, Plan};
 use kfmc::runner::NullObserver;
-use kfmc::trial::Unit;
+use kfmc::step_loop::Unit;
 use kfmc::tune::conditions::{TruthObjective, run_stats};
 use kfmc::tune::estimate::SearchSettings;
 use kfmc::tune::truth::{TruthOptions, prepare};
