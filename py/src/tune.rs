@@ -81,13 +81,14 @@ pub(crate) fn tune<'py>(
                     kfmc::tune::ml::tune_ml(&plan, &opts, obs, &|_| {})
                         .map_err(|e| Failure::from(e).context(format!("tuning {}", path.display())))
                 })?;
-                let est = &report.estimate;
-                d.set_item("objective", est.objective)?;
-                d.set_item("converged", est.converged)?;
-                d.set_item("runs", report.runs)?;
+                estimate_items(
+                    &d,
+                    &report.estimate,
+                    &report.elements,
+                    report.runs,
+                    &report.data,
+                )?;
                 d.set_item("measurements", report.measurements)?;
-                d.set_item("data", &report.data)?;
-                d.set_item("not_identified", directions(py, est, &report.elements)?)?;
             }
             TuneMethod::Truth => {
                 if tune_r || filter.is_some() || measurements.is_some() {
@@ -115,18 +116,19 @@ pub(crate) fn tune<'py>(
                     kfmc::tune::truth::tune_truth(&plan, &opts, obs, &|_| {})
                         .map_err(|e| Failure::from(e).context(format!("tuning {}", path.display())))
                 })?;
-                let est = &report.estimate;
-                d.set_item("objective", est.objective)?;
-                d.set_item("converged", est.converged)?;
-                d.set_item("runs", report.runs)?;
-                d.set_item("data", &report.data)?;
+                estimate_items(
+                    &d,
+                    &report.estimate,
+                    &report.elements,
+                    report.runs,
+                    &report.data,
+                )?;
                 let residuals = PyDict::new(py);
                 for (g, e) in report.residuals.iter().zip(&report.elements) {
                     residuals.set_item(&e.name, g)?;
                 }
                 d.set_item("conditions", residuals)?;
                 d.set_item("notes", report.notes.clone())?;
-                d.set_item("not_identified", directions(py, est, &report.elements)?)?;
             }
             TuneMethod::Consistency => {
                 if elements.is_some() || measurements.is_some() {
@@ -168,20 +170,27 @@ pub(crate) fn tune<'py>(
     })
 }
 
-/// The directions the data do not identify: one dict per direction, element name → its
-/// component in ln units.
-fn directions<'py>(
-    py: Python<'py>,
+/// What the `ml` and `truth` methods both report: the objective at the estimate, whether the
+/// search converged, the runs and where they came from, and the directions the data do not
+/// identify (one dict per direction, element name → its component in ln units).
+fn estimate_items(
+    d: &Bound<'_, PyDict>,
     est: &Estimate,
     elements: &[TuneElement],
-) -> PyResult<Bound<'py, PyList>> {
-    let flat = PyList::empty(py);
+    runs: usize,
+    data: &str,
+) -> PyResult<()> {
+    d.set_item("objective", est.objective)?;
+    d.set_item("converged", est.converged)?;
+    d.set_item("runs", runs)?;
+    d.set_item("data", data)?;
+    let flat = PyList::empty(d.py());
     for direction in &est.flat {
-        let entry = PyDict::new(py);
+        let entry = PyDict::new(d.py());
         for (c, e) in direction.components.iter().zip(elements) {
             entry.set_item(&e.name, c)?;
         }
         flat.append(entry)?;
     }
-    Ok(flat)
+    d.set_item("not_identified", flat)
 }

@@ -180,13 +180,7 @@ fn execute_ml(
         .map_err(anyhow::Error::from)
         .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
     let est = &report.estimate;
-    let iterations = est
-        .trace
-        .iter()
-        .filter(|r| r.start == est.best_start)
-        .map(|r| r.iteration)
-        .max()
-        .unwrap_or(0);
+    let iterations = est.best_start_iterations();
     outln!(
         "{} tune {} (ml): {} elements from {} runs, {} scalar measurements ({})",
         plan.program.name,
@@ -283,15 +277,10 @@ fn execute_truth(
         .map_err(anyhow::Error::from)
         .map_err(|e| e.context(format!("tuning {}", spec.display())))?;
     let est = &report.estimate;
-    let iterations = est
-        .trace
-        .iter()
-        .filter(|r| r.start == est.best_start)
-        .map(|r| r.iteration)
-        .max()
-        .unwrap_or(0);
+    let iterations = est.best_start_iterations();
     outln!(
-        "kfmc tune {} (truth, objective {}): {} elements from {} runs ({})",
+        "{} tune {} (truth, objective {}): {} elements from {} runs ({})",
+        plan.program.name,
         plan.name,
         opts.objective.name(),
         report.elements.len(),

@@ -149,6 +149,15 @@ pub struct Estimate {
 }
 
 impl Estimate {
+    /// The iterations the best start's search took.
+    pub fn best_start_iterations(&self) -> usize {
+        (self.trace.iter())
+            .filter(|r| r.start == self.best_start)
+            .map(|r| r.iteration)
+            .max()
+            .unwrap_or(0)
+    }
+
     /// Element `i` on the natural scale: (estimate, standard error by the delta method, 95 %
     /// interval mapped back from ln space, so it stays positive).
     pub fn natural(&self, i: usize) -> (f64, Option<f64>, Option<(f64, f64)>) {
